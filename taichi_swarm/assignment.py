@@ -1,0 +1,121 @@
+"""Exact minimum-cost assignment in a kernel: the O(n^3) Hungarian method
+with potentials (Kuhn 1955; Jonker-Volgenant shortest augmenting paths, in
+the compact form of e-maxx "Hungarian algorithm").
+
+Each environment solves its own M x M problem serially inside the parallel
+loop over environments: the cost matrix is cached in the packed buffers, the
+work arrays live on the thread's stack.
+"""
+
+import taichi as ti
+
+from .layout import (
+    H_M, O_ASSIGN, O_HU_COST, O_POS, O_TGT,
+)
+
+INF = 1e30
+
+
+@ti.func
+def agent_target_cost(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32) -> ti.f32:
+    """Distance from agent i to target j of environment b (both 0-based)."""
+    M = ib[H_M]
+    p = ti.math.vec2(f[ib[O_POS] + (b * M + i) * 2], f[ib[O_POS] + (b * M + i) * 2 + 1])
+    t = ti.math.vec2(f[ib[O_TGT] + (b * M + j) * 2], f[ib[O_TGT] + (b * M + j) * 2 + 1])
+    return (p - t).norm()
+
+
+@ti.func
+def solve(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32):
+    """Writes ib[assignment][b, i] = target of agent i, minimising total distance.
+
+    ``cap`` (compile-time, >= M + 1) sizes the per-thread work arrays, which
+    live on the thread's stack rather than in the shared buffers.
+    """
+    M = ib[H_M]
+    C = ib[O_HU_COST] + b * M * M  # cost[i, j] = |p_i - t_j|, row-major, 0-based
+    P0, T0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2
+    distinct_row_minima = True  # then "each agent takes its closest target" is optimal
+    taken = ti.Vector.zero(ti.i32, cap)
+    best_col = ti.Vector.zero(ti.i32, cap)
+    for i in range(M):
+        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+        best, arg = INF, 0
+        for j in range(M):
+            dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
+            c = ti.sqrt(dx * dx + dy * dy)
+            f[C + i * M + j] = c
+            if c < best:
+                best, arg = c, j
+        best_col[i] = arg
+        if taken[arg] != 0:
+            distinct_row_minima = False
+        taken[arg] = 1
+    if distinct_row_minima:
+        for i in range(M):
+            ib[ib[O_ASSIGN] + b * M + i] = best_col[i]
+    else:
+        _hungarian(f, ib, cap, b, C)
+
+
+@ti.func
+def _hungarian(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32, C: ti.i32):
+    M = ib[H_M]
+    # 1-based work arrays; index 0 is the algorithm's virtual row/column
+    u = ti.Vector.zero(ti.f32, cap)
+    v = ti.Vector.zero(ti.f32, cap)
+    minv = ti.Vector.zero(ti.f32, cap)
+    p = ti.Vector.zero(ti.i32, cap)
+    way = ti.Vector.zero(ti.i32, cap)
+    used = ti.Vector.zero(ti.i32, cap)
+    for i in range(1, M + 1):
+        p[0] = i
+        j0 = 0
+        for j in range(M + 1):
+            minv[j] = INF
+            used[j] = 0
+        while True:
+            used[j0] = 1
+            i0 = p[j0]
+            u_i0 = u[i0]
+            row = C + (i0 - 1) * M - 1  # f[row + j] = cost[i0 - 1, j - 1]
+            delta = INF
+            j1 = 0
+            first_unused = 0
+            for j in range(1, M + 1):
+                if used[j] == 0:
+                    if first_unused == 0:
+                        first_unused = j
+                    cur = f[row + j] - u_i0 - v[j]
+                    if cur < minv[j]:
+                        minv[j] = cur
+                        way[j] = j0
+                    if minv[j] < delta:
+                        delta = minv[j]
+                        j1 = j
+            if j1 == 0:  # only non-finite costs left (NaN positions): still terminate
+                j1 = first_unused
+                delta = 0.0
+            for j in range(M + 1):
+                if used[j] != 0:
+                    u[p[j]] += delta
+                    v[j] -= delta
+                else:
+                    minv[j] -= delta
+            j0 = j1
+            if p[j0] == 0:
+                break
+        while j0 != 0:  # unwind the augmenting path
+            j1 = way[j0]
+            p[j0] = p[j1]
+            j0 = j1
+    for j in range(1, M + 1):
+        ib[ib[O_ASSIGN] + b * M + p[j] - 1] = j - 1
+
+
+def capacity(num_agents: int) -> int:
+    """Compile-time size of the work arrays: the next power of two >= M + 1."""
+    cap = 4
+    while cap < num_agents + 1:
+        cap *= 2
+    return cap

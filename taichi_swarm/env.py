@@ -1,0 +1,336 @@
+"""``SwarmEnv``: a batch of B teams of M agents, stepped by fused Taichi kernels.
+
+Shapes: B environments, M agents, L landmarks.
+    obs["self"]      float32 [B, M, 4]     (vx, vy, px, py) of each agent
+    obs["entities"]  float32 [B, M, L, 2]  landmark position - agent position
+    obs["adj"]       bool    [B, M, M]     adj[b, i, j]: agent i hears agent j
+    reward           float32 [B]           team reward of the step just taken
+    done             bool    [B]           the episode ended at this step
+Every returned array is a zero-copy view of the env's preallocated buffers and
+is overwritten by the next ``step``/``reset``: copy what you keep.
+"""
+
+from __future__ import annotations
+
+import numbers
+
+import numpy as np
+
+from . import assignment, kernels, rng, runtime
+from .layout import (
+    H_COMM_RC, H_MAX_STEPS, P_AGENT_RADIUS, P_COMM_RADIUS, P_SUCCESS, P_TASK_PARAM, Layout,
+)
+from .physics import NUM_ACTIONS
+from .tasks import COMMON_PARAMS, TASK_SPECS, TASKS
+
+COMMS = ("uc", "rc")
+ARRAYS = ("torch", "numpy")
+# Taichi's CPU thread pool costs ~120 us per parallel loop: below this many agents
+# per batch one thread is faster (measured by `swarm bench sim --serial-sweep`).
+SERIAL_BELOW_AGENTS = 2048
+_TASK_PARAM_NAME = {"formation": "formation_radius", "line": "line_length"}
+
+
+def _check_int(name: str, value, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return int(value)
+
+
+def _check_float(name: str, value, minimum: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return float(value)
+
+
+class SwarmEnv:
+    """B environments of one task; build it with ``taichi_swarm.make``."""
+
+    def __init__(
+        self,
+        task: str,
+        num_envs: int,
+        num_agents: int,
+        comm: str = "uc",
+        comm_radius: float = 1.0,
+        arch: str = "cpu",
+        seed: int | None = None,
+        array: str = "torch",
+        **task_params,
+    ):
+        if task not in TASK_SPECS:
+            raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+        spec = TASK_SPECS[task]
+        self.task = task
+        self.num_envs = _check_int("num_envs", num_envs, 1)
+        self.num_agents = _check_int("num_agents", num_agents, spec.min_agents)
+        self.num_landmarks = spec.num_landmarks(self.num_agents)
+        if comm not in COMMS:
+            raise ValueError(f"comm must be one of {COMMS}, got {comm!r}")
+        self.comm = comm
+        self.comm_radius = _check_float("comm_radius", comm_radius, 0.0)
+        if array not in ARRAYS:
+            raise ValueError(f"array must be one of {ARRAYS}, got {array!r}")
+        self.array = array
+        if seed is not None:
+            seed = _check_int("seed", seed, 0)
+        self._seed = seed
+        allowed = {**COMMON_PARAMS, **spec.params}
+        unknown = sorted(set(task_params) - set(allowed))
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {unknown} for task {task!r}; known: {sorted(allowed)}")
+        params = {**allowed, **task_params}
+        self.params = {
+            k: (_check_int(k, v, 1) if k == "max_steps" else _check_float(k, v, 0.0))
+            for k, v in params.items()
+        }
+        self.num_actions = NUM_ACTIONS
+        self._task_id = spec.task_id
+        self._cap = assignment.capacity(self.num_agents)
+
+        self.arch = runtime.init(arch)
+        if self.arch == "cuda" and array == "numpy":
+            raise ValueError("array='numpy' needs arch='cpu': CUDA buffers are torch tensors")
+        self.device = "cuda" if self.arch == "cuda" else "cpu"
+        self._parallel = self.arch == "cuda" or self.num_envs * self.num_agents >= SERIAL_BELOW_AGENTS
+        self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks)
+        self._allocate()
+        self._write_header()
+        self._seeded = False
+
+    # ------------------------------------------------------------------ buffers
+    def _allocate(self) -> None:
+        sizes = self.layout.sizes
+        dtypes = {"f32": np.float32, "i32": np.int32, "u8": np.uint8}
+        if self.arch == "cuda":
+            import torch
+
+            tdt = {"f32": torch.float32, "i32": torch.int32, "u8": torch.uint8}
+            self._bufs = {k: torch.zeros(sizes[k], dtype=tdt[k], device="cuda") for k in sizes}
+            self._host = None
+        else:
+            self._host = {k: np.zeros(sizes[k], dtype=dtypes[k]) for k in sizes}
+            if self.array == "torch":
+                import torch
+
+                self._bufs = {k: torch.from_numpy(v) for k, v in self._host.items()}
+            else:
+                self._bufs = self._host
+        # Kernel arguments: numpy arrays on the CPU (cheaper to launch than torch
+        # tensors; same memory), torch tensors on CUDA.
+        kbufs = self._host if self._host is not None else self._bufs
+        self._f, self._i, self._u8 = kbufs["f32"], kbufs["i32"], kbufs["u8"]
+        v = self._view
+        # int32 [B, M] block that step() copies the actions into
+        self._actions_in = v("actions")
+        self._actions_host = self._actions_in if isinstance(self._actions_in, np.ndarray) else None
+        if self._host is not None and self._actions_host is None:
+            self._actions_host = self._actions_in.numpy()
+        self.obs = {"self": v("obs_self"), "entities": v("obs_entities"), "adj": v("adj", bool)}
+        self.reward = v("reward")
+        self.done = v("done", bool)
+        self.info = {
+            # valid where ``done``: the episode that just ended
+            "episode": {
+                "success": v("ep_success", bool),  # terminated by success
+                "truncated": v("ep_truncated", bool),  # hit the time limit
+                "length": v("ep_length"),
+                "return": v("ep_return"),
+                "matched_dist": v("ep_matched_dist"),  # [B, M] final d*_i
+                "dist": v("ep_dist"),  # DIST: mean target -> closest agent distance
+            },
+            "terminal_obs": {
+                "self": v("term_self"), "entities": v("term_entities"), "adj": v("term_adj", bool),
+            },
+        }
+        # current state extras (targets for drawing, d*_i, who is matched to what)
+        self.targets = v("targets")  # [B, M, 2]
+        self.matched_dist = v("matched_dist")  # [B, M]
+        self.assignment = v("assignment")  # [B, M] target index of agent i
+
+    def _view(self, name: str, as_bool: bool = False):
+        blk = self.layout.blocks[name]
+        n = int(np.prod(blk.shape, dtype=np.int64))
+        out = self._bufs[blk.buffer][blk.offset : blk.offset + n].reshape(blk.shape)
+        if as_bool:
+            if isinstance(out, np.ndarray):
+                return out.view(np.bool_)
+            import torch
+
+            return out.view(torch.bool)
+        return out
+
+    def _write_header(self) -> None:
+        header = self.layout.header.copy()
+        header[H_COMM_RC] = 1 if self.comm == "rc" else 0
+        header[H_MAX_STEPS] = self.params["max_steps"]
+        fparams = np.zeros(4, dtype=np.float32)
+        fparams[P_COMM_RADIUS] = self.comm_radius
+        fparams[P_AGENT_RADIUS] = TASK_SPECS[self.task].agent_radius
+        fparams[P_SUCCESS] = self.params["success_threshold"]
+        fparams[P_TASK_PARAM] = self.params.get(_TASK_PARAM_NAME.get(self.task, ""), 0.0)
+        self._put(self._i, 0, header)
+        self._put(self._f, 0, fparams)
+
+    def _put(self, buf, offset: int, values: np.ndarray) -> None:
+        if isinstance(buf, np.ndarray):
+            buf[offset : offset + values.size] = values.reshape(-1)
+        else:
+            import torch
+
+            buf[offset : offset + values.size] = torch.from_numpy(values.reshape(-1)).to(buf.device)
+
+    # ------------------------------------------------------------------ API
+    def reset(self, seed: int | None = None):
+        """Start a fresh episode in every environment; returns ``obs``.
+
+        ``seed`` restarts every environment's random stream (the same seed gives
+        the same trajectories); without it the streams continue, or start from
+        the ``seed`` given to ``make`` on the first reset.
+        """
+        if seed is not None:
+            seed = _check_int("seed", seed, 0)
+        if seed is not None or not self._seeded:
+            states = rng.seed_states(seed if seed is not None else self._seed, self.num_envs)
+            self._put(self._i, self.layout.blocks["rng"].offset, states)
+            self._seeded = True
+        kernels.reset_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._parallel)
+        return self.obs
+
+    def step(self, actions):
+        """Advance every environment one step; returns ``(obs, reward, done, info)``.
+
+        ``actions``: int64 [B, M], values 0..4 (no-op, -x, +x, -y, +y), a
+        contiguous tensor on the env's device (or a numpy array on the CPU).
+        Finished environments restart inside this call: ``obs`` is then the
+        first observation of the new episode, ``info["terminal_obs"]`` the last
+        one of the old, ``info["episode"]`` its statistics.
+        """
+        if not self._seeded:
+            raise RuntimeError("call reset() before step()")
+        self._check_actions(actions)
+        if isinstance(actions, np.ndarray):
+            np.copyto(self._actions_host, actions, casting="unsafe")  # int64 -> int32
+        else:
+            self._actions_tensor().copy_(actions)
+        kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._parallel)
+        return self.obs, self.reward, self.done, self.info
+
+    def _actions_tensor(self):
+        """The actions block as a torch tensor (made once, also for numpy envs)."""
+        if not hasattr(self, "_actions_t"):
+            import torch
+
+            self._actions_t = (
+                self._actions_in if self._host is None else torch.from_numpy(self._actions_host)
+            )
+        return self._actions_t
+
+    def _check_actions(self, actions) -> None:
+        shape = (self.num_envs, self.num_agents)
+        if isinstance(actions, np.ndarray):
+            if self.arch == "cuda":
+                raise ValueError("actions must be a torch tensor on cuda for a CUDA env, got a numpy array")
+            if actions.dtype != np.int64:
+                raise ValueError(f"actions must have dtype int64, got {actions.dtype}")
+            if actions.shape != shape:
+                raise ValueError(f"actions must have shape {shape} (num_envs, num_agents), got {actions.shape}")
+            if not actions.flags.c_contiguous:
+                raise ValueError("actions must be C-contiguous (use np.ascontiguousarray)")
+            lo, hi = (int(actions.min()), int(actions.max()))
+        else:
+            import torch
+
+            if not isinstance(actions, torch.Tensor):
+                raise ValueError(f"actions must be a torch tensor or numpy array, got {type(actions).__name__}")
+            if actions.dtype != torch.int64:
+                raise ValueError(f"actions must have dtype torch.int64, got {actions.dtype}")
+            if tuple(actions.shape) != shape:
+                raise ValueError(f"actions must have shape {shape} (num_envs, num_agents), got {tuple(actions.shape)}")
+            if actions.device.type != self.device:
+                raise ValueError(f"actions must be on device {self.device!r}, got {actions.device}")
+            if not actions.is_contiguous():
+                raise ValueError("actions must be contiguous (call .contiguous())")
+            lo, hi = torch.aminmax(actions)
+            lo, hi = int(lo), int(hi)
+        if lo < 0 or hi >= NUM_ACTIONS:
+            raise ValueError(f"actions must be in 0..{NUM_ACTIONS - 1}, got values in [{lo}, {hi}]")
+
+    def get_state(self) -> dict:
+        """Copies of pos [B, M, 2], vel [B, M, 2], landmarks [B, L, 2], step [B]."""
+        names = {"pos": "pos", "vel": "vel", "landmarks": "landmarks", "step": "step"}
+        return {k: _copy(self._view(n)) for k, n in names.items()}
+
+    def set_state(self, pos=None, vel=None, landmarks=None, step=None):
+        """Overwrite parts of the state (all environments); returns the new ``obs``.
+
+        Targets, assignment and observations are recomputed from the new state.
+        """
+        if not self._seeded:
+            self.reset()
+        for name, value in (("pos", pos), ("vel", vel), ("landmarks", landmarks), ("step", step)):
+            if value is None:
+                continue
+            blk = self.layout.blocks[name]
+            arr = _to_numpy(value, name)
+            if arr.shape != blk.shape:
+                raise ValueError(f"{name} must have shape {blk.shape}, got {arr.shape}")
+            if name == "step":
+                if not np.issubdtype(arr.dtype, np.integer) or (arr < 0).any():
+                    raise ValueError("step must hold non-negative integers")
+                arr = arr.astype(np.int32)
+            else:
+                if not np.isfinite(arr).all():
+                    raise ValueError(f"{name} must be finite")
+                arr = arr.astype(np.float32)
+            self._put(self._bufs[blk.buffer], blk.offset, arr)
+        kernels.refresh_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._parallel)
+        return self.obs
+
+    def __repr__(self) -> str:
+        return (
+            f"SwarmEnv(task={self.task!r}, num_envs={self.num_envs}, num_agents={self.num_agents}, "
+            f"num_landmarks={self.num_landmarks}, comm={self.comm!r}, comm_radius={self.comm_radius}, "
+            f"arch={self.arch!r}, array={self.array!r})"
+        )
+
+
+def _copy(x):
+    return x.copy() if isinstance(x, np.ndarray) else x.clone()
+
+
+def _to_numpy(value, name: str) -> np.ndarray:
+    if isinstance(value, np.ndarray):
+        return value
+    if hasattr(value, "detach"):  # torch tensor, any device
+        return value.detach().cpu().numpy()
+    try:
+        return np.asarray(value)
+    except Exception as exc:  # noqa: BLE001
+        raise ValueError(f"{name} must be array-like") from exc
+
+
+def make(
+    task: str,
+    num_envs: int,
+    num_agents: int,
+    comm: str = "uc",
+    comm_radius: float = 1.0,
+    arch: str = "cpu",
+    seed: int | None = None,
+    array: str = "torch",
+    **task_params,
+) -> SwarmEnv:
+    """Build a batch of ``num_envs`` teams of ``num_agents`` agents for ``task``.
+
+    task: one of ``TASKS`` (coverage, formation, line). comm: "uc" (every
+    agent hears every agent) or "rc" (within ``comm_radius``). arch: "cpu",
+    "cuda"/"gpu" or "auto". array: "torch" or "numpy" outputs (numpy needs no
+    torch). task_params: ``max_steps`` (50) and ``success_threshold`` for all
+    tasks; ``formation_radius`` (formation); ``line_length`` (line).
+    """
+    return SwarmEnv(task, num_envs, num_agents, comm, comm_radius, arch, seed, array, **task_params)

@@ -1,0 +1,173 @@
+"""The fused kernels: one launch per ``reset`` and one per ``step``.
+
+Every kernel takes the three packed buffers (see layout.py) and, for the
+step, nothing else (the actions are copied into the int32 buffer first). Each kernel has exactly one parallel loop, over
+environments (only the outermost loop is parallel, and every extra pass costs
+a thread-pool dispatch, which dominated at small B). Per environment, a step
+is: forces -> velocities -> positions, targets, optimal assignment, reward,
+success and done, episode statistics, terminal observation and auto-reset,
+then the observations and communication graph.
+"""
+
+import taichi as ti
+
+from . import assignment, physics, tasks
+from .layout import (
+    H_B, H_COMM_RC, H_L, H_M, H_MAX_STEPS, O_ACTIONS, O_ADJ, O_ASSIGN, O_DONE, O_EP_DIST, O_EP_LEN,
+    O_EP_MATCHED, O_EP_RETURN, O_HU_COST, O_EP_SUCCESS, O_EP_TRUNC, O_LMK, O_MATCHED, O_OBS_ENT,
+    O_OBS_SELF, O_POS, O_RET_ACC, O_REWARD, O_STEP, O_TERM_ADJ, O_TERM_ENT, O_TERM_SELF,
+    O_TGT, O_VEL, P_AGENT_RADIUS, P_COMM_RADIUS, P_SUCCESS,
+)
+
+F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
+I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+U8 = ti.types.ndarray(dtype=ti.u8, ndim=1)
+
+
+@ti.func
+def _pos(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32) -> ti.math.vec2:
+    base = ib[O_POS] + (b * ib[H_M] + i) * 2
+    return ti.math.vec2(f[base], f[base + 1])
+
+
+@ti.func
+def match(task: ti.template(), cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Targets, optimal assignment and matched distances d*_i of env b."""
+    M = ib[H_M]
+    tasks.place_targets(task, f, ib, b)
+    assignment.solve(f, ib, cap, b)
+    for i in range(M):
+        j = ib[ib[O_ASSIGN] + b * M + i]
+        f[ib[O_MATCHED] + b * M + i] = f[ib[O_HU_COST] + (b * M + i) * M + j]
+
+
+@ti.func
+def write_obs(f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32, i: ti.i32,
+              self_off: ti.i32, ent_off: ti.i32, adj_off: ti.i32):
+    """Agent i's observation: self [4] = (vel, pos), entities [L, 2] = landmark - pos,
+    adjacency row [M] = who i hears (itself always; "rc": within comm radius)."""
+    M, L = ib[H_M], ib[H_L]
+    k = b * M + i
+    p = _pos(f, ib, b, i)
+    vb = ib[O_VEL] + k * 2
+    f[self_off + k * 4 + 0] = f[vb]
+    f[self_off + k * 4 + 1] = f[vb + 1]
+    f[self_off + k * 4 + 2] = p[0]
+    f[self_off + k * 4 + 3] = p[1]
+    lmk = ib[O_LMK] + b * L * 2
+    for l in range(L):
+        f[ent_off + (k * L + l) * 2] = f[lmk + 2 * l] - p[0]
+        f[ent_off + (k * L + l) * 2 + 1] = f[lmk + 2 * l + 1] - p[1]
+    restricted = ib[H_COMM_RC] != 0
+    radius = f[P_COMM_RADIUS]
+    r2 = radius * radius
+    P0 = ib[O_POS] + b * M * 2
+    for j in range(M):
+        hears = True
+        if restricted and j != i:
+            d = ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]) - p
+            hears = d.dot(d) <= r2
+        u8[adj_off + k * M + j] = ti.cast(hears, ti.u8)
+
+
+@ti.func
+def write_team_obs(f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32,
+                   self_off: ti.i32, ent_off: ti.i32, adj_off: ti.i32):
+    for i in range(ib[H_M]):
+        write_obs(f, ib, u8, b, i, self_off, ent_off, adj_off)
+
+
+@ti.func
+def target_dist(f: ti.template(), ib: ti.template(), b: ti.i32) -> ti.f32:
+    """DIST: mean over targets of the distance to the closest agent."""
+    M = ib[H_M]
+    total = 0.0
+    for t in range(M):
+        tb = ib[O_TGT] + (b * M + t) * 2
+        tp = ti.math.vec2(f[tb], f[tb + 1])
+        best = 1e30
+        for i in range(M):
+            best = ti.min(best, (_pos(f, ib, b, i) - tp).norm())
+        total += best
+    return total / M
+
+
+@ti.func
+def start_episode(task: ti.template(), cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    tasks.spawn(task, f, ib, b)
+    ib[ib[O_STEP] + b] = 0
+    f[ib[O_RET_ACC] + b] = 0.0
+    match(task, cap, f, ib, b)
+
+
+@ti.kernel
+def reset_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), parallel: ti.template()):
+    ti.loop_config(serialize=ti.static(not parallel))
+    for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
+        start_episode(task, cap, f, ib, b)
+        f[ib[O_REWARD] + b] = 0.0
+        u8[ib[O_DONE] + b] = ti.u8(0)
+        write_team_obs(f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+
+
+@ti.kernel
+def refresh_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), parallel: ti.template()):
+    """Recompute targets, assignment and observations after ``set_state``."""
+    ti.loop_config(serialize=ti.static(not parallel))
+    for b in range(ib[H_B]):
+        match(task, cap, f, ib, b)
+        write_team_obs(f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+
+
+@ti.func
+def physics_step(f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Action and contact forces -> velocities, then positions, for env b."""
+    M = ib[H_M]
+    dist_min = 2.0 * f[P_AGENT_RADIUS]
+    P0, V0, A0 = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_ACTIONS] + b * M
+    for i in range(M):  # velocities first: contact forces use the old positions
+        p = ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1])
+        force = physics.action_force(ib[A0 + i])
+        for j in range(M):
+            if j != i:
+                force += physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
+        v = physics.integrate_velocity(ti.math.vec2(f[V0 + 2 * i], f[V0 + 2 * i + 1]), force)
+        f[V0 + 2 * i] = v[0]
+        f[V0 + 2 * i + 1] = v[1]
+    for c in range(M * 2):
+        f[P0 + c] += f[V0 + c] * physics.DT
+
+
+@ti.kernel
+def step_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), parallel: ti.template()):
+    """One step of every environment, with the actions already in ib[O_ACTIONS]."""
+    M = ib[H_M]
+    ti.loop_config(serialize=ti.static(not parallel))
+    for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
+        physics_step(f, ib, b)
+        t = ib[ib[O_STEP] + b] + 1
+        ib[ib[O_STEP] + b] = t
+        match(task, cap, f, ib, b)
+        sum_d, sum_clipped, success = 0.0, 0.0, True
+        for i in range(M):
+            d = f[ib[O_MATCHED] + b * M + i]
+            sum_d += d
+            sum_clipped += ti.math.clamp(d, 0.0, 2.0)
+            success = success and d < f[P_SUCCESS]
+        r = tasks.reward(task, sum_d / M, sum_clipped / M)
+        f[ib[O_REWARD] + b] = r
+        ret = f[ib[O_RET_ACC] + b] + r
+        f[ib[O_RET_ACC] + b] = ret
+        done = success or t >= ib[H_MAX_STEPS]
+        u8[ib[O_DONE] + b] = ti.cast(done, ti.u8)
+        if done:
+            u8[ib[O_EP_SUCCESS] + b] = ti.cast(success, ti.u8)
+            u8[ib[O_EP_TRUNC] + b] = ti.cast(not success, ti.u8)
+            ib[ib[O_EP_LEN] + b] = t
+            f[ib[O_EP_RETURN] + b] = ret
+            f[ib[O_EP_DIST] + b] = target_dist(f, ib, b)
+            for i in range(M):
+                f[ib[O_EP_MATCHED] + b * M + i] = f[ib[O_MATCHED] + b * M + i]
+            write_team_obs(f, ib, u8, b, ib[O_TERM_SELF], ib[O_TERM_ENT], ib[O_TERM_ADJ])
+            start_episode(task, cap, f, ib, b)
+        write_team_obs(f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])

@@ -1,0 +1,102 @@
+"""Packed state: every per-step array lives in one of three flat buffers.
+
+A Taichi launch costs ~30 us plus ~20-45 us per torch-tensor argument
+(../shared/spec/stack-notes.md), so the step kernel takes exactly three
+buffers (float32, int32, uint8) plus the actions. Each named array is a
+contiguous block ``[B, ...]`` inside its buffer; the public arrays
+(``obs["self"]``, ``reward``, ...) are zero-copy views of those blocks.
+
+The block offsets are written into a small header at the start of the int32
+buffer (and the float parameters at the start of the float32 buffer), so the
+kernels read ``ib[O_POS]`` instead of being recompiled for each (B, M, L).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# --- int32 header: sizes and switches -------------------------------------------------
+H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
+# --- int32 header: where each block starts (in its own buffer) -----------------------
+(
+    # float32 blocks
+    O_POS, O_VEL, O_LMK, O_TGT, O_OBS_SELF, O_OBS_ENT, O_REWARD, O_MATCHED,
+    O_EP_MATCHED, O_EP_DIST, O_EP_RETURN, O_RET_ACC, O_TERM_SELF, O_TERM_ENT,
+    O_HU_COST,
+    # int32 blocks
+    O_STEP, O_RNG, O_EP_LEN, O_ASSIGN, O_ACTIONS,
+    # uint8 blocks
+    O_ADJ, O_DONE, O_EP_SUCCESS, O_EP_TRUNC, O_TERM_ADJ,
+) = range(5, 5 + 25)
+INT_HEADER = 5 + 25
+# --- float32 header: physical and task parameters ------------------------------------
+P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM = range(4)
+FLOAT_HEADER = 4
+
+
+def _blocks(M: int, L: int):
+    """(header slot, name, per-env shape) of every block, per buffer dtype."""
+    f32 = [
+        (O_POS, "pos", (M, 2)),
+        (O_VEL, "vel", (M, 2)),
+        (O_LMK, "landmarks", (L, 2)),
+        (O_TGT, "targets", (M, 2)),
+        (O_OBS_SELF, "obs_self", (M, 4)),
+        (O_OBS_ENT, "obs_entities", (M, L, 2)),
+        (O_REWARD, "reward", ()),
+        (O_MATCHED, "matched_dist", (M,)),
+        (O_EP_MATCHED, "ep_matched_dist", (M,)),
+        (O_EP_DIST, "ep_dist", ()),
+        (O_EP_RETURN, "ep_return", ()),
+        (O_RET_ACC, "return_acc", ()),
+        (O_TERM_SELF, "term_self", (M, 4)),
+        (O_TERM_ENT, "term_entities", (M, L, 2)),
+        (O_HU_COST, "hu_cost", (M, M)),
+    ]
+    i32 = [
+        (O_STEP, "step", ()),
+        (O_RNG, "rng", ()),
+        (O_EP_LEN, "ep_length", ()),
+        (O_ASSIGN, "assignment", (M,)),
+        (O_ACTIONS, "actions", (M,)),  # the step's actions, copied in (one kernel argument less)
+    ]
+    u8 = [
+        (O_ADJ, "adj", (M, M)),
+        (O_DONE, "done", ()),
+        (O_EP_SUCCESS, "ep_success", ()),
+        (O_EP_TRUNC, "ep_truncated", ()),
+        (O_TERM_ADJ, "term_adj", (M, M)),
+    ]
+    return {"f32": f32, "i32": i32, "u8": u8}
+
+
+@dataclass(frozen=True)
+class Block:
+    buffer: str  # "f32" | "i32" | "u8"
+    offset: int
+    shape: tuple  # full shape, batch first: (B, *per_env)
+
+
+class Layout:
+    """Offsets of every named block for one (B, M, L)."""
+
+    def __init__(self, num_envs: int, num_agents: int, num_landmarks: int):
+        self.B, self.M, self.L = num_envs, num_agents, num_landmarks
+        self.blocks: dict[str, Block] = {}
+        self.header = np.zeros(INT_HEADER, dtype=np.int32)
+        self.header[[H_B, H_M, H_L]] = (num_envs, num_agents, num_landmarks)
+        self.sizes = {}
+        for buf, entries in _blocks(num_agents, num_landmarks).items():
+            offset = INT_HEADER if buf == "i32" else FLOAT_HEADER if buf == "f32" else 0
+            for slot, name, per_env in entries:
+                self.blocks[name] = Block(buf, offset, (num_envs, *per_env))
+                self.header[slot] = offset
+                offset += num_envs * int(np.prod(per_env, dtype=np.int64))
+            self.sizes[buf] = offset
+        if max(self.sizes.values()) >= 2**31:
+            raise ValueError(
+                f"num_envs={num_envs} x num_agents={num_agents} needs more than 2^31 buffer "
+                "entries; use fewer environments per SwarmEnv"
+            )

@@ -1,0 +1,74 @@
+"""Bad input gets a ValueError naming the argument."""
+
+import numpy as np
+import pytest
+
+import taichi_swarm
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(task="swarming"), "task"),
+        (dict(num_envs=0), "num_envs"),
+        (dict(num_envs=2.5), "num_envs"),
+        (dict(num_agents=0), "num_agents"),
+        (dict(task="formation", num_agents=1), "num_agents"),
+        (dict(comm="xx"), "comm"),
+        (dict(comm_radius=-1.0), "comm_radius"),
+        (dict(arch="tpu"), "arch"),
+        (dict(array="jax"), "array"),
+        (dict(seed=-3), "seed"),
+        (dict(max_steps=0), "max_steps"),
+        (dict(line_length=2.0), "line_length"),  # not a coverage parameter
+    ],
+)
+def test_make_rejects(kwargs, match):
+    args = dict(task="coverage", num_envs=2, num_agents=3) | kwargs
+    with pytest.raises(ValueError, match=match):
+        taichi_swarm.make(**args)
+
+
+def test_step_rejects_bad_actions():
+    import torch
+
+    env = taichi_swarm.make("coverage", 2, 3, seed=0)
+    env.reset()
+    with pytest.raises(ValueError, match="dtype"):
+        env.step(torch.zeros((2, 3), dtype=torch.int32))
+    with pytest.raises(ValueError, match="shape"):
+        env.step(torch.zeros((3, 2), dtype=torch.int64))
+    with pytest.raises(ValueError, match="0..4"):
+        env.step(torch.full((2, 3), 5, dtype=torch.int64))
+    with pytest.raises(ValueError, match="0..4"):
+        env.step(torch.full((2, 3), -1, dtype=torch.int64))
+    with pytest.raises(ValueError, match="contiguous"):
+        env.step(torch.zeros((3, 2), dtype=torch.int64).t())
+    with pytest.raises(ValueError, match="contiguous"):
+        env.step(np.zeros((3, 2), dtype=np.int64).T)
+    with pytest.raises(ValueError, match="actions must be"):
+        env.step([[0, 0, 0], [0, 0, 0]])
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device"):
+            env.step(torch.zeros((2, 3), dtype=torch.int64, device="cuda"))
+    state = env.get_state()  # nothing stepped
+    assert (state["step"] == 0).all()
+
+
+def test_set_state_rejects_bad_shapes_and_values():
+    env = taichi_swarm.make("coverage", 2, 3, seed=0, array="numpy")
+    env.reset()
+    with pytest.raises(ValueError, match="pos"):
+        env.set_state(pos=np.zeros((2, 4, 2)))
+    with pytest.raises(ValueError, match="vel"):
+        env.set_state(vel=np.full((2, 3, 2), np.nan))
+    with pytest.raises(ValueError, match="step"):
+        env.set_state(step=np.full(2, -1))
+
+
+def test_step_before_reset_is_an_error():
+    env = taichi_swarm.make("coverage", 1, 2)
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros((1, 2), dtype=np.int64))
+
+
