@@ -1,0 +1,110 @@
+"""The GNN's invariances: permutation, locality of "rc", isolation, any M."""
+
+import pytest
+import torch
+
+from trainer.model import ModelConfig, SwarmPolicy
+
+
+def team(N, M, L, seed=0, radius=None):
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.rand(N, M, 2, generator=g) * 2 - 1
+    vel = torch.randn(N, M, 2, generator=g) * 0.3
+    lmk = torch.rand(N, L, 2, generator=g) * 2 - 1
+    self_obs = torch.cat([vel, pos], -1)
+    entities = lmk[:, None] - pos[:, :, None]
+    if radius is None:
+        adj = torch.ones(N, M, M, dtype=torch.bool)
+    else:
+        adj = torch.cdist(pos, pos) <= radius
+    return self_obs, entities, adj, pos, lmk
+
+
+@pytest.fixture(scope="module")
+def policy():
+    torch.manual_seed(0)
+    return SwarmPolicy(ModelConfig()).eval()
+
+
+def test_permuting_agents_permutes_outputs(policy):
+    s, e, a, _, _ = team(4, 6, 6, radius=0.9)
+    perm = torch.randperm(6)
+    logits, value = policy(s, e, a)
+    logits_p, value_p = policy(s[:, perm], e[:, perm], a[:, perm][:, :, perm])
+    torch.testing.assert_close(logits_p, logits[:, perm], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(value_p, value[:, perm], atol=1e-5, rtol=1e-5)
+
+
+def test_permuting_landmarks_changes_nothing(policy):
+    s, e, a, _, _ = team(4, 5, 5)
+    perm = torch.randperm(5)
+    torch.testing.assert_close(policy(s, e[:, :, perm], a)[0], policy(s, e, a)[0], atol=1e-5, rtol=1e-5)
+
+
+def test_rc_agent_out_of_range_does_not_affect_others(policy):
+    s, e, a, pos, lmk = team(1, 5, 5, seed=3)
+    pos = torch.tensor([[[0.0, 0.0], [0.3, 0.0], [0.0, 0.4], [-0.2, -0.3], [5.0, 5.0]]])
+    s = torch.cat([s[..., :2], pos], -1)
+    e = lmk[:, None] - pos[:, :, None]
+    adj = torch.cdist(pos, pos) <= 1.0
+    out = policy(s, e, adj)[0]
+    moved = pos.clone()
+    moved[0, 4] = torch.tensor([-6.0, 4.0])  # still out of everyone's range
+    s2 = torch.cat([s[..., :2], moved], -1)
+    e2 = lmk[:, None] - moved[:, :, None]
+    out2 = policy(s2, e2, torch.cdist(moved, moved) <= 1.0)[0]
+    torch.testing.assert_close(out2[:, :4], out[:, :4])
+    assert not torch.allclose(out2[:, 4], out[:, 4])
+    # and the same agent *in* range does change the others
+    near = pos.clone()
+    near[0, 4] = torch.tensor([0.2, 0.2])
+    s3 = torch.cat([s[..., :2], near], -1)
+    out3 = policy(s3, lmk[:, None] - near[:, :, None], torch.cdist(near, near) <= 1.0)[0]
+    assert not torch.allclose(out3[:, :4], out[:, :4])
+
+
+def test_isolated_agent_and_masked_rows_are_finite(policy):
+    s, e, _, _, _ = team(3, 4, 4)
+    only_self = torch.eye(4, dtype=torch.bool).expand(3, 4, 4).clone()
+    logits, value = policy(s, e, only_self)
+    assert torch.isfinite(logits).all() and torch.isfinite(value).all()
+    nobody = torch.zeros(3, 4, 4, dtype=torch.bool)  # not even itself: still no NaN
+    logits, value = policy(s, e, nobody)
+    assert torch.isfinite(logits).all() and torch.isfinite(value).all()
+
+
+@pytest.mark.parametrize("M", [1, 3, 10, 50])
+def test_same_weights_any_team_size(policy, M):
+    s, e, a, _, _ = team(2, M, M)
+    logits, value = policy(s, e, a)
+    assert logits.shape == (2, M, 5) and value.shape == (2, M)
+    assert torch.isfinite(logits).all()
+
+
+def test_parameter_count_is_independent_of_team_size():
+    for mode, kw in [("emp", {}), ("padded", {}), ("concat", {"num_landmarks": 2})]:
+        p = SwarmPolicy(ModelConfig(entity_mode=mode, **kw))
+        n = p.num_parameters()
+        assert n == SwarmPolicy(ModelConfig(entity_mode=mode, **kw)).num_parameters()
+    p = SwarmPolicy(ModelConfig(entity_mode="padded"))
+    for M in (2, 7):
+        s, e, a, _, _ = team(1, M, M)
+        assert p(s, e, a)[0].shape == (1, M, 5)
+    with pytest.raises(ValueError, match="at most 10"):
+        p(*team(1, 11, 11)[:3])
+    c = SwarmPolicy(ModelConfig(entity_mode="concat", num_landmarks=2))
+    with pytest.raises(ValueError, match="concatenates 2"):
+        c(*team(1, 3, 3)[:3])
+
+
+def test_paper_initialisation():
+    p = SwarmPolicy()
+    w = p.agent_encoder.weight
+    torch.testing.assert_close(w.T @ w, torch.eye(w.shape[1]), atol=1e-4, rtol=0)  # orthonormal columns
+    u = p.comm_update.weight  # [128, 256]: orthonormal rows
+    torch.testing.assert_close(u @ u.T, torch.eye(u.shape[0]), atol=1e-4, rtol=0)
+    assert (p.agent_encoder.bias == 0).all()
+    assert p.comm_attention.w_q.weight.abs().max() <= 1 / 128**0.5
+    assert p.comm_attention.w_q.bias is None
+    # K rounds share weights: the parameter count does not grow with K
+    assert SwarmPolicy(ModelConfig(rounds=1)).num_parameters() == SwarmPolicy(ModelConfig(rounds=5)).num_parameters()

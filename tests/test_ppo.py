@@ -1,0 +1,73 @@
+"""GAE and the PPO loss against numbers worked out by hand; reward scaling."""
+
+import math
+
+import pytest
+import torch
+
+from trainer.ppo import RewardScaler, gae, normalize_per_agent, ppo_loss
+
+
+def test_gae_by_hand():
+    # one env, one agent, T = 3, gamma = 0.5, lambda = 0.5; the episode ends at t = 1
+    r = torch.tensor([[1.0], [2.0], [3.0]])
+    v = torch.tensor([[[0.5]], [[1.0]], [[2.0]]])
+    d = torch.tensor([[False], [True], [False]])
+    nv = torch.tensor([[4.0]])
+    adv, ret = gae(r, v, d, nv, gamma=0.5, lam=0.5)
+    # t=2: delta = 3 + 0.5*4 - 2 = 3;             A2 = 3
+    # t=1: done -> delta = 2 - 1 = 1;              A1 = 1 (no carry over the boundary)
+    # t=0: delta = 1 + 0.5*1.0 - 0.5 = 1;          A0 = 1 + 0.25 * 1 = 1.25
+    torch.testing.assert_close(adv[:, 0, 0], torch.tensor([1.25, 1.0, 3.0]))
+    torch.testing.assert_close(ret[:, 0, 0], torch.tensor([1.75, 2.0, 5.0]))
+
+
+def test_gae_team_reward_is_shared_and_values_are_per_agent():
+    r = torch.tensor([[1.0]])
+    v = torch.tensor([[[0.0, 1.0]]])
+    adv, _ = gae(r, v, torch.tensor([[True]]), torch.zeros(1, 2), 0.9, 0.9)
+    torch.testing.assert_close(adv[0, 0], torch.tensor([1.0, 0.0]))
+
+
+def test_ppo_loss_by_hand():
+    # two samples, logits uniform over 5 actions -> log pi = -log 5, entropy = log 5
+    logits = torch.zeros(1, 2, 5)
+    actions = torch.tensor([[0, 1]])
+    old_logp = torch.tensor([[-math.log(5) - 0.5, -math.log(5) + 0.5]])  # ratios e^0.5, e^-0.5
+    adv = torch.tensor([[1.0, 1.0]])
+    values = torch.tensor([[1.0, 0.0]])
+    old_values = torch.tensor([[0.5, 0.0]])
+    returns = torch.tensor([[0.0, 1.0]])
+    total, info = ppo_loss(logits, values, actions, old_logp, old_values, adv, returns,
+                           clip=0.2, value_coef=0.5, entropy_coef=0.01)
+    # policy: sample 0 ratio 1.6487 -> min(1.6487, 1.2) * 1 = 1.2; sample 1 ratio 0.6065 -> 0.6065
+    pg = -(1.2 + math.exp(-0.5)) / 2
+    # value: sample 0 v=1, clipped 0.5+0.2=0.7, R=0 -> max(1, 0.49) = 1; sample 1 -> max(1, 1) = 1
+    v = 0.5 * (1 + 1) / 2
+    ent = math.log(5)
+    assert info.policy.item() == pytest.approx(pg, abs=1e-6)
+    assert info.value.item() == pytest.approx(v, abs=1e-6)
+    assert info.entropy.item() == pytest.approx(ent, abs=1e-6)
+    assert total.item() == pytest.approx(pg + 0.5 * v - 0.01 * ent, abs=1e-6)
+    assert info.clipfrac.item() == pytest.approx(1.0)
+
+
+def test_advantages_normalised_per_agent():
+    adv = torch.stack([torch.arange(10.0), 100 + 5 * torch.arange(10.0)], -1).reshape(5, 2, 2)
+    n = normalize_per_agent(adv).reshape(-1, 2)
+    torch.testing.assert_close(n.mean(0), torch.zeros(2), atol=1e-6, rtol=0)
+    torch.testing.assert_close(n.std(0), torch.ones(2), atol=1e-4, rtol=0)
+    torch.testing.assert_close(n[:, 0], n[:, 1], atol=1e-5, rtol=0)
+
+
+def test_reward_scaler_divides_by_return_std_and_clips():
+    s = RewardScaler(num_envs=2, gamma=0.9, clip=10.0)
+    out = None
+    for _ in range(200):
+        out = s(torch.tensor([1.0, -1.0]), torch.tensor([False, False]))
+    # returns converge to +-10: std ~ 10 -> scaled rewards ~ +-0.1
+    assert out[0].item() == pytest.approx(0.1, rel=0.2) and out[1].item() == pytest.approx(-0.1, rel=0.2)
+    s = RewardScaler(num_envs=1, gamma=0.9, clip=2.0)
+    s(torch.tensor([1e-3]), torch.tensor([False]))
+    assert s(torch.tensor([1e3]), torch.tensor([True])).item() == 2.0
+    assert s.ret.item() == 0.0  # reset at the episode end

@@ -1,0 +1,108 @@
+"""Checkpoints: written atomically, loaded with ``weights_only=True``, checked
+before use so a wrong file gives a clear error instead of a torch traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+
+import torch
+
+from trainer.model import ModelConfig, SwarmPolicy
+
+FORMAT = "taichi-swarm-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, unreadable or does not fit."""
+
+
+def atomic_write_bytes(path: str, write) -> None:
+    """Call ``write(fileobj)`` on a temp file beside ``path``, fsync, then rename over it."""
+    directory = os.path.dirname(os.path.abspath(path))
+    os.makedirs(directory, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_json(path: str, obj) -> None:
+    atomic_write_bytes(path, lambda f: f.write((json.dumps(obj, indent=2) + "\n").encode()))
+
+
+def save(path: str, payload: dict) -> None:
+    """Save ``payload`` (must hold "model_config" and "model") atomically."""
+    payload = {"format": FORMAT, "version": VERSION, **payload}
+    atomic_write_bytes(path, lambda f: torch.save(payload, f))
+
+
+def load(path: str, map_location="cpu") -> dict:
+    """Load and sanity-check a checkpoint; raises CheckpointError with the reason."""
+    if os.path.isdir(path):
+        candidate = os.path.join(path, "checkpoint.pt")
+        if not os.path.exists(candidate):
+            raise CheckpointError(f"{path} is a directory without checkpoint.pt")
+        path = candidate
+    if not os.path.exists(path):
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - corrupted, truncated or not a torch file
+        raise CheckpointError(f"cannot read checkpoint {path}: it is corrupted, truncated or not a "
+                              f"taichi-swarm checkpoint ({type(exc).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a taichi-swarm checkpoint")
+    if payload.get("version") != VERSION:
+        raise CheckpointError(f"{path} has checkpoint version {payload.get('version')}, expected {VERSION}")
+    for key in ("model_config", "model"):
+        if key not in payload:
+            raise CheckpointError(f"{path} lacks {key!r}")
+    return payload
+
+
+def policy_from_payload(payload: dict, device="cpu") -> SwarmPolicy:
+    try:
+        config = ModelConfig(**payload["model_config"])
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"checkpoint has an invalid model config: {exc}") from None
+    policy = SwarmPolicy(config)
+    load_weights(policy, payload["model"])
+    return policy.to(device)
+
+
+def load_weights(policy: SwarmPolicy, state_dict: dict) -> None:
+    """Load weights, naming the mismatching tensors instead of torch's error dump."""
+    own = policy.state_dict()
+    missing = sorted(set(own) - set(state_dict))
+    unexpected = sorted(set(state_dict) - set(own))
+    wrong = sorted(k for k in set(own) & set(state_dict) if own[k].shape != state_dict[k].shape)
+    if missing or unexpected or wrong:
+        parts = []
+        if missing:
+            parts.append(f"missing {missing[:4]}")
+        if unexpected:
+            parts.append(f"unexpected {unexpected[:4]}")
+        if wrong:
+            parts.append("shape mismatch " + ", ".join(
+                f"{k}: {tuple(state_dict[k].shape)} vs {tuple(own[k].shape)}" for k in wrong[:4]))
+        raise CheckpointError("checkpoint weights do not fit this network (" + "; ".join(parts) +
+                              "): was it trained with another --model configuration?")
+    policy.load_state_dict(state_dict)
+
+
+def load_policy(path: str, device="cpu") -> tuple[SwarmPolicy, dict]:
+    """(policy in eval mode, payload) from a checkpoint file or run directory."""
+    payload = load(path)
+    policy = policy_from_payload(payload, device)
+    policy.eval()
+    return policy, payload

@@ -1,0 +1,193 @@
+"""``swarm train | eval | curriculum | zero-shot | plot``."""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import sys
+
+from trainer.checkpoint import CheckpointError, atomic_write_json
+
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, CheckpointError)
+
+
+def _fail(cmd: str, exc: Exception) -> int:
+    print(f"swarm {cmd}: error: {exc}", file=sys.stderr)
+    return 2
+
+
+def _config_from_argv(argv: list[str], prog: str):
+    """Pre-read --preset, then let tyro parse the rest over that preset's defaults."""
+    import tyro
+
+    from trainer.config import PRESETS, TrainConfig
+
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--preset", default="paper")
+    known, _ = pre.parse_known_args(argv)
+    if known.preset not in PRESETS:
+        raise ValueError(f"--preset must be one of {tuple(PRESETS)}, got {known.preset!r}")
+    default = TrainConfig(preset=known.preset, ppo=copy.deepcopy(PRESETS[known.preset]))
+    return tyro.cli(TrainConfig, args=argv, default=default, prog=prog)
+
+
+def train_main(argv: list[str]) -> int:
+    """swarm train [--resume RUN_DIR [--updates N]] | [config options, see --help]"""
+    from trainer.train import train
+
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--resume", default=None)
+    known, rest = pre.parse_known_args(argv)
+    try:
+        if known.resume:
+            extra = argparse.ArgumentParser(prog="swarm train --resume RUN_DIR")
+            extra.add_argument("--updates", type=int, default=None, help="raise the run's total update budget")
+            more = extra.parse_args(rest)
+            summary = train(resume=known.resume, updates=more.updates) if more.updates else train(resume=known.resume)
+        else:
+            cfg = _config_from_argv(rest, "swarm train")
+            summary = train(cfg)
+    except KeyboardInterrupt:
+        return 130
+    except USER_ERRORS as exc:
+        return _fail("train", exc)
+    ev = summary["last_eval"]
+    msg = f"run {summary['run_dir']}: {summary['update']} updates, {summary['env_steps']} env steps, " \
+          f"{summary['wall_time'] / 60:.1f} min"
+    if ev:
+        msg += f"; eval S% {100 * ev['success_rate']:.1f}, T {ev['mean_length']:.2f}"
+    print(msg)
+    return 0
+
+
+def _eval_parser(prog: str, sizes: bool) -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=prog)
+    ap.add_argument("checkpoint", help="checkpoint file or run directory")
+    if sizes:
+        ap.add_argument("--sizes", nargs="+", default=["2-8"], help="team sizes, e.g. 2-8 or 3 5 7")
+    else:
+        ap.add_argument("--agents", type=int, default=None, help="team size M (default: the training size)")
+    ap.add_argument("--task", default=None, help="task (default: the training task)")
+    ap.add_argument("--comm", default=None, help="uc | rc (default: the training setting)")
+    ap.add_argument("--comm-radius", type=float, default=None)
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=12345, help="seed of the evaluation episodes")
+    ap.add_argument("--arch", default="cpu", help="simulator arch: cpu | cuda | auto")
+    ap.add_argument("--json", default=None, help="also write the results to this JSON file")
+    if not sizes:
+        ap.add_argument("--record", default=None, help="write a Rerun recording (.rrd) of the episodes")
+    return ap
+
+
+def _eval_settings(args, payload: dict) -> dict:
+    trained = payload.get("task", {})
+    task = args.task or trained.get("task")
+    if task is None:
+        raise ValueError("this checkpoint does not say its task: pass --task")
+    return {"task": task, "comm": args.comm or trained.get("comm", "uc"),
+            "comm_radius": args.comm_radius if args.comm_radius is not None else trained.get("comm_radius", 1.0)}
+
+
+def eval_main(argv: list[str]) -> int:
+    import torch
+
+    from trainer.checkpoint import load_policy
+    from trainer.evaluate import evaluate, format_table
+
+    args = _eval_parser("swarm eval", sizes=False).parse_args(argv)
+    try:
+        if args.episodes < 1:
+            raise ValueError("--episodes must be >= 1")
+        torch.set_num_threads(1)
+        policy, payload = load_policy(args.checkpoint)
+        s = _eval_settings(args, payload)
+        agents = args.agents or payload.get("task", {}).get("agents")
+        if agents is None:
+            raise ValueError("pass --agents")
+        recorder = None
+        if args.record:
+            from deploy.recording import RolloutRecorder
+
+            recorder = RolloutRecorder(args.record, s["task"], args.episodes, agents, max_envs_drawn=8)
+        result = evaluate(policy, s["task"], agents, s["comm"], s["comm_radius"], args.episodes, args.seed,
+                          arch=args.arch, recorder=recorder)
+        if recorder is not None:
+            recorder.close()
+    except USER_ERRORS as exc:
+        return _fail("eval", exc)
+    print(format_table([result]))
+    if args.json:
+        atomic_write_json(args.json, {"checkpoint": args.checkpoint, **result})
+    return 0
+
+
+def zero_shot_main(argv: list[str]) -> int:
+    import torch
+
+    from trainer.checkpoint import load_policy
+    from trainer.evaluate import evaluate, format_table, parse_sizes
+
+    args = _eval_parser("swarm zero-shot", sizes=True).parse_args(argv)
+    try:
+        sizes = parse_sizes(args.sizes)
+        torch.set_num_threads(1)
+        policy, payload = load_policy(args.checkpoint)
+        s = _eval_settings(args, payload)
+        rows = []
+        for M in sizes:
+            rows.append(evaluate(policy, s["task"], M, s["comm"], s["comm_radius"], args.episodes,
+                                 args.seed, arch=args.arch))
+            print(format_table(rows[-1:]).splitlines()[-1], flush=True)
+    except USER_ERRORS as exc:
+        return _fail("zero-shot", exc)
+    print()
+    print(format_table(rows))
+    if args.json:
+        atomic_write_json(args.json, {"checkpoint": args.checkpoint,
+                                      "trained_agents": payload.get("task", {}).get("agents"),
+                                      "results": [{k: v for k, v in r.items() if k != "per_episode"} for r in rows]})
+    return 0
+
+
+def curriculum_main(argv: list[str]) -> int:
+    from trainer.curriculum import format_stages, run_curriculum
+    from trainer.evaluate import parse_sizes
+
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--sizes", nargs="+", default=["3", "5", "7", "10"])
+    pre.add_argument("--threshold", type=float, default=0.85)
+    pre.add_argument("--max-updates-per-stage", type=int, default=4000)
+    known, rest = pre.parse_known_args(argv)
+    if "-h" in rest or "--help" in rest:
+        print("swarm curriculum [--sizes 3 5 7 10] [--threshold 0.85] [--max-updates-per-stage N] "
+              "[train options]\n")
+    try:
+        sizes = parse_sizes(known.sizes)
+        if known.max_updates_per_stage < 1:
+            raise ValueError("--max-updates-per-stage must be >= 1")
+        base = _config_from_argv(rest, "swarm curriculum")
+        run_dir = base.run_dir or f"runs/curriculum-{base.task}-{base.comm}-s{base.seed}"
+        base = dataclasses.replace(base, run_dir=run_dir)
+        stages = run_curriculum(base, sizes, known.threshold, known.max_updates_per_stage, run_dir)
+    except KeyboardInterrupt:
+        return 130
+    except USER_ERRORS as exc:
+        return _fail("curriculum", exc)
+    print(format_stages(stages))
+    return 0
+
+
+def plot_main(argv: list[str]) -> int:
+    from trainer.plot import plot_run
+
+    ap = argparse.ArgumentParser(prog="swarm plot")
+    ap.add_argument("run_dir")
+    ap.add_argument("--out", default=None, help="PNG path (default RUN_DIR/curves.png)")
+    args = ap.parse_args(argv)
+    try:
+        print(plot_run(args.run_dir, args.out))
+    except (FileNotFoundError, ValueError, json.JSONDecodeError) as exc:
+        return _fail("plot", exc)
+    return 0

@@ -1,0 +1,150 @@
+"""Typed configuration: one dataclass per concern, a docstring per option.
+
+``PRESETS["paper"]`` is s.5 of ../shared/spec/paper-system.md exactly;
+``PRESETS["fast"]`` is what we measured to learn in far fewer env steps and
+less wall-clock on a 2-core CPU (docs/RESULTS.md records how it was found).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from taichi_swarm import COMMS, TASKS
+from trainer.model import ENTITY_MODES, ModelConfig
+
+
+@dataclass
+class PPOConfig:
+    """PPO hyperparameters (defaults: the paper's)."""
+
+    num_envs: int = 32
+    """Parallel environments per rollout."""
+    num_steps: int = 128
+    """Steps per environment per rollout (num_envs x num_steps env steps per update)."""
+    lr: float = 1e-4
+    """Adam learning rate."""
+    anneal_lr: bool = False
+    """Decay the learning rate linearly to 0 over ``updates``."""
+    gamma: float = 0.99
+    """Discount factor."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    clip: float = 0.2
+    """PPO ratio clip, also the value-function clip."""
+    epochs: int = 4
+    """Optimisation epochs per update."""
+    minibatches: int = 32
+    """Minibatches per epoch; each holds whole teams (all agents of a (t, env) sample)."""
+    entropy_coef: float = 0.01
+    """Entropy bonus coefficient."""
+    value_coef: float = 0.5
+    """Value loss coefficient (the value loss itself is 0.5 * max(clipped, unclipped) MSE)."""
+    max_grad_norm: float = 0.5
+    """Global gradient-norm clip."""
+    reward_scale: bool = True
+    """Divide rewards by a running std of the discounted return, then clip to +-reward_clip."""
+    reward_clip: float = 10.0
+    """Clip of the scaled reward."""
+    bootstrap_time_limit: bool = False
+    """False (the paper): the 50-step limit is terminal, no bootstrap. True: bootstrap
+    V(terminal observation) on time-limit ends (partial-episode bootstrapping)."""
+
+    def validate(self) -> None:
+        for name in ("num_envs", "num_steps", "epochs", "minibatches"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"ppo.{name} must be >= 1, got {getattr(self, name)}")
+        if self.num_envs * self.num_steps < self.minibatches:
+            raise ValueError("ppo.minibatches must be <= num_envs * num_steps")
+        for name in ("lr", "clip", "max_grad_norm", "reward_clip"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"ppo.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"ppo.{name} must be in [0, 1], got {getattr(self, name)}")
+
+
+PRESETS: dict[str, PPOConfig] = {
+    "paper": PPOConfig(),
+    # Measured on coverage M=3 UC (docs/RESULTS.md): bigger steps on bigger, fewer
+    # minibatches; short rollouts from many envs.
+    "fast": PPOConfig(num_envs=64, num_steps=32, lr=7e-4, epochs=4, minibatches=4),
+}
+
+
+@dataclass
+class TrainConfig:
+    """``swarm train``: one task, one team size, PPO from scratch or from a checkpoint."""
+
+    task: str = "coverage"
+    """coverage | formation | line."""
+    agents: int = 3
+    """Team size M."""
+    comm: str = "uc"
+    """uc (everyone hears everyone) | rc (only within comm_radius)."""
+    comm_radius: float = 1.0
+    """Communication radius of "rc"."""
+    preset: str = "paper"
+    """PPO preset the ``ppo`` options start from: paper | fast."""
+    updates: int = 1100
+    """PPO updates to run (the paper's coverage M=3 took 1100)."""
+    target_success: float = 0.0
+    """Stop early once the evaluation success rate reaches this (0 = never)."""
+    eval_every: int = 50
+    """Evaluate (greedy, decentralised, fresh seeds) every this many updates."""
+    eval_episodes: int = 100
+    """Episodes per evaluation."""
+    checkpoint_every: int = 25
+    """Write the checkpoint every this many updates (and at the end, and on Ctrl-C)."""
+    seed: int = 0
+    """Seed of the environments, the network init and the sampling."""
+    run_dir: str = ""
+    """Where the run lives (default runs/<task>-m<agents>-<comm>-s<seed>)."""
+    init_from: str = ""
+    """Start from these weights (a checkpoint); fresh optimiser and normaliser."""
+    arch: str = "cpu"
+    """Where the simulator runs: cpu | cuda | auto."""
+    device: str = "cpu"
+    """Where the network runs: cpu | cuda | auto."""
+    torch_threads: int = 2
+    """torch threads for the PPO update (rollouts use 1: small batches stall with more;
+    `swarm bench train` measures both)."""
+    progress: bool = True
+    """Show a progress bar."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Network architecture."""
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+    """PPO hyperparameters (start from ``preset``)."""
+
+    def validate(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
+        if self.comm not in COMMS:
+            raise ValueError(f"comm must be one of {COMMS}, got {self.comm!r}")
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
+        if self.model.entity_mode not in ENTITY_MODES:
+            raise ValueError(f"model.entity_mode must be one of {ENTITY_MODES}")
+        for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.target_success <= 1:
+            raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
+        if self.comm_radius < 0:
+            raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
+        self.ppo.validate()
+
+    def default_run_dir(self) -> str:
+        return self.run_dir or f"runs/{self.task}-m{self.agents}-{self.comm}-s{self.seed}"
+
+
+def to_dict(cfg) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def train_config_from_dict(d: dict) -> TrainConfig:
+    """Inverse of ``to_dict`` (for resuming); unknown keys are an error."""
+    d = dict(d)
+    model = ModelConfig(**d.pop("model"))
+    ppo = PPOConfig(**d.pop("ppo"))
+    return TrainConfig(**d, model=model, ppo=ppo)

@@ -1,0 +1,183 @@
+"""The agent-entity graph network of Agarwal, Kumar, Sycara 2019 (s.4 of
+../shared/spec/paper-system.md), one set of weights shared by every agent.
+
+Per agent i (all agents of a team batched, N teams, M agents, L landmarks):
+    h_i = ReLU(f_a(X_i))                                   agent encoder, X_i = (vel, pos)
+    EMP: e_l = ReLU(f_e(landmark_l - pos_i));  m_e = Attn(h_i, {e_l})
+         h_i = ReLU(W_e [h_i ; m_e])
+    K rounds (same weights): m_i = Attn(h_i, {h_j : j in N(i), i included})
+         h_i = ReLU(W_c [h_i ; m_i])
+    logits_i = pi(h_i) [5];  value_i = V(h_i)
+Everything is dense and masked (no scatter), so the same modules export to
+ONNX; the parameter count depends on neither M nor L (except the "concat"
+entity mode, whose input width is fixed by the task's L).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import torch
+from torch import nn
+
+NUM_ACTIONS = 5
+SELF_DIM = 4
+PADDED_SLOTS = 10  # the paper's "without EMP" baseline: 10 landmarks x 2 = 20 inputs
+MASK_FILL = -1e9  # finite: an all-masked row must not turn into NaN (and exports cleanly)
+ENTITY_MODES = ("emp", "concat", "padded")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Architecture of the policy; stored in every checkpoint and export manifest."""
+
+    hidden: int = 128
+    """Width of every hidden layer and message."""
+    rounds: int = 3
+    """K: rounds of inter-agent attention (same weights each round)."""
+    entity_mode: str = "emp"
+    """"emp": attention over landmarks (the paper's method, any L); "concat": landmark
+    offsets concatenated into the agent input (the published code for formation/line,
+    fixed L); "padded": the paper's "without EMP" baseline, 10 zero-padded slots."""
+    num_landmarks: int = 0
+    """L the "concat" mode was built for (unused otherwise)."""
+
+    def __post_init__(self):
+        if self.entity_mode not in ENTITY_MODES:
+            raise ValueError(f"entity_mode must be one of {ENTITY_MODES}, got {self.entity_mode!r}")
+        if self.hidden < 1 or self.rounds < 0:
+            raise ValueError(f"hidden must be >= 1 and rounds >= 0, got {self.hidden}, {self.rounds}")
+        if self.entity_mode == "concat" and self.num_landmarks < 1:
+            raise ValueError("entity_mode='concat' needs num_landmarks >= 1")
+
+    def input_dim(self) -> int:
+        if self.entity_mode == "concat":
+            return SELF_DIM + 2 * self.num_landmarks
+        if self.entity_mode == "padded":
+            return SELF_DIM + 2 * PADDED_SLOTS
+        return SELF_DIM
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class Attention(nn.Module):
+    """Single-head scaled dot-product attention with W_q, W_k, W_v, W_out (no bias).
+
+    Written out (matmul, masked fill, softmax) rather than with
+    F.scaled_dot_product_attention: that exports differently on fully masked rows
+    and fails on zero keys (../shared/spec/stack-notes.md).
+    """
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.dim = dim
+        self.w_q = nn.Linear(dim, dim, bias=False)
+        self.w_k = nn.Linear(dim, dim, bias=False)
+        self.w_v = nn.Linear(dim, dim, bias=False)
+        self.w_out = nn.Linear(dim, dim, bias=False)
+
+    def attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None = None):
+        """q [..., Q, D] (projected), k, v [..., S, D] (projected), mask [..., Q, S] bool.
+
+        Returns (output [..., Q, D], weights [..., Q, S]); masked pairs get weight 0,
+        a row with no key at all outputs 0.
+        """
+        scores = q @ k.transpose(-1, -2) / math.sqrt(self.dim)
+        if mask is not None:
+            scores = scores.masked_fill(~mask, MASK_FILL)
+        weights = torch.softmax(scores, dim=-1)
+        if mask is not None:
+            weights = weights * mask.to(weights.dtype)
+        return self.w_out(weights @ v), weights
+
+
+class SwarmPolicy(nn.Module):
+    """Shared actor-critic: ``forward(self_obs, entities, adj) -> (logits, value)``.
+
+    self_obs [N, M, 4], entities [N, M, L, 2], adj [N, M, M] bool (adj[n, i, j]: i hears j)
+    -> logits [N, M, 5], value [N, M].
+    """
+
+    def __init__(self, config: ModelConfig = ModelConfig()):
+        super().__init__()
+        self.config = config
+        H = config.hidden
+        self.agent_encoder = nn.Linear(config.input_dim(), H)
+        if config.entity_mode == "emp":
+            self.entity_encoder = nn.Linear(2, H)
+            self.entity_attention = Attention(H)
+            self.entity_update = nn.Linear(2 * H, H)
+        self.comm_attention = Attention(H)
+        self.comm_update = nn.Linear(2 * H, H)
+        self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, NUM_ACTIONS))
+        self.value_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, 1))
+        self._init_weights()
+
+    def _init_weights(self) -> None:
+        # s.4.6: orthogonal gain 1 and zero bias on every Linear; attention matrices U(+-1/sqrt(H)).
+        bound = 1.0 / math.sqrt(self.config.hidden)
+        for module in self.modules():
+            if isinstance(module, Attention):
+                for lin in (module.w_q, module.w_k, module.w_v, module.w_out):
+                    nn.init.uniform_(lin.weight, -bound, bound)
+        attention_linears = {id(m) for a in self.modules() if isinstance(a, Attention) for m in a.children()}
+        for module in self.modules():
+            if isinstance(module, nn.Linear) and id(module) not in attention_linears:
+                nn.init.orthogonal_(module.weight, gain=1.0)
+                nn.init.zeros_(module.bias)
+
+    # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
+    def encode(self, self_obs: torch.Tensor, entities: torch.Tensor) -> torch.Tensor:
+        """[..., 4], [..., L, 2] -> h [..., H]: agent encoder and entity message passing."""
+        mode = self.config.entity_mode
+        if mode == "emp":
+            h = torch.relu(self.agent_encoder(self_obs))
+            e = torch.relu(self.entity_encoder(entities))  # [..., L, H]
+            att = self.entity_attention
+            q = att.w_q(h).unsqueeze(-2)  # [..., 1, H]
+            m_e, _ = att.attend(q, att.w_k(e), att.w_v(e))
+            return torch.relu(self.entity_update(torch.cat([h, m_e.squeeze(-2)], dim=-1)))
+        flat = entities.flatten(-2)  # [..., 2L]
+        if mode == "padded":
+            L = entities.shape[-2]
+            if L > PADDED_SLOTS:
+                raise ValueError(f"entity_mode='padded' holds at most {PADDED_SLOTS} landmarks, got {L}")
+            flat = nn.functional.pad(flat, (0, 2 * (PADDED_SLOTS - L)))
+        elif entities.shape[-2] != self.config.num_landmarks:
+            raise ValueError(
+                f"this policy concatenates {self.config.num_landmarks} landmarks, got {entities.shape[-2]}"
+            )
+        return torch.relu(self.agent_encoder(torch.cat([self_obs, flat], dim=-1)))
+
+    def message(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What an agent sends its neighbours: its attention key and value [..., H] each."""
+        return self.comm_attention.w_k(h), self.comm_attention.w_v(h)
+
+    def update(self, h: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, mask: torch.Tensor):
+        """One communication round: h [..., Q, H] attends over keys/values [..., S, H]
+        heard (mask [..., Q, S]); returns (new h [..., Q, H], attention weights [..., Q, S])."""
+        att = self.comm_attention
+        m, weights = att.attend(att.w_q(h), keys, values, mask)
+        return torch.relu(self.comm_update(torch.cat([h, m], dim=-1))), weights
+
+    def heads(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """h [..., H] -> logits [..., 5], value [...]."""
+        return self.policy_head(h), self.value_head(h).squeeze(-1)
+
+    # --- the whole team at once (training) -------------------------------------------------
+    def forward(self, self_obs: torch.Tensor, entities: torch.Tensor, adj: torch.Tensor, return_attention=False):
+        h = self.encode(self_obs, entities)  # [N, M, H]
+        attention = []
+        for _ in range(self.config.rounds):
+            keys, values = self.message(h)
+            h, w = self.update(h, keys, values, adj)
+            attention.append(w)
+        logits, value = self.heads(h)
+        if return_attention:
+            return logits, value, attention  # K x [N, M, M]
+        return logits, value
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())

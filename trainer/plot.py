@@ -1,0 +1,44 @@
+"""Learning curves of a run directory (metrics.jsonl -> curves.png)."""
+
+from __future__ import annotations
+
+import json
+import os
+
+
+def read_metrics(run_dir: str) -> list[dict]:
+    path = os.path.join(run_dir, "metrics.jsonl")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{run_dir} has no metrics.jsonl (is it a run directory?)")
+    with open(path) as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def plot_run(run_dir: str, out: str | None = None) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = read_metrics(run_dir)
+    out = out or os.path.join(run_dir, "curves.png")
+    steps = [r["env_steps"] / 1e6 for r in rows]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    axes[0].plot(steps, [r["reward"] for r in rows])
+    axes[0].set(title="mean team reward per step", xlabel="env steps (M)")
+    ev = [r for r in rows if r.get("eval_success_rate") is not None]
+    axes[1].plot([r["env_steps"] / 1e6 for r in ev], [100 * r["eval_success_rate"] for r in ev], "o-", label="eval")
+    tr = [r for r in rows if r.get("train_success") is not None]
+    axes[1].plot([r["env_steps"] / 1e6 for r in tr], [100 * r["train_success"] for r in tr], alpha=0.5,
+                 label="train (sampling)")
+    axes[1].set(title="success S%", xlabel="env steps (M)", ylim=(-2, 102))
+    axes[1].legend()
+    axes[2].plot([r["env_steps"] / 1e6 for r in ev], [r["eval_mean_length"] for r in ev], "o-")
+    axes[2].set(title="eval episode length T", xlabel="env steps (M)")
+    fig.suptitle(os.path.basename(os.path.normpath(run_dir)))
+    fig.tight_layout()
+    tmp = out + ".tmp.png"
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    os.replace(tmp, out)
+    return out

@@ -1,0 +1,289 @@
+"""PPO training of the shared swarm policy (CleanRL-style loop, readable top to bottom).
+
+    rollout:  T steps x E envs with the current policy (sampling), team reward
+              scaled by a running return std, stored in [T, E, M, ...] buffers
+    update:   per-agent GAE, per-agent advantage normalisation, ``epochs`` x
+              ``minibatches`` clipped-PPO steps; a minibatch is a set of whole
+              teams (t, env), since messages need every agent of the team
+    evaluate: every ``eval_every`` updates, greedy, on fresh seeds
+A run directory holds config.json, metrics.jsonl, checkpoint.pt (written
+atomically every ``checkpoint_every`` updates, at the end and on Ctrl-C) and
+curves.png; ``resume`` continues where the checkpoint stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+
+import torch
+
+import taichi_swarm
+from trainer import checkpoint
+from trainer.config import TrainConfig, to_dict, train_config_from_dict
+from trainer.evaluate import evaluate
+from trainer.model import ModelConfig, SwarmPolicy
+from trainer.ppo import Rollout, RewardScaler, gae, normalize_per_agent, ppo_loss
+
+
+def resolve_device(device: str) -> str:
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device not in ("cpu", "cuda"):
+        raise ValueError(f"device must be cpu, cuda or auto, got {device!r}")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device='cuda' but torch finds no CUDA GPU")
+    return device
+
+
+class Run:
+    """Files of one run directory."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.config = os.path.join(path, "config.json")
+        self.metrics = os.path.join(path, "metrics.jsonl")
+        self.checkpoint = os.path.join(path, "checkpoint.pt")
+        self.curves = os.path.join(path, "curves.png")
+
+    def log(self, record: dict) -> None:
+        with open(self.metrics, "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def truncate_metrics(self, last_update: int) -> None:
+        """Drop metric lines written after the checkpoint we resume from."""
+        if not os.path.exists(self.metrics):
+            return
+        with open(self.metrics) as f:
+            keep = [line for line in f if line.strip() and json.loads(line)["update"] <= last_update]
+        checkpoint.atomic_write_bytes(self.metrics, lambda f: f.write("".join(keep).encode()))
+
+
+def model_config_for(cfg: TrainConfig) -> ModelConfig:
+    """The model config with the task's L filled in for the "concat" entity mode."""
+    m = cfg.model
+    if m.entity_mode == "concat":
+        L = taichi_swarm.TASK_SPECS[cfg.task].num_landmarks(cfg.agents)
+        m = ModelConfig(m.hidden, m.rounds, m.entity_mode, L)
+    return m
+
+
+def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=None,
+          updates: int | None = None) -> dict:
+    """Train from ``cfg``, or continue the run in directory ``resume`` (``updates``
+    then raises its total update budget).
+
+    ``on_update(record)`` is called after every update (tests, curriculum).
+    Returns a summary: run_dir, updates done, env steps, wall time, last eval.
+    """
+    if resume is not None:
+        run = Run(resume)
+        if not os.path.isdir(resume):
+            raise FileNotFoundError(f"run directory {resume} does not exist")
+        payload = checkpoint.load(run.checkpoint)
+        if "train_config" not in payload:
+            raise checkpoint.CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
+        cfg = train_config_from_dict(payload["train_config"])
+        if updates is not None:
+            cfg = dataclasses.replace(cfg, updates=updates)
+        run.truncate_metrics(payload["counters"]["update"])
+    else:
+        if cfg is None:
+            raise ValueError("train() needs a config or a run directory to resume")
+        payload = None
+        run = Run(cfg.default_run_dir())
+        if os.path.exists(run.checkpoint):
+            raise FileExistsError(
+                f"{run.path} already holds a run; continue it with --resume {run.path} or pick another --run-dir"
+            )
+        os.makedirs(run.path, exist_ok=True)
+    cfg.validate()
+    checkpoint.atomic_write_json(run.config, to_dict(cfg))
+    device = resolve_device(cfg.device)
+    p = cfg.ppo
+    E, T, M = p.num_envs, p.num_steps, cfg.agents
+
+    torch.manual_seed(cfg.seed)
+    policy = SwarmPolicy(model_config_for(cfg)).to(device)
+    if cfg.init_from and payload is None:
+        init_policy, _ = checkpoint.load_policy(cfg.init_from)
+        if init_policy.config != policy.config:
+            raise checkpoint.CheckpointError(
+                f"--init-from {cfg.init_from} has model {init_policy.config}, this run wants {policy.config}"
+            )
+        policy.load_state_dict(init_policy.state_dict())
+    optimizer = torch.optim.Adam(policy.parameters(), lr=p.lr, eps=1e-5)
+    scaler = RewardScaler(E, p.gamma, p.reward_clip, p.reward_scale, device=device)
+    counters = {"update": 0, "env_steps": 0, "wall_time": 0.0}
+    evals: list[dict] = []
+    if payload is not None:
+        checkpoint.load_weights(policy, payload["model"])
+        optimizer.load_state_dict(payload["optimizer"])
+        scaler.load_state_dict(payload["reward_scaler"])
+        torch.set_rng_state(payload["torch_rng"])
+        counters = dict(payload["counters"])
+        evals = list(payload.get("evals", []))
+
+    env = taichi_swarm.make(cfg.task, E, M, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch)
+    L = env.num_landmarks
+    # NOTE: on resume the environments restart fresh episodes from a stream derived from
+    # (seed, update): runs continue exactly at update boundaries but not bit-for-bit.
+    obs = env.reset(seed=cfg.seed * 1_000_003 + counters["update"])
+    buf = Rollout.allocate(T, E, M, L, device)
+
+    def save_checkpoint() -> None:
+        checkpoint.save(run.checkpoint, {
+            "model_config": policy.config.to_dict(),
+            "model": policy.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "reward_scaler": scaler.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "counters": counters,
+            "evals": evals,
+            "train_config": to_dict(cfg),
+            "task": {"task": cfg.task, "agents": M, "comm": cfg.comm, "comm_radius": cfg.comm_radius},
+        })
+
+    progress = None
+    if cfg.progress:
+        from tqdm import tqdm
+
+        progress = tqdm(total=cfg.updates, initial=counters["update"], desc=f"{cfg.task} M={M} {cfg.comm}",
+                        unit="upd", dynamic_ncols=True)
+    last_eval = evals[-1] if evals else None
+    start_wall = time.perf_counter() - counters["wall_time"]
+    try:
+        while counters["update"] < cfg.updates:
+            t0 = time.perf_counter()
+            if p.anneal_lr:
+                optimizer.param_groups[0]["lr"] = p.lr * (1.0 - counters["update"] / cfg.updates)
+            # ---------------------------------------------------------------- rollout
+            ep_success, ep_length, raw_reward = [], [], 0.0
+            t_sim = t_policy = 0.0
+            policy.eval()
+            torch.set_num_threads(1)
+            with torch.no_grad():
+                for t in range(T):
+                    buf.self_obs[t].copy_(obs["self"])
+                    buf.entities[t].copy_(obs["entities"])
+                    buf.adj[t].copy_(obs["adj"])
+                    ta = time.perf_counter()
+                    logits, value = policy(buf.self_obs[t], buf.entities[t], buf.adj[t])
+                    dist = torch.distributions.Categorical(logits=logits)
+                    action = dist.sample()  # [E, M]
+                    buf.actions[t] = action
+                    buf.logprobs[t] = dist.log_prob(action)
+                    buf.values[t] = value
+                    tb = time.perf_counter()
+                    obs, reward, done, info = env.step(action if env.device == device else action.to(env.device))
+                    t_sim += time.perf_counter() - tb
+                    t_policy += tb - ta
+                    reward, done = reward.to(device), done.to(device)
+                    raw_reward += float(reward.mean())
+                    scaled = scaler(reward, done)
+                    if bool(done.any()):
+                        ep = info["episode"]
+                        ep_success.append(ep["success"][done].cpu())
+                        ep_length.append(ep["length"][done].cpu())
+                        if p.bootstrap_time_limit:
+                            cut = (done & ep["truncated"].to(device))
+                            if bool(cut.any()):
+                                term = info["terminal_obs"]
+                                _, v_term = policy(term["self"].to(device), term["entities"].to(device),
+                                                   term["adj"].to(device))
+                                scaled = scaled + p.gamma * v_term.mean(-1) * cut.float()
+                    buf.rewards[t] = scaled
+                    buf.dones[t] = done
+                _, next_value = policy(obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device))
+                advantages, returns = gae(buf.rewards, buf.values, buf.dones, next_value, p.gamma, p.gae_lambda)
+                advantages = normalize_per_agent(advantages)
+            # ---------------------------------------------------------------- update
+            tc = time.perf_counter()
+            torch.set_num_threads(cfg.torch_threads)
+            policy.train()
+            n = T * E
+            flat = lambda x: x.reshape(n, *x.shape[2:])  # noqa: E731 - [T, E, ...] -> [T*E, ...] (whole teams)
+            b_self, b_ent, b_adj = flat(buf.self_obs), flat(buf.entities), flat(buf.adj)
+            b_act, b_logp, b_val = flat(buf.actions), flat(buf.logprobs), flat(buf.values)
+            b_adv, b_ret = flat(advantages), flat(returns)
+            stats = []
+            for _ in range(p.epochs):
+                perm = torch.randperm(n, device=device)
+                for idx in perm.chunk(p.minibatches):
+                    logits, values = policy(b_self[idx], b_ent[idx], b_adj[idx])
+                    loss, info_loss = ppo_loss(logits, values, b_act[idx], b_logp[idx], b_val[idx], b_adv[idx],
+                                               b_ret[idx], p.clip, p.value_coef, p.entropy_coef)
+                    optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    torch.nn.utils.clip_grad_norm_(policy.parameters(), p.max_grad_norm)
+                    optimizer.step()
+                    stats.append(torch.stack([info_loss.policy, info_loss.value, info_loss.entropy,
+                                              info_loss.approx_kl, info_loss.clipfrac]))
+            t_update = time.perf_counter() - tc
+            counters["update"] += 1
+            counters["env_steps"] += n
+            dt = time.perf_counter() - t0
+            s = torch.stack(stats).mean(0).tolist()
+            record = {
+                "update": counters["update"], "env_steps": counters["env_steps"],
+                "sps": n / dt, "reward": raw_reward / T,
+                "train_success": float(torch.cat(ep_success).float().mean()) if ep_success else None,
+                "train_length": float(torch.cat(ep_length).float().mean()) if ep_length else None,
+                "loss_policy": s[0], "loss_value": s[1], "entropy": s[2], "approx_kl": s[3], "clipfrac": s[4],
+                "time_sim": t_sim, "time_policy": t_policy, "time_update": t_update,
+                "lr": optimizer.param_groups[0]["lr"],
+            }
+            done_training = counters["update"] >= cfg.updates
+            if counters["update"] % cfg.eval_every == 0 or done_training:
+                policy.eval()
+                result = evaluate(policy, cfg.task, M, cfg.comm, cfg.comm_radius, cfg.eval_episodes,
+                                  seed=10_000_019 + counters["update"], arch=cfg.arch, device=device)
+                last_eval = {k: result[k] for k in ("success_rate", "mean_length", "dist")}
+                last_eval["update"] = counters["update"]
+                evals.append(last_eval)
+                record.update({f"eval_{k}": v for k, v in last_eval.items() if k != "update"})
+                if cfg.target_success > 0 and last_eval["success_rate"] >= cfg.target_success:
+                    done_training = True
+            counters["wall_time"] = time.perf_counter() - start_wall
+            record["wall_time"] = counters["wall_time"]
+            run.log(record)
+            if progress is not None:
+                post = {"sps": f"{record['sps']:.0f}", "rew": f"{record['reward']:.3f}"}
+                if last_eval:
+                    post["S%"] = f"{100 * last_eval['success_rate']:.0f}"
+                    post["T"] = f"{last_eval['mean_length']:.1f}"
+                progress.set_postfix(post)
+                progress.update(1)
+            if on_update is not None:
+                on_update(record)
+            if counters["update"] % cfg.checkpoint_every == 0 or done_training:
+                save_checkpoint()
+            if done_training:
+                break
+    except KeyboardInterrupt:
+        counters["wall_time"] = time.perf_counter() - start_wall
+        save_checkpoint()
+        if progress is not None:
+            progress.close()
+        print(f"\ninterrupted: checkpoint saved at update {counters['update']}; "
+              f"continue with: swarm train --resume {run.path}")
+        raise
+    if progress is not None:
+        progress.close()
+    save_checkpoint()
+    try:
+        from trainer.plot import plot_run
+
+        plot_run(run.path)
+    except Exception as exc:  # noqa: BLE001 - a missing plot never loses a run
+        print(f"(could not draw curves: {exc})")
+    summary = {"run_dir": run.path, **counters, "last_eval": last_eval, "evals": evals,
+               "reached_target": bool(cfg.target_success > 0 and last_eval
+                                      and last_eval["success_rate"] >= cfg.target_success)}
+    checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)
+    return summary
+
+
+__all__ = ["Run", "resolve_device", "train"]
