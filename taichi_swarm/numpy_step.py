@@ -27,22 +27,26 @@ MAX_STEPS = 50
 
 
 def pairwise(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """delta [B, N, K, 2] = a_i - b_k and its norm [B, N, K], for a [B, N, 2], b [B, K, 2]."""
-    delta = a[:, :, None, :] - b[:, None, :, :]
-    return delta, np.sqrt(np.einsum("bnkc,bnkc->bnk", delta, delta))
+    """delta [2, B, N, K] = a_n - b_k (coordinate first) and its norm [B, N, K], for a [B, N, 2], b [B, K, 2].
+
+    Coordinate-first arrays broadcast over contiguous axes: ~2x faster than [B, N, K, 2].
+    """
+    a_t, b_t = np.ascontiguousarray(a.transpose(2, 0, 1)), np.ascontiguousarray(b.transpose(2, 0, 1))  # [2, B, *]
+    delta = a_t[:, :, :, None] - b_t[:, :, None, :]
+    return delta, np.sqrt(delta[0] * delta[0] + delta[1] * delta[1])
 
 
 def physics(pos: np.ndarray, vel: np.ndarray, actions: np.ndarray,
             agent_radius: float = AGENT_RADIUS) -> tuple[np.ndarray, np.ndarray]:
     """One MPE world step: pos, vel [B, M, 2] float32, actions int [B, M] -> new pos, vel."""
     force = SENSITIVITY * ACTION_DIRS[actions]  # [B, M, 2]
-    delta, dist = pairwise(pos, pos)  # [B, M, M, 2] p_i - p_j, [B, M, M]
+    delta, dist = pairwise(pos, pos)  # [2, B, M, M] p_i - p_j, [B, M, M]
     # pen = k softplus(-(d - dist_min) / k), softplus(x) = logaddexp(0, x) (stable)
     pen = CONTACT_MARGIN * np.logaddexp(np.float32(0.0), -(dist - 2 * agent_radius) / CONTACT_MARGIN)
     # F_ij = 100 (p_i - p_j) / d * pen; no force on itself (d = 0), nor between
     # coincident agents (NOTE: MPE divides by zero there, the kernels skip the pair too)
     scale = np.divide(CONTACT_FORCE * pen, dist, out=np.zeros_like(dist), where=dist > 0)  # [B, M, M]
-    force += np.einsum("bij,bijc->bic", scale, delta)
+    force += np.stack([(scale * delta[0]).sum(axis=-1), (scale * delta[1]).sum(axis=-1)], axis=-1)
     vel = vel * (1 - DAMPING) + (force / MASS) * DT
     return pos + vel * DT, vel
 
@@ -58,7 +62,11 @@ def comm_graph(pos: np.ndarray, comm_radius: float | None) -> np.ndarray:
 
 def observe(pos: np.ndarray, vel: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """self [B, M, 4] = (vel, pos) and entities [B, M, L, 2] = landmark - agent position."""
-    return np.concatenate([vel, pos], axis=-1), landmarks[:, None, :, :] - pos[:, :, None, :]
+    (B, M, _), L = pos.shape, landmarks.shape[1]
+    entities = np.empty((B, M, L, 2), dtype=pos.dtype)
+    for c in range(2):  # per coordinate (x, y): broadcasting over a trailing axis of 2 is slow
+        np.subtract(landmarks[:, None, :, c], pos[:, :, None, c], out=entities[..., c])
+    return np.concatenate([vel, pos], axis=-1), entities
 
 
 def matched_distances(pos: np.ndarray, targets: np.ndarray) -> np.ndarray:

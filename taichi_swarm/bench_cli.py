@@ -1,0 +1,124 @@
+"""``swarm bench {sim,train,deploy}``: the benchmarks, one subcommand each.
+
+``sim`` lives here (bench_sim.py); ``train`` and ``deploy`` are imported lazily
+from ``trainer.bench`` and ``deploy.bench`` and get the remaining arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+SUBCOMMANDS = {
+    "sim": "simulator throughput: taichi_swarm vs VMAS vs NumPy (agent-steps/s)",
+    "train": "training throughput (trainer.bench)",
+    "deploy": "decentralised ONNX execution latency (deploy.bench)",
+}
+QUICK_SECONDS = 0.25
+
+
+def _usage() -> str:
+    lines = ["usage: swarm bench <sim|train|deploy> [options]   (swarm bench <name> --help)", "", "benchmarks:"]
+    return "\n".join(lines + [f"  {name:<7} {help_}" for name, help_ in SUBCOMMANDS.items()])
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text}")
+    return value
+
+
+def sim_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="swarm bench sim",
+        description="Agent-steps/s of the taichi_swarm coverage step vs VMAS simple_spread vs plain NumPy, "
+        "measured side by side in one process; prints a table and the target checks.",
+    )
+    p.add_argument("--batch-sizes", type=_positive_int, nargs="+", default=[32, 1024, 8192], metavar="B",
+                   help="numbers of environments (default: 32 1024 8192)")
+    p.add_argument("--agents", type=_positive_int, nargs="+", default=[3, 10], metavar="M",
+                   help="team sizes (default: 3 10)")
+    p.add_argument("--no-vmas", action="store_true", help="leave out VMAS (shown as skipped)")
+    p.add_argument("--no-numpy", action="store_true", help="leave out the NumPy baselines (shown as skipped)")
+    p.add_argument("--torch-threads", type=_positive_int, default=1, metavar="N",
+                   help="torch.set_num_threads during the run (default 1: see docs/BENCHMARKS.md)")
+    p.add_argument("--comm", choices=("rc", "uc"), default="rc",
+                   help="communication graph of taichi and numpy: rc = from distances every step (default), uc = all")
+    p.add_argument("--seconds", type=_positive_float, default=1.5, help="timed seconds per cell (default 1.5)")
+    p.add_argument("--steps", type=_positive_int, default=None, help="a fixed number of timed steps per cell instead")
+    p.add_argument("--quick", action="store_true", help=f"{QUICK_SECONDS} s per cell instead of --seconds")
+    p.add_argument("--json", default=None, metavar="PATH", help="also write the rows and checks to PATH (JSON)")
+    p.add_argument("--serial-sweep", action="store_true",
+                   help="instead: time the Taichi step with a serial vs parallel env loop over small B")
+    return p
+
+
+def sim_main(argv: list[str]) -> int:
+    """``swarm bench sim``: parse, run, print; returns the exit code."""
+    parser = sim_parser()
+    args = parser.parse_args(argv)
+    if args.json:
+        folder = os.path.dirname(os.path.abspath(args.json))
+        if not os.path.isdir(folder):
+            parser.error(f"--json: directory {folder!r} does not exist")
+    from . import bench_sim
+
+    seconds = QUICK_SECONDS if args.quick else args.seconds
+    if args.serial_sweep:
+        bench_sim.serial_sweep(tuple(args.agents), seconds=seconds, comm=args.comm)
+        return 0
+    bench_sim.run(
+        batch_sizes=tuple(args.batch_sizes), team_sizes=tuple(args.agents), steps=args.steps, seconds=seconds,
+        include_vmas=not args.no_vmas, include_numpy=not args.no_numpy, out_json=args.json,
+        torch_threads=args.torch_threads, comm=args.comm,
+    )
+    return 0
+
+
+def _delegate(name: str, module_name: str, argv: list[str]) -> int:
+    """Run ``module_name.main(argv)``, or explain why it cannot be imported."""
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        print(f"swarm bench {name}: cannot import {module_name} ({exc})", file=sys.stderr)
+        return 2
+    func = getattr(module, "main", None)
+    if func is None:
+        print(f"swarm bench {name}: {module_name} has no main(argv)", file=sys.stderr)
+        return 2
+    return int(func(argv) or 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``swarm bench``; returns the exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name == "sim":
+        return sim_main(rest)
+    if name in ("train", "deploy"):
+        return _delegate(name, "trainer.bench" if name == "train" else "deploy.bench", rest)
+    print(f"swarm bench: unknown benchmark {name!r}\n\n{_usage()}", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

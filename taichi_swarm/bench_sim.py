@@ -1,0 +1,319 @@
+"""``swarm bench sim``: simulator throughput, every implementation side by side in one process.
+
+Implementations (coverage / simple_spread, random discrete actions pre-generated):
+  taichi      taichi_swarm full step, array="torch", torch int64 actions
+  taichi-np   the same env with array="numpy" and numpy actions
+  vmas        VMAS ``simple_spread`` (its own 9 discrete actions per agent; no
+              episode end, so never resets), a list of per-agent action tensors
+  numpy       numpy_step.NumpyCoverage, the full step including the exact assignment
+              (scipy, a Python loop over the B environments)
+  numpy-phys  the same without the assignment (physics, graph, observations, resets)
+Each cell: warm-up steps (Taichi compiles its kernels on the first call), then steps
+timed with ``time.perf_counter`` until ``seconds`` have passed (at least MIN_STEPS).
+Rates are agent-steps/s = B * M * steps / seconds; ms/step is per step of the whole batch.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+IMPLS = ("taichi", "taichi-np", "vmas", "numpy", "numpy-phys")
+ACTION_SETS = 8  # distinct pre-generated action batches, cycled
+WARMUP_STEPS = 3
+MIN_STEPS = 3
+MAX_FIRST_STEP_S = 30.0  # a cell whose first step (compile included) takes longer is skipped, with the reason
+COMM_RADIUS = 1.0
+# Targets: at B >= TARGET_BIG_B taichi >= 10x VMAS and >= 5 M agent-steps/s; at B = 32 <= 0.3 ms/step.
+TARGET_BIG_B, TARGET_VS_VMAS, TARGET_RATE = 1024, 10.0, 5e6
+TARGET_SMALL_B, TARGET_SMALL_MS = 32, 0.3
+
+Step = Callable[[int], object]  # step(k): one step of the whole batch with action set k
+
+
+class Skip(Exception):
+    """A cell that is not measured; the message says why and is printed in the table."""
+
+
+def _taichi(B: int, M: int, comm: str, array: str) -> Step:
+    import taichi_swarm
+
+    env = taichi_swarm.make("coverage", B, M, comm=comm, comm_radius=COMM_RADIUS, seed=0, array=array)
+    env.reset()
+    if array == "torch":
+        import torch
+
+        gen = torch.Generator().manual_seed(0)
+        acts = [torch.randint(0, 5, (B, M), generator=gen) for _ in range(ACTION_SETS)]  # int64 [B, M]
+    else:
+        rng = np.random.default_rng(0)
+        acts = [rng.integers(0, 5, (B, M)) for _ in range(ACTION_SETS)]  # int64 [B, M]
+    return lambda k: env.step(acts[k % ACTION_SETS])
+
+
+def _vmas(B: int, M: int) -> Step:
+    try:
+        import torch
+        import vmas
+    except ImportError as exc:
+        raise Skip(f"vmas not importable ({exc}); pip install vmas") from exc
+    env = vmas.make_env(
+        scenario="simple_spread", num_envs=B, device="cpu", continuous_actions=False, n_agents=M, seed=0,
+    )
+    env.reset()
+    n = env.action_space[0].n  # 9 in vmas 1.5.2: {-, 0, +} per axis
+    gen = torch.Generator().manual_seed(0)
+    # per action set: a list of M tensors int64 [B, 1]
+    acts = [[torch.randint(0, n, (B, 1), generator=gen) for _ in range(M)] for _ in range(ACTION_SETS)]
+    return lambda k: env.step(acts[k % ACTION_SETS])
+
+
+def _numpy(B: int, M: int, comm: str, assign: bool) -> Step:
+    from .numpy_step import NumpyCoverage
+
+    env = NumpyCoverage(B, M, comm_radius=COMM_RADIUS if comm == "rc" else None, assign=assign, seed=0)
+    rng = np.random.default_rng(0)
+    acts = [rng.integers(0, 5, (B, M)) for _ in range(ACTION_SETS)]  # int64 [B, M]
+    return lambda k: env.step(acts[k % ACTION_SETS])
+
+
+def _make(impl: str, B: int, M: int, comm: str) -> Step:
+    if impl in ("taichi", "taichi-np"):
+        return _taichi(B, M, comm, "torch" if impl == "taichi" else "numpy")
+    if impl == "vmas":
+        return _vmas(B, M)
+    return _numpy(B, M, comm, assign=impl == "numpy")
+
+
+def measure(step: Step, agents: int, seconds: float, steps: int | None = None) -> dict:
+    """Warm up, then time ``steps`` steps (or as many as fit in ``seconds``, at least MIN_STEPS)."""
+    t0 = time.perf_counter()
+    step(0)
+    first = time.perf_counter() - t0
+    if first > MAX_FIRST_STEP_S:
+        raise Skip(f"first step took {first:.1f} s > {MAX_FIRST_STEP_S:.0f} s cap")
+    for k in range(1, WARMUP_STEPS):
+        step(k)
+    n, start = 0, time.perf_counter()
+    while True:
+        step(n)
+        n += 1
+        elapsed = time.perf_counter() - start
+        if (n >= steps) if steps else (n >= MIN_STEPS and elapsed >= seconds):
+            break
+    return {
+        "steps": n, "seconds": elapsed, "ms_per_step": 1e3 * elapsed / n, "agent_steps_per_s": agents * n / elapsed,
+    }
+
+
+def _set_torch_threads(n: int) -> int | None:
+    """Set torch's intra-op threads; returns the previous value (None without torch)."""
+    try:
+        import torch
+    except ImportError:
+        return None
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    return previous
+
+
+def run(
+    batch_sizes: tuple[int, ...] = (32, 1024, 8192),
+    team_sizes: tuple[int, ...] = (3, 10),
+    steps: int | None = None,
+    seconds: float = 1.5,
+    include_vmas: bool = True,
+    include_numpy: bool = True,
+    out_json: str | None = None,
+    torch_threads: int = 1,
+    comm: str = "rc",
+    verbose: bool = True,
+) -> list[dict]:
+    """Measure every (implementation, B, M) cell; print the table and target checks; return the rows.
+
+    Each row: impl, B, M, steps, seconds, ms_per_step, agent_steps_per_s, skipped (None or
+    the reason; then the numbers are None). ``steps`` fixes the step count per cell,
+    otherwise each cell runs for ~``seconds``. ``comm``: "rc" computes the graph from
+    distances every step (taichi and numpy), "uc" is all-to-all.
+    """
+    disabled = {"vmas": None if include_vmas else "disabled (--no-vmas)"}
+    for impl in ("numpy", "numpy-phys"):
+        disabled[impl] = None if include_numpy else "disabled (--no-numpy)"
+    previous = _set_torch_threads(torch_threads)
+    rows = []
+    try:
+        for B in batch_sizes:
+            for M in team_sizes:
+                for impl in IMPLS:
+                    row = {"impl": impl, "B": B, "M": M, "steps": None, "seconds": None,
+                           "ms_per_step": None, "agent_steps_per_s": None, "skipped": disabled.get(impl)}
+                    if row["skipped"] is None:
+                        try:
+                            row.update(measure(_make(impl, B, M, comm), B * M, seconds, steps))
+                        except Skip as exc:
+                            row["skipped"] = str(exc)
+                    rows.append(row)
+                    if verbose:
+                        print(_progress(row), file=sys.stderr, flush=True)
+    finally:
+        if previous is not None:
+            _set_torch_threads(previous)
+    checks = target_checks(rows)
+    meta = machine_info(torch_threads, comm, seconds, steps)
+    if verbose:
+        print(format_report(rows, checks, meta))
+    if out_json:
+        write_json(out_json, {"meta": meta, "rows": rows, "checks": checks})
+    return rows
+
+
+def _progress(row: dict) -> str:
+    where = f"  {row['impl']:<10} B={row['B']:<5} M={row['M']:<3}"
+    if row["skipped"]:
+        return f"{where} skipped: {row['skipped']}"
+    return f"{where} {_rate(row['agent_steps_per_s'])} agent-steps/s ({row['steps']} steps, {row['seconds']:.2f} s)"
+
+
+def _rate(x: float | None) -> str:
+    if x is None:
+        return "skipped"
+    return f"{x / 1e6:.2f}M" if x >= 1e6 else f"{x / 1e3:.1f}k"
+
+
+def _ratio(a: float | None, b: float | None) -> str:
+    return "-" if a is None or b is None else f"{a / b:.1f}x"
+
+
+def _cells(rows: list[dict]) -> dict[tuple[int, int], dict[str, dict]]:
+    """(B, M) -> impl -> row, in measurement order."""
+    cells: dict[tuple[int, int], dict[str, dict]] = {}
+    for r in rows:
+        cells.setdefault((r["B"], r["M"]), {})[r["impl"]] = r
+    return cells
+
+
+def target_checks(rows: list[dict]) -> list[dict]:
+    """PASS / FAIL / N/A per target and (B, M): dicts with check, B, M, status, detail."""
+    out = []
+    for (B, M), c in _cells(rows).items():
+        t, v = c["taichi"]["agent_steps_per_s"], c.get("vmas", {}).get("agent_steps_per_s")
+        ms = c["taichi"]["ms_per_step"]
+        if B >= TARGET_BIG_B:
+            if t is None or v is None:
+                why = c["taichi"]["skipped"] if t is None else c["vmas"]["skipped"]
+                out.append(_check(f"taichi >= {TARGET_VS_VMAS:.0f}x vmas", B, M, None, f"not measured: {why}"))
+            else:
+                out.append(_check(f"taichi >= {TARGET_VS_VMAS:.0f}x vmas", B, M, t >= TARGET_VS_VMAS * v,
+                                  f"taichi {_rate(t)} / vmas {_rate(v)} = {t / v:.1f}x"))
+            out.append(_check(f"taichi >= {TARGET_RATE / 1e6:.0f}M agent-steps/s", B, M,
+                              None if t is None else t >= TARGET_RATE, f"taichi {_rate(t)}"))
+        if B == TARGET_SMALL_B:
+            ok = None if ms is None else ms <= TARGET_SMALL_MS
+            out.append(_check(f"taichi <= {TARGET_SMALL_MS} ms/step", B, M, ok,
+                              "not measured" if ms is None else f"taichi {ms:.3f} ms/step"))
+    return out
+
+
+def _check(name: str, B: int, M: int, ok: bool | None, detail: str) -> dict:
+    status = "N/A" if ok is None else "PASS" if ok else "FAIL"
+    return {"check": name, "B": B, "M": M, "status": status, "detail": detail}
+
+
+def format_report(rows: list[dict], checks: list[dict], meta: dict) -> str:
+    """The printed table (agent-steps/s, M = million) and the target checks."""
+    head = (f"{'B':>6} {'M':>3} | {'taichi':>8} {'ms/step':>8} | {'taichi-np':>9} | {'vmas':>8} {'ms/step':>8} | "
+            f"{'numpy':>8} {'numpy-phys':>10} | {'t/vmas':>7} {'t/numpy':>7} {'t/np-phys':>9}")
+    lines = [
+        f"Simulator benchmark: coverage (VMAS: simple_spread), comm={meta['comm']}, {meta['cpu_count']} CPU cores, "
+        f"torch threads={meta['torch_threads']}, taichi threads={meta['taichi_threads']}",
+        "agent-steps/s (M = million, k = thousand); ms/step = one step of the whole batch of B envs",
+        head, "-" * len(head),
+    ]
+    skipped: dict[str, list[str]] = {}
+    for (B, M), c in _cells(rows).items():
+        rate = {impl: r["agent_steps_per_s"] for impl, r in c.items()}
+        ms = {impl: r["ms_per_step"] for impl, r in c.items()}
+        for impl, r in c.items():
+            if r["skipped"]:
+                skipped.setdefault(f"{impl}: {r['skipped']}", []).append(f"B={B} M={M}")
+        t = rate["taichi"]
+        lines.append(
+            f"{B:>6} {M:>3} | {_rate(t):>8} {_ms(ms['taichi']):>8} | {_rate(rate['taichi-np']):>9} | "
+            f"{_rate(rate['vmas']):>8} {_ms(ms['vmas']):>8} | "
+            f"{_rate(rate['numpy']):>8} {_rate(rate['numpy-phys']):>10} | "
+            f"{_ratio(t, rate['vmas']):>7} {_ratio(t, rate['numpy']):>7} {_ratio(t, rate['numpy-phys']):>9}"
+        )
+    for reason, where in skipped.items():
+        lines.append(f"skipped {reason} ({', '.join(where)})")
+    lines += ["", "Target checks:"]
+    lines += [f"  [{c['status']:>4}] B={c['B']:<5} M={c['M']:<3} {c['check']}: {c['detail']}" for c in checks]
+    return "\n".join(lines)
+
+
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+def machine_info(torch_threads: int, comm: str, seconds: float, steps: int | None) -> dict:
+    """What the numbers depend on: machine, library versions and benchmark settings."""
+    versions = {"python": platform.python_version(), "numpy": np.__version__}
+    for name in ("taichi", "torch", "scipy", "vmas"):
+        try:
+            mod = __import__(name)
+            v = getattr(mod, "__version__", "?")
+            versions[name] = ".".join(map(str, v)) if isinstance(v, tuple) else str(v)
+        except ImportError:
+            versions[name] = "not installed"
+    cpu = platform.processor() or "?"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    return {
+        "cpu": cpu, "cpu_count": os.cpu_count(), "platform": platform.platform(), "versions": versions,
+        "torch_threads": torch_threads, "taichi_threads": os.environ.get("TAICHI_SWARM_THREADS") or "all cores",
+        "comm": comm, "seconds_per_cell": seconds, "steps_per_cell": steps,
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def write_json(path: str, payload: dict) -> None:
+    """Write atomically: a temporary file next to ``path``, then os.replace."""
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as fh:
+        json.dump(payload, fh, indent=2)
+        fh.write("\n")
+    os.replace(tmp, path)
+
+
+def serial_sweep(team_sizes: tuple[int, ...] = (3, 10), batch_sizes: tuple[int, ...] = (16, 64, 128, 256, 512, 1024),
+                 seconds: float = 0.5, comm: str = "rc") -> list[dict]:
+    """Taichi step with the env loop serial vs parallel (the ``SERIAL_BELOW_AGENTS`` switch of env.py)."""
+    import torch
+
+    import taichi_swarm
+    from taichi_swarm.env import SERIAL_BELOW_AGENTS
+
+    print(f"serial vs parallel Taichi step (env.py switches to parallel at B*M >= {SERIAL_BELOW_AGENTS})")
+    print(f"{'B':>6} {'M':>3} {'B*M':>6} | {'serial ms':>9} {'parallel ms':>11} | faster")
+    out = []
+    for M in team_sizes:
+        for B in batch_sizes:
+            env = taichi_swarm.make("coverage", B, M, comm=comm, comm_radius=COMM_RADIUS, seed=0)
+            env.reset()
+            acts = torch.randint(0, 5, (B, M), generator=torch.Generator().manual_seed(0))
+            ms = {}
+            for parallel in (False, True):
+                env._parallel = parallel  # the switch SwarmEnv.__init__ sets from B * M
+                ms[parallel] = measure(lambda k, e=env, a=acts: e.step(a), B * M, seconds)["ms_per_step"]
+            faster = "parallel" if ms[True] < ms[False] else "serial"
+            print(f"{B:>6} {M:>3} {B * M:>6} | {ms[False]:>9.3f} {ms[True]:>11.3f} | {faster}")
+            out.append({"B": B, "M": M, "serial_ms": ms[False], "parallel_ms": ms[True]})
+    return out

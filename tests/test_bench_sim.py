@@ -1,0 +1,95 @@
+"""`swarm bench sim` in a tiny configuration, and the NumPy baseline equal to the Taichi step."""
+
+import json
+
+import numpy as np
+import pytest
+
+import taichi_swarm
+from taichi_swarm import bench_cli, bench_sim, numpy_step
+
+MEASURED = ("taichi", "taichi-np", "numpy", "numpy-phys")
+
+
+def test_tiny_run_gives_sane_rows_and_json(tmp_path, capsys):
+    out = tmp_path / "sim.json"
+    rows = bench_sim.run(batch_sizes=(4,), team_sizes=(3,), steps=5, include_vmas=False, out_json=str(out))
+    assert [r["impl"] for r in rows] == list(bench_sim.IMPLS)
+    for r in rows:
+        assert set(r) == {"impl", "B", "M", "steps", "seconds", "ms_per_step", "agent_steps_per_s", "skipped"}
+        assert (r["B"], r["M"]) == (4, 3)
+    for r in (r for r in rows if r["impl"] in MEASURED):
+        assert r["skipped"] is None and r["steps"] == 5
+        assert r["seconds"] > 0 and r["ms_per_step"] > 0
+        assert r["agent_steps_per_s"] == pytest.approx(4 * 3 * 5 / r["seconds"])
+    vmas = next(r for r in rows if r["impl"] == "vmas")
+    assert "--no-vmas" in vmas["skipped"] and vmas["agent_steps_per_s"] is None
+    printed = capsys.readouterr().out
+    assert "Target checks:" in printed and "skipped vmas: disabled (--no-vmas)" in printed
+    saved = json.loads(out.read_text())
+    assert saved["rows"] == rows and saved["meta"]["torch_threads"] == 1
+    assert list(tmp_path.iterdir()) == [out]  # the temporary file was renamed
+
+
+def test_target_checks_say_na_when_vmas_is_skipped():
+    rows = [
+        {"impl": "taichi", "B": 1024, "M": 3, "agent_steps_per_s": 6e6, "ms_per_step": 0.5, "skipped": None},
+        {"impl": "vmas", "B": 1024, "M": 3, "agent_steps_per_s": None, "ms_per_step": None, "skipped": "why"},
+    ]
+    status = {c["check"]: c["status"] for c in bench_sim.target_checks(rows)}
+    assert status == {"taichi >= 10x vmas": "N/A", "taichi >= 5M agent-steps/s": "PASS"}
+
+
+def test_cli_runs_and_rejects_bad_arguments(capsys):
+    assert bench_cli.main(["sim", "--batch-sizes", "4", "--agents", "2", "--steps", "2", "--no-vmas"]) == 0
+    assert "taichi" in capsys.readouterr().out
+    for bad in (["sim", "--batch-sizes", "0"], ["sim", "--agents", "x"], ["sim", "--seconds", "-1"]):
+        with pytest.raises(SystemExit) as exc:
+            bench_cli.main(bad)
+        assert exc.value.code == 2
+    assert bench_cli.main(["nope"]) == 2
+    assert bench_cli._delegate("train", "trainer.no_such_bench_module", []) == 2
+    assert "cannot import trainer.no_such_bench_module" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("M", [1, 3, 10])
+def test_numpy_step_equals_taichi_step(M):
+    """Physics, observations, graph and reward of the NumPy baseline equal the Taichi env's."""
+    B, radius = 32, 1.0
+    rng = np.random.default_rng(M)
+    env = taichi_swarm.make("coverage", B, M, comm="rc", comm_radius=radius, seed=0, array="numpy")
+    env.reset()
+    # crowded agents (many contacts, graph neither empty nor full), landmarks anywhere
+    pos = rng.uniform(-0.6, 0.6, (B, M, 2)).astype(np.float32)
+    vel = rng.uniform(-2, 2, (B, M, 2)).astype(np.float32)
+    lmk = rng.uniform(-1, 1, (B, M, 2)).astype(np.float32)
+    env.set_state(pos=pos, vel=vel, landmarks=lmk, step=np.zeros(B, dtype=np.int32))
+    actions = rng.integers(0, 5, (B, M))
+    env.step(actions)
+    new, live = env.get_state(), ~env.done  # finished envs have restarted: compare the others
+    assert live.sum() > B // 2
+
+    pos2, vel2 = numpy_step.physics(pos, vel, actions)
+    np.testing.assert_allclose(pos2[live], new["pos"][live], atol=1e-5)
+    np.testing.assert_allclose(vel2[live], new["vel"][live], atol=1e-5)
+    obs_self, entities = numpy_step.observe(pos2, vel2, lmk)
+    np.testing.assert_allclose(obs_self[live], env.obs["self"][live], atol=1e-5)
+    np.testing.assert_allclose(entities[live], env.obs["entities"][live], atol=1e-5)
+    adj = numpy_step.comm_graph(pos2, radius)
+    assert (adj[live] == env.obs["adj"][live]).all()
+    assert adj.sum() < B * M * M or M == 1
+    d = numpy_step.matched_distances(pos2, lmk)
+    np.testing.assert_allclose(d[live], env.matched_dist[live], atol=1e-5)
+    np.testing.assert_allclose(np.clip(-d.mean(axis=1), -15, 15)[live], env.reward[live], atol=1e-5)
+
+
+def test_numpy_env_resets_at_the_time_limit():
+    env = numpy_step.NumpyCoverage(8, 3, comm_radius=None, seed=0)
+    actions = np.zeros((8, 3), dtype=np.int64)
+    for t in range(1, numpy_step.MAX_STEPS + 1):
+        (obs_self, entities, adj), reward, done = env.step(actions)
+        assert obs_self.shape == (8, 3, 4) and entities.shape == (8, 3, 3, 2) and adj.all()
+        assert reward.shape == (8,) and (reward <= 0).all()
+        if not done.any():
+            assert (env.t == t).all()
+    assert done.all() and (env.t == 0).all() and (env.vel == 0).all()

@@ -1,0 +1,119 @@
+"""Run directories, checkpoints, resume, and a subprocess smoke run of each
+trainer command."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from trainer import checkpoint
+from trainer.config import PPOConfig, TrainConfig
+from trainer.model import ModelConfig
+from trainer.train import train
+
+TINY_PPO = PPOConfig(num_envs=4, num_steps=8, epochs=1, minibatches=2)
+TINY_MODEL = ModelConfig(hidden=16, rounds=1)
+
+
+def tiny(tmp_path, **kw):
+    base = dict(task="coverage", agents=2, updates=3, eval_every=2, eval_episodes=4, checkpoint_every=1,
+                run_dir=str(tmp_path / "run"), progress=False, torch_threads=1, model=TINY_MODEL, ppo=TINY_PPO)
+    return TrainConfig(**(base | kw))
+
+
+def test_run_dir_resume_and_refusal_to_overwrite(tmp_path):
+    cfg = tiny(tmp_path, updates=2)
+    train(cfg)
+    run = cfg.run_dir
+    assert {"config.json", "metrics.jsonl", "checkpoint.pt", "summary.json", "curves.png"} <= set(os.listdir(run))
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(cfg)
+    before = checkpoint.load(run)
+    summary = train(resume=run, updates=4)
+    after = checkpoint.load(run)
+    assert before["counters"]["update"] == 2 and after["counters"]["update"] == 4 == summary["update"]
+    lines = [json.loads(x) for x in open(os.path.join(run, "metrics.jsonl"))]
+    assert [r["update"] for r in lines] == [1, 2, 3, 4]
+    assert not torch.equal(before["model"]["agent_encoder.weight"], after["model"]["agent_encoder.weight"])
+
+
+def test_resume_drops_metrics_written_after_the_checkpoint(tmp_path):
+    cfg = tiny(tmp_path, updates=3, checkpoint_every=2)
+    train(cfg)  # checkpoints at 2 and at the end (3)
+    payload = checkpoint.load(cfg.run_dir)
+    payload["counters"]["update"] = 2  # pretend the run died right after update 3 was logged
+    checkpoint.save(os.path.join(cfg.run_dir, "checkpoint.pt"), payload)
+    train(resume=cfg.run_dir)
+    lines = [json.loads(x)["update"] for x in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
+    assert lines == [1, 2, 3]
+
+
+def test_bad_checkpoints_give_clear_errors(tmp_path):
+    with pytest.raises(checkpoint.CheckpointError, match="does not exist"):
+        checkpoint.load(str(tmp_path / "nope.pt"))
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(checkpoint.CheckpointError, match="corrupted"):
+        checkpoint.load(str(bad))
+    cfg = tiny(tmp_path, updates=1)
+    train(cfg)
+    good = os.path.join(cfg.run_dir, "checkpoint.pt")
+    data = open(good, "rb").read()
+    trunc = tmp_path / "trunc.pt"
+    trunc.write_bytes(data[: len(data) // 2])
+    with pytest.raises(checkpoint.CheckpointError, match="truncated"):
+        checkpoint.load(str(trunc))
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        train(resume=str(tmp_path / "missing-run"))
+    # weights into a mismatched network
+    from trainer.model import SwarmPolicy
+
+    with pytest.raises(checkpoint.CheckpointError, match="do not fit"):
+        checkpoint.load_weights(SwarmPolicy(ModelConfig(hidden=32)), checkpoint.load(good)["model"])
+    with pytest.raises(checkpoint.CheckpointError, match="has model"):
+        train(tiny(tmp_path, run_dir=str(tmp_path / "r2"), init_from=good, model=ModelConfig(hidden=32)))
+
+
+def test_config_validation_names_the_option(tmp_path):
+    with pytest.raises(ValueError, match="task"):
+        tiny(tmp_path, task="soccer").validate()
+    with pytest.raises(ValueError, match="ppo.lr"):
+        tiny(tmp_path, ppo=PPOConfig(lr=-1)).validate()
+    with pytest.raises(ValueError, match="agents"):
+        tiny(tmp_path, agents=0).validate()
+
+
+def swarm(*args, cwd):
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    return subprocess.run([sys.executable, "-m", "taichi_swarm.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
+    common = ["--updates", "2", "--eval-every", "2", "--eval-episodes", "4", "--no-progress",
+              "--ppo.num-envs", "4", "--ppo.num-steps", "8", "--ppo.minibatches", "2", "--ppo.epochs", "1",
+              "--model.hidden", "16", "--model.rounds", "1", "--torch-threads", "1"]
+    r = swarm("train", "--task", "formation", "--agents", "3", "--comm", "rc", "--run-dir", "run", *common,
+              cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "eval S%" in r.stdout
+    r = swarm("eval", "run", "--agents", "4", "--episodes", "5", "--json", "ev.json", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "formation" in r.stdout and json.load(open(tmp_path / "ev.json"))["agents"] == 4
+    r = swarm("zero-shot", "run/checkpoint.pt", "--sizes", "2-3", "--episodes", "3", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    r = swarm("curriculum", "--task", "coverage", "--sizes", "2", "3", "--threshold", "0.99",
+              "--max-updates-per-stage", "2", "--run-dir", "cur", *common, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    stages = json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"]
+    assert [s["agents"] for s in stages] == [2, 3]
+    r = swarm("plot", "run", cwd=tmp_path)
+    assert r.returncode == 0 and (tmp_path / "run" / "curves.png").exists()
+    # errors are one clear line, not a traceback
+    r = swarm("eval", "missing.pt", cwd=tmp_path)
+    assert r.returncode == 2 and "does not exist" in r.stderr and "Traceback" not in r.stderr
+    r = swarm("train", "--task", "soccer", "--run-dir", "x", *common, cwd=tmp_path)
+    assert r.returncode != 0 and "Traceback" not in r.stderr

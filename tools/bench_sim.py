@@ -1,0 +1,8 @@
+"""Simulator benchmark: ``python tools/bench_sim.py [options]`` is ``swarm bench sim [options]``."""
+
+import sys
+
+from taichi_swarm.bench_cli import main
+
+if __name__ == "__main__":
+    sys.exit(main(["sim", *sys.argv[1:]]))
