@@ -10,7 +10,11 @@ work arrays live on the thread's stack.
 import taichi as ti
 
 from .layout import (
-    H_M, O_ASSIGN, O_HU_COST, O_POS, O_TGT,
+    H_M,
+    O_ASSIGN,
+    O_HU_COST,
+    O_POS,
+    O_TGT,
 )
 
 INF = 1e30

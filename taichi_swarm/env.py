@@ -18,7 +18,13 @@ import numpy as np
 
 from . import assignment, kernels, rng, runtime
 from .layout import (
-    H_COMM_RC, H_MAX_STEPS, P_AGENT_RADIUS, P_COMM_RADIUS, P_SUCCESS, P_TASK_PARAM, Layout,
+    H_COMM_RC,
+    H_MAX_STEPS,
+    P_AGENT_RADIUS,
+    P_COMM_RADIUS,
+    P_SUCCESS,
+    P_TASK_PARAM,
+    Layout,
 )
 from .physics import NUM_ACTIONS
 from .tasks import COMMON_PARAMS, TASK_SPECS, TASKS

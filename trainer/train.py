@@ -25,7 +25,7 @@ from trainer import checkpoint
 from trainer.config import TrainConfig, to_dict, train_config_from_dict
 from trainer.evaluate import evaluate
 from trainer.model import ModelConfig, SwarmPolicy
-from trainer.ppo import Rollout, RewardScaler, gae, normalize_per_agent, ppo_loss
+from trainer.ppo import RewardScaler, Rollout, gae, normalize_per_agent, ppo_loss
 
 
 def resolve_device(device: str) -> str:
@@ -59,6 +59,11 @@ class Run:
         with open(self.metrics) as f:
             keep = [line for line in f if line.strip() and json.loads(line)["update"] <= last_update]
         checkpoint.atomic_write_bytes(self.metrics, lambda f: f.write("".join(keep).encode()))
+
+
+def teams(x: torch.Tensor) -> torch.Tensor:
+    """[T, E, M, ...] -> [T*E, M, ...]: every (step, env) sample is one whole team."""
+    return x.reshape(x.shape[0] * x.shape[1], *x.shape[2:])
 
 
 def model_config_for(cfg: TrainConfig) -> ModelConfig:
@@ -204,10 +209,9 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
             torch.set_num_threads(cfg.torch_threads)
             policy.train()
             n = T * E
-            flat = lambda x: x.reshape(n, *x.shape[2:])  # noqa: E731 - [T, E, ...] -> [T*E, ...] (whole teams)
-            b_self, b_ent, b_adj = flat(buf.self_obs), flat(buf.entities), flat(buf.adj)
-            b_act, b_logp, b_val = flat(buf.actions), flat(buf.logprobs), flat(buf.values)
-            b_adv, b_ret = flat(advantages), flat(returns)
+            b_self, b_ent, b_adj = teams(buf.self_obs), teams(buf.entities), teams(buf.adj)
+            b_act, b_logp, b_val = teams(buf.actions), teams(buf.logprobs), teams(buf.values)
+            b_adv, b_ret = teams(advantages), teams(returns)
             stats = []
             for _ in range(p.epochs):
                 perm = torch.randperm(n, device=device)
