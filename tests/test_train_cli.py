@@ -28,7 +28,9 @@ def test_run_dir_resume_and_refusal_to_overwrite(tmp_path):
     cfg = tiny(tmp_path, updates=2)
     train(cfg)
     run = cfg.run_dir
-    assert {"config.json", "metrics.jsonl", "checkpoint.pt", "summary.json", "curves.png"} <= set(os.listdir(run))
+    assert {"config.json", "metrics.jsonl", "checkpoint.pt", "policy.pt", "summary.json", "curves.png"} <= set(
+        os.listdir(run)
+    )
     with pytest.raises(FileExistsError, match="--resume"):
         train(cfg)
     before = checkpoint.load(run)

@@ -18,6 +18,15 @@ def evaluate(policy, task: str, agents: int, comm: str = "uc", comm_radius: floa
     execution. Returns success_rate, mean_length (T; 50 for failures), dist (DIST,
     coverage), and per-episode arrays.
     """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # small batched forwards: more threads stall on a busy 2-core machine
+    try:
+        return _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder) -> dict:
     env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed)
     obs = env.reset()
     finished = torch.zeros(episodes, dtype=torch.bool)

@@ -7,8 +7,9 @@
               teams (t, env), since messages need every agent of the team
     evaluate: every ``eval_every`` updates, greedy, on fresh seeds
 A run directory holds config.json, metrics.jsonl, checkpoint.pt (written
-atomically every ``checkpoint_every`` updates, at the end and on Ctrl-C) and
-curves.png; ``resume`` continues where the checkpoint stopped.
+atomically every ``checkpoint_every`` updates, at the end and on Ctrl-C),
+policy.pt (the final weights alone), summary.json and curves.png; ``resume``
+continues where the checkpoint stopped.
 """
 
 from __future__ import annotations
@@ -138,17 +139,22 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
     obs = env.reset(seed=cfg.seed * 1_000_003 + counters["update"])
     buf = Rollout.allocate(T, E, M, L, device)
 
-    def save_checkpoint() -> None:
-        checkpoint.save(run.checkpoint, {
+    def policy_payload() -> dict:
+        return {
             "model_config": policy.config.to_dict(),
             "model": policy.state_dict(),
+            "task": {"task": cfg.task, "agents": M, "comm": cfg.comm, "comm_radius": cfg.comm_radius},
+            "counters": dict(counters),
+            "evals": list(evals),
+        }
+
+    def save_checkpoint() -> None:
+        checkpoint.save(run.checkpoint, {
+            **policy_payload(),
             "optimizer": optimizer.state_dict(),
             "reward_scaler": scaler.state_dict(),
             "torch_rng": torch.get_rng_state(),
-            "counters": counters,
-            "evals": evals,
             "train_config": to_dict(cfg),
-            "task": {"task": cfg.task, "agents": M, "comm": cfg.comm, "comm_radius": cfg.comm_radius},
         })
 
     progress = None
@@ -277,6 +283,8 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
     if progress is not None:
         progress.close()
     save_checkpoint()
+    # the weights alone (no optimiser): small enough to commit, loads in `swarm eval`/`export`
+    checkpoint.save(os.path.join(run.path, "policy.pt"), policy_payload())
     try:
         from trainer.plot import plot_run
 

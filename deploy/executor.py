@@ -1,0 +1,323 @@
+"""Decentralised execution of exported policies (``swarm execute``); never imports torch.
+
+Every agent is its own ``Agent`` object with its own onnxruntime sessions (one
+thread each) and sees only its own observation: own state [4] and landmark
+offsets [L, 2]. Per simulator step (K rounds, manifest "schedule"):
+
+    encode(own obs)               -> h, message            (message = key [H], value [H])
+    rounds 1..K-1: send message along the graph, round(h, heard) -> h, next message
+    round K:       send message,  round_heads(h, heard)  -> logits [5]; action = argmax
+
+Communication goes through ``MessageBus``, the in-process radio: it delivers a
+message from j to i only along an edge of the simulator's communication graph
+(``obs["adj"]``: everyone in "uc", within the radius in "rc") of the step the
+message was sent in. An agent always hears itself: it adds its own current
+message to what it heard (local memory, never dropped or delayed), so a round
+gets n >= 1 messages even when the bus delivers none; the round graphs also
+accept n = 0.
+
+Imperfect communication (both seeded, both per env):
+    drop p:  each message on each edge (j -> i, j != i) in each round is lost
+             independently with probability p.
+    delay k: a message sent in round r of step t arrives in round r of step t + k,
+             along the edges of step t (that is when it was sent). In round r an
+             agent therefore uses its neighbours' round-r messages from k steps
+             ago, plus its own fresh one; in the first k steps of an episode it
+             hears only itself. Messages in flight are discarded when an episode
+             ends (they belong to the previous episode).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import onnxruntime as ort
+
+MANIFEST = "manifest.json"
+FORMAT = "taichi-swarm-onnx"
+
+
+class DeployError(ValueError):
+    """An export directory, its manifest or the requested setting does not fit."""
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+class ExportedModel:
+    """An export directory, read once and verified: manifest plus the bytes of every .onnx file."""
+
+    def __init__(self, directory: str):
+        if not os.path.exists(directory):
+            raise DeployError(f"export directory {directory} does not exist (run `swarm export CKPT --out DIR`)")
+        if not os.path.isdir(directory):
+            raise DeployError(f"{directory} is not a directory (pass the folder `swarm export` wrote)")
+        path = os.path.join(directory, MANIFEST)
+        if not os.path.exists(path):
+            raise DeployError(f"{directory} has no {MANIFEST}: not a `swarm export` directory")
+        try:
+            with open(path) as f:
+                manifest = json.load(f)
+        except (OSError, json.JSONDecodeError) as exc:
+            raise DeployError(f"cannot read {path}: {exc}") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+            raise DeployError(f"{path} is not a taichi-swarm ONNX manifest")
+        self.directory = directory
+        self.manifest = manifest
+        self.rounds: int = int(manifest["rounds"])
+        self.hidden: int = int(manifest["hidden"])
+        self.entity_mode: str = manifest["entity_mode"]
+        self.task: dict = manifest["task"]
+        self.models: dict[str, bytes] = {}
+        files = {name: os.path.join(directory, entry["file"]) for name, entry in manifest["files"].items()}
+        missing = [f for f in files.values() if not os.path.exists(f)]
+        if missing:
+            raise DeployError(f"{', '.join(missing)} missing (listed in {MANIFEST}): export again")
+        for name, entry in manifest["files"].items():
+            file = files[name]
+            with open(file, "rb") as f:
+                data = f.read()
+            if _sha256(data) != entry["sha256"]:
+                raise DeployError(f"{file} does not match the sha256 in {MANIFEST}: the file is corrupted or "
+                                  "was changed after export; export again")
+            self.models[name] = data
+
+    def check_landmarks(self, task: str, num_landmarks: int) -> None:
+        """Raise DeployError if this network cannot take ``num_landmarks`` landmark offsets."""
+        if self.entity_mode == "concat" and num_landmarks != self.manifest["num_landmarks"]:
+            raise DeployError(
+                f"this model concatenates {self.manifest['num_landmarks']} landmark offsets (entity_mode 'concat', "
+                f"trained on {self.task.get('task')!r}); task {task!r} has {num_landmarks} landmarks")
+        if self.entity_mode == "padded" and num_landmarks > int(self.manifest["max_landmarks"]):
+            raise DeployError(f"this model holds at most {self.manifest['max_landmarks']} landmarks "
+                              f"(entity_mode 'padded'); task {task!r} has {num_landmarks}")
+
+
+def session_options(threads: int = 1) -> ort.SessionOptions:
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3
+    return opts
+
+
+class Agent:
+    """One agent: its own sessions, its own hidden state, its own observation only."""
+
+    def __init__(self, agent_id: int, model: ExportedModel, threads: int = 1):
+        self.id = agent_id
+        self.rounds = model.rounds
+        opts = session_options(threads)
+        providers = ["CPUExecutionProvider"]
+        self._encode = ort.InferenceSession(model.models["encode"], opts, providers=providers)
+        self._round = ort.InferenceSession(model.models["round"], opts, providers=providers) if self.rounds > 1 \
+            else None
+        final = "round_heads" if self.rounds >= 1 else "heads"
+        self._final = ort.InferenceSession(model.models[final], opts, providers=providers)
+        self._encode_out = ["h", "message"]
+        self._round_out = ["h_out", "message", "weights"]
+        self.h: np.ndarray | None = None  # [H]
+        self.message: np.ndarray | None = None  # [2, H]: key, value
+
+    def encode(self, self_obs: np.ndarray, entities: np.ndarray) -> np.ndarray:
+        """self_obs [4], entities [L, 2] -> the first message [2, H]."""
+        self.h, self.message = self._encode.run(self._encode_out, {"self_obs": self_obs, "entities": entities})
+        return self.message
+
+    def round(self, heard: np.ndarray) -> np.ndarray:
+        """A round that is not the last: heard [n, 2, H] (from others) -> the next message [2, H]."""
+        self.h, self.message, _ = self._round.run(self._round_out, {"h": self.h, "heard": heard})
+        return self.message
+
+    def decide(self, heard: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The last round and the heads -> (logits [5], attention weights [n + 1], own first)."""
+        if self.rounds == 0:
+            logits, _ = self._final.run(None, {"h": self.h})
+            return logits, np.ones(1, np.float32)
+        logits, _, weights, self.h = self._final.run(None, {"h": self.h, "heard": heard})
+        return logits, weights
+
+
+class MessageBus:
+    """The radio between agents of B teams: delivers only along edges, with seeded drops and delays."""
+
+    def __init__(self, num_envs: int, num_agents: int, rounds: int, drop: float = 0.0, delay: int = 0,
+                 seed: int = 0):
+        if not 0.0 <= drop <= 1.0:
+            raise DeployError(f"drop probability must be in [0, 1], got {drop}")
+        if delay < 0:
+            raise DeployError(f"delay must be >= 0 steps, got {delay}")
+        self.drop, self.delay = float(drop), int(delay)
+        self._rng = np.random.default_rng(seed)
+        self._offdiag = ~np.eye(num_agents, dtype=bool)  # [M, M]; own messages never go through the bus
+        # per round: queue of (messages [B, M, 2, H], edges [B, M, M]) in flight
+        self._queues: list[deque] = [deque() for _ in range(rounds)]
+        self.sent = 0
+        self.delivered = 0
+
+    def exchange(self, r: int, messages: np.ndarray, adj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Send round-r ``messages`` [B, M, 2, H] along ``adj`` [B, M, M] (i hears j); return what
+        arrives now: (messages [B, M, 2, H], edges [B, M, M] bool, edges[b, i, j]: i receives j's)."""
+        edges = adj & self._offdiag
+        self.sent += int(edges.sum())
+        if self.drop > 0.0:
+            edges = edges & (self._rng.random(edges.shape) >= self.drop)
+        queue = self._queues[r]
+        queue.append((messages.copy() if self.delay else messages, edges))
+        if len(queue) <= self.delay:
+            return messages, np.zeros_like(edges)
+        arrived, arrived_edges = queue.popleft()
+        self.delivered += int(arrived_edges.sum())
+        return arrived, arrived_edges
+
+    def reset_envs(self, mask: np.ndarray) -> None:
+        """Discard messages in flight of the envs in ``mask`` [B] (their episode ended)."""
+        for queue in self._queues:
+            for _, edges in queue:
+                edges[mask] = False
+
+
+class Executor:
+    """B teams of M ``Agent`` objects and their message bus; ``decide`` is one decision step."""
+
+    def __init__(self, model: ExportedModel, num_envs: int, num_agents: int, drop: float = 0.0, delay: int = 0,
+                 seed: int = 0, threads: int = 1):
+        if num_agents < 1:
+            raise DeployError(f"agents must be >= 1, got {num_agents}")
+        if num_envs < 1:
+            raise DeployError(f"episodes must be >= 1, got {num_envs}")
+        self.model = model
+        self.B, self.M, self.K = num_envs, num_agents, model.rounds
+        self.teams = [[Agent(i, model, threads) for i in range(num_agents)] for _ in range(num_envs)]
+        self.bus = MessageBus(num_envs, num_agents, self.K, drop, delay, seed)
+
+    def decide(self, self_obs: np.ndarray, entities: np.ndarray, adj: np.ndarray):
+        """self_obs [B, M, 4], entities [B, M, L, 2], adj [B, M, M] bool ->
+        (logits [B, M, 5], actions int64 [B, M], attention [B, M, M] of the last round)."""
+        B, M, H = self.B, self.M, self.model.hidden
+        self_obs = np.ascontiguousarray(self_obs, dtype=np.float32)
+        entities = np.ascontiguousarray(entities, dtype=np.float32)
+        adj = np.asarray(adj, dtype=bool)
+        messages = np.empty((B, M, 2, H), np.float32)
+        for b, team in enumerate(self.teams):
+            for i, agent in enumerate(team):
+                messages[b, i] = agent.encode(self_obs[b, i], entities[b, i])
+        logits = np.empty((B, M, 5), np.float32)
+        attention = np.zeros((B, M, M), np.float32)
+        if self.K == 0:
+            for b, team in enumerate(self.teams):
+                for i, agent in enumerate(team):
+                    logits[b, i], _ = agent.decide(None)
+                    attention[b, i, i] = 1.0
+        for r in range(self.K):
+            arrived, edges = self.bus.exchange(r, messages, adj)
+            last = r == self.K - 1
+            nxt = messages if last else np.empty_like(messages)
+            for b, team in enumerate(self.teams):
+                for i, agent in enumerate(team):
+                    senders = np.flatnonzero(edges[b, i])
+                    heard = arrived[b, senders]  # [n, 2, H]
+                    if last:
+                        logits[b, i], w = agent.decide(heard)
+                        attention[b, i, i] = w[0]
+                        attention[b, i, senders] = w[1:]
+                    else:
+                        nxt[b, i] = agent.round(heard)
+            messages = nxt
+        return logits, logits.argmax(-1).astype(np.int64), attention
+
+
+@dataclass
+class ExecuteSettings:
+    task: str
+    agents: int
+    comm: str = "uc"
+    comm_radius: float = 1.0
+    episodes: int = 10
+    drop: float = 0.0
+    delay: int = 0
+    seed: int = 12345
+
+
+def resolve_settings(model: ExportedModel, task: str | None = None, agents: int | None = None,
+                     comm: str | None = None, comm_radius: float | None = None, **rest) -> ExecuteSettings:
+    """Fill unset options from the manifest's training setting."""
+    trained = model.task
+    task = task or trained.get("task")
+    agents = agents if agents is not None else trained.get("agents")
+    if task is None:
+        raise DeployError("the manifest does not say its task: pass --task")
+    if agents is None:
+        raise DeployError("the manifest does not say its team size: pass --agents")
+    return ExecuteSettings(task=task, agents=int(agents), comm=comm or trained.get("comm", "uc"),
+                           comm_radius=float(comm_radius if comm_radius is not None
+                                             else trained.get("comm_radius", 1.0)), **rest)
+
+
+def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, threads: int = 1) -> dict:
+    """One episode per environment, greedy actions, decided agent by agent; S%, T, DIST as ``swarm eval``
+    (T is the episode length: the time limit, 50, for a failed episode)."""
+    import taichi_swarm
+
+    if s.agents < 1:
+        raise DeployError(f"--agents must be >= 1, got {s.agents}")
+    if s.episodes < 1:
+        raise DeployError(f"--episodes must be >= 1, got {s.episodes}")
+    if s.task not in taichi_swarm.TASK_SPECS:
+        raise DeployError(f"task must be one of {taichi_swarm.TASKS}, got {s.task!r}")
+    model.check_landmarks(s.task, taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents))
+    env = taichi_swarm.make(s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu",
+                            seed=s.seed, array="numpy")
+    executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, seed=s.seed, threads=threads)
+    obs = env.reset()
+    B = s.episodes
+    finished = np.zeros(B, bool)
+    success = np.zeros(B, bool)
+    length = np.zeros(B, np.int64)
+    dist = np.zeros(B, np.float64)
+    step = 0
+    while not finished.all():
+        _, actions, attention = executor.decide(obs["self"], obs["entities"], obs["adj"])
+        if recorder is not None:
+            recorder.log_step(step, env, actions, attention=attention)
+        obs, _, done, info = env.step(actions)
+        step += 1
+        done = np.array(done, dtype=bool)
+        if done.any():
+            executor.bus.reset_envs(done)
+        new = done & ~finished
+        if new.any():
+            ep = info["episode"]
+            success[new] = np.asarray(ep["success"])[new]
+            length[new] = np.asarray(ep["length"])[new]
+            dist[new] = np.asarray(ep["dist"])[new]
+            if recorder is not None:
+                recorder.log_episode_ends(step, new, ep)
+        finished |= done
+    return {
+        "task": s.task, "agents": s.agents, "comm": s.comm, "comm_radius": s.comm_radius, "episodes": B,
+        "seed": s.seed, "drop": s.drop, "delay": s.delay,
+        "success_rate": float(success.mean()), "mean_length": float(length.mean()),
+        "dist": float(dist.mean()) if s.task == "coverage" else None,
+        "messages_sent": executor.bus.sent, "messages_delivered": executor.bus.delivered,
+        "per_episode": {"success": success.tolist(), "length": length.tolist(), "dist": dist.tolist()},
+    }
+
+
+def format_table(rows: list[dict]) -> str:
+    """Rows of run_episodes() results: S% (and T, DIST) against drop rate and delay."""
+    head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8} {'drop':>5} {'delay':>5} {'S%':>6} {'T':>6} {'DIST':>7}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        d = "-" if r["dist"] is None else f"{r['dist']:.3f}"
+        lines.append(f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8} {r['drop']:>5.2f} "
+                     f"{r['delay']:>5d} {100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}")
+    return "\n".join(lines)

@@ -1,0 +1,243 @@
+"""Export a trained ``SwarmPolicy`` as the per-agent ONNX pieces (``swarm export``).
+
+This module imports torch; the executor (deploy/executor.py) never imports it.
+
+Pieces (one agent, no batch axis; H hidden, L landmarks, n messages heard):
+    encode.onnx       self_obs [4], entities [L, 2]  -> h [H], message [2, H]
+    round.onnx        h [H], heard [n, 2, H]         -> h [H], message [2, H], weights [n + 1]
+    heads.onnx        h [H]                          -> logits [5], value []
+    round_heads.onnx  h [H], heard [n, 2, H]         -> logits [5], value [], weights [n + 1], h [H]
+``round_heads`` is the last round fused with the heads (one call fewer per step);
+``heads`` alone serves K = 0 and anyone who wants the pieces unfused.
+
+A message is the sender's attention key and value (``policy.message(h)``, stacked
+[2, H]), so a receiver only applies its query: the projection of h is done once, by
+the sender. An agent always hears itself (s.3): the round graphs recompute the
+agent's own message from h inside the graph and attend over [own; heard], so the
+caller passes only what arrived from others (weights[0] is the self weight).
+L (EMP and padded modes) and n are dynamic, n = 0 included (nothing arrived: the
+agent attends to itself alone, as an isolated agent does in the batched policy).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import warnings
+
+import torch
+from torch import nn
+
+from trainer.checkpoint import CheckpointError, atomic_write_bytes, atomic_write_json, load_policy
+from trainer.model import NUM_ACTIONS, PADDED_SLOTS, SELF_DIM, SwarmPolicy
+
+MANIFEST = "manifest.json"
+FORMAT = "taichi-swarm-onnx"
+VERSION = 1
+OPSET = 18
+ACTION_MEANINGS = ("noop", "-x", "+x", "-y", "+y")
+
+
+class EncodePiece(nn.Module):
+    """self_obs [4], entities [L, 2] -> h [H] and the first message [2, H] (key; value)."""
+
+    def __init__(self, policy: SwarmPolicy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, self_obs: torch.Tensor, entities: torch.Tensor):
+        if self.policy.config.entity_mode == "padded":
+            # NOTE: zero-fill to the 10 slots with a concat (not F.pad) so L stays symbolic.
+            pad = entities.new_zeros(PADDED_SLOTS - entities.shape[0], 2)
+            entities = torch.cat([entities, pad], dim=0)
+        h = self.policy.encode(self_obs, entities)  # [H]
+        return h, torch.stack(self.policy.message(h))
+
+
+def _round(policy: SwarmPolicy, h: torch.Tensor, heard: torch.Tensor):
+    """h [H] attends over its own message (recomputed from h: an agent always hears itself) and the
+    n messages heard [n, 2, H] -> (new h [H], weights [n + 1], own first)."""
+    own = torch.stack(policy.message(h))  # [2, H]
+    msgs = torch.cat([own[None], heard], dim=0)  # [n + 1, 2, H]
+    h_new, weights = policy.update(h[None], msgs[:, 0], msgs[:, 1], None)  # [1, H], [1, n + 1]
+    return h_new[0], weights[0]
+
+
+class RoundPiece(nn.Module):
+    """One communication round -> new h [H], the next message [2, H], weights [n + 1]."""
+
+    def __init__(self, policy: SwarmPolicy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, h: torch.Tensor, heard: torch.Tensor):
+        h_new, weights = _round(self.policy, h, heard)
+        return h_new, torch.stack(self.policy.message(h_new)), weights
+
+
+class HeadsPiece(nn.Module):
+    """h [H] -> logits [5], value []."""
+
+    def __init__(self, policy: SwarmPolicy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, h: torch.Tensor):
+        return self.policy.heads(h)
+
+
+class RoundHeadsPiece(nn.Module):
+    """The last round fused with the heads -> logits [5], value [], weights [n + 1], h [H]."""
+
+    def __init__(self, policy: SwarmPolicy):
+        super().__init__()
+        self.policy = policy
+
+    def forward(self, h: torch.Tensor, heard: torch.Tensor):
+        h_new, weights = _round(self.policy, h, heard)
+        logits, value = self.policy.heads(h_new)
+        return logits, value, weights, h_new
+
+
+PIECES = {
+    # name -> (module class, input names, output names)
+    "encode": (EncodePiece, ("self_obs", "entities"), ("h", "message")),
+    "round": (RoundPiece, ("h", "heard"), ("h_out", "message", "weights")),
+    "heads": (HeadsPiece, ("h",), ("logits", "value")),
+    "round_heads": (RoundHeadsPiece, ("h", "heard"), ("logits", "value", "weights", "h_out")),
+}
+
+
+def sha256_file(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _example_inputs(name: str, policy: SwarmPolicy) -> tuple[tuple[torch.Tensor, ...], dict]:
+    """Example inputs (dynamic sizes >= 2 so nothing specialises) and their dynamic_shapes."""
+    cfg = policy.config
+    H = cfg.hidden
+    n = torch.export.Dim("n", min=0, max=4096)
+    if name == "encode":
+        if cfg.entity_mode == "concat":
+            L_ex, dyn = cfg.num_landmarks, None
+        else:
+            L_ex = 3
+            dyn = torch.export.Dim("L", min=1, max=PADDED_SLOTS if cfg.entity_mode == "padded" else 4096)
+        return (torch.randn(SELF_DIM), torch.randn(L_ex, 2)), {"self_obs": None, "entities": {0: dyn} if dyn else None}
+    if name == "heads":
+        return (torch.randn(H),), {"h": None}
+    return (torch.randn(H), torch.randn(3, 2, H)), {"h": None, "heard": {0: n}}
+
+
+def export_piece(name: str, policy: SwarmPolicy, path: str) -> None:
+    """Export one piece to a single self-contained .onnx file (no external data)."""
+    cls, input_names, output_names = PIECES[name]
+    module = cls(policy).eval()
+    args, dynamic_shapes = _example_inputs(name, policy)
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(
+            module, args, dynamo=True, dynamic_shapes=dynamic_shapes, opset_version=OPSET,
+            input_names=list(input_names), output_names=list(output_names), verbose=False,
+        )
+    tmp = path + ".tmp"
+    program.save(tmp, external_data=False)
+    os.replace(tmp, path)
+
+
+def _versions() -> dict:
+    import onnx
+    import onnxruntime
+
+    try:
+        from importlib.metadata import version
+
+        swarm_version = version("taichi-swarm")
+    except Exception:  # noqa: BLE001 - not installed as a distribution
+        swarm_version = "unknown"
+    return {"torch": torch.__version__, "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__,
+            "taichi-swarm": swarm_version, "python": platform.python_version()}
+
+
+def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
+    """Export ``checkpoint`` (file or run dir) into ``out_dir``; returns the manifest.
+
+    ``task`` overrides/complements the checkpoint's ``payload["task"]``
+    ({"task", "agents", "comm", "comm_radius"}).
+    """
+    import onnx
+
+    policy, payload = load_policy(checkpoint)
+    policy = policy.float().eval()
+    cfg = policy.config
+    trained = dict(payload.get("task") or {})
+    trained.update({k: v for k, v in (task or {}).items() if v is not None})
+    if "task" not in trained:
+        raise CheckpointError("the checkpoint does not say its task: pass --task")
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise FileExistsError(f"--out {out_dir} exists and is not a directory")
+    os.makedirs(out_dir, exist_ok=True)
+
+    files = {}
+    for name, (_, inputs, outputs) in PIECES.items():
+        path = os.path.join(out_dir, f"{name}.onnx")
+        export_piece(name, policy, path)
+        onnx.checker.check_model(path, full_check=True)
+        files[name] = {"file": f"{name}.onnx", "sha256": sha256_file(path), "inputs": list(inputs),
+                       "outputs": list(outputs)}
+    H = cfg.hidden
+    manifest = {
+        "format": FORMAT,
+        "version": VERSION,
+        "task": {"task": trained["task"], "agents": trained.get("agents"), "comm": trained.get("comm", "uc"),
+                 "comm_radius": float(trained.get("comm_radius", 1.0))},
+        "model_config": cfg.to_dict(),
+        "rounds": cfg.rounds,
+        "hidden": H,
+        "entity_mode": cfg.entity_mode,
+        "num_landmarks": cfg.num_landmarks if cfg.entity_mode == "concat" else None,
+        "max_landmarks": PADDED_SLOTS if cfg.entity_mode == "padded" else None,
+        "observation": {
+            "self_obs": {"shape": [SELF_DIM], "layout": ["vx", "vy", "px", "py"], "dtype": "float32"},
+            "entities": {"shape": ["L", 2], "layout": "landmark position - own position, per landmark",
+                         "dtype": "float32",
+                         "L": "coverage: M; formation: 1; line: 2"},
+        },
+        "message": {
+            "kind": "key_value",
+            "shape": [2, H],
+            "doc": "policy.message(h): the sender's attention key (row 0) and value (row 1). A receiver stacks "
+                   "the n messages that arrived from others into heard [n, 2, H]; the round graphs add the "
+                   "agent's own message (recomputed from h: it always hears itself), so n = 0 is valid. "
+                   "weights [n + 1]: attention on [own; heard].",
+        },
+        "schedule": {
+            "doc": "per step: encode -> send message; rounds 1..K-1: round(h, heard) -> send message; "
+                   "round K: round_heads(h, heard) -> logits (K = 0: heads(h)); action = argmax(logits)",
+            "calls_per_step": 1 + max(cfg.rounds, 1),
+            "inputs": {"encode": ["self_obs [4]", "entities [L, 2]"], "round": ["h [H]", "heard [n, 2, H]"],
+                       "round_heads": ["h [H]", "heard [n, 2, H]"], "heads": ["h [H]"]},
+        },
+        "action_meanings": list(ACTION_MEANINGS),
+        "num_actions": NUM_ACTIONS,
+        "opset": OPSET,
+        "files": files,
+        "versions": _versions(),
+        "source_checkpoint": os.path.abspath(checkpoint),
+    }
+    atomic_write_json(os.path.join(out_dir, MANIFEST), manifest)
+    return manifest
+
+
+def write_bytes(path: str, data: bytes) -> None:
+    atomic_write_bytes(path, lambda f: f.write(data))
+
+
+def manifest_text(manifest: dict) -> str:
+    return json.dumps(manifest, indent=2)

@@ -1,0 +1,139 @@
+"""Rerun recordings of rollouts (``swarm eval --record``, ``swarm execute --record``).
+
+``RolloutRecorder`` is only built when recording is asked for; the rollout loops
+call it through ``if recorder is not None``, so nothing here runs (or is even
+imported) on the hot path otherwise. Works with torch or numpy envs and never
+imports torch itself.
+
+Entity paths, per drawn env b (the first ``max_envs_drawn``), timeline "step":
+    env_b/arena        the [-1, 1]^2 box (static)
+    env_b/landmarks    Points2D [L]
+    env_b/targets      Points2D [M]    where the task wants the agents
+    env_b/agents       Points2D [M]    coloured by id, labelled with the id
+    env_b/comm         LineStrips2D    the communication graph of the step (undirected i-j)
+    env_b/attention    LineStrips2D    last-round attention i <- j, alpha = weight (when given)
+    env_b/reward       Scalars         team reward of the step that led to this state
+    env_b/episode/{success,length,dist}  Scalars at the step the env's first episode ended
+    all/reward_mean, all/success_rate    Scalars over all B envs
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import rerun as rr
+
+# tab10, RGB
+PALETTE = np.array([
+    [31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
+    [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207],
+], dtype=np.uint8)
+LANDMARK_COLOR = (90, 90, 90)
+TARGET_COLOR = (0, 0, 0)
+EDGE_COLOR = (150, 150, 220, 140)
+ARENA_HALF_SIZE = 1.0
+
+
+def to_numpy(x) -> np.ndarray:
+    """torch tensor (any device) or array-like -> numpy array."""
+    if hasattr(x, "cpu"):
+        x = x.cpu()
+    return np.asarray(x)
+
+
+def _edges(adj: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """adj [M, M] bool, pos [M, 2] -> segments [E, 2, 2] of the undirected graph, no self loops."""
+    sym = np.triu(adj | adj.T, k=1)
+    i, j = np.nonzero(sym)
+    return np.stack([pos[i], pos[j]], axis=1)
+
+
+class RolloutRecorder:
+    """Writes one .rrd file of a batched rollout; draw the first ``max_envs_drawn`` envs."""
+
+    def __init__(self, path: str, task: str, num_envs: int, num_agents: int, max_envs_drawn: int = 8,
+                 app_id: str = "taichi_swarm"):
+        from taichi_swarm.tasks import TASK_SPECS
+
+        self.path = path
+        self.task = task
+        self.num_envs, self.num_agents = int(num_envs), int(num_agents)
+        self.drawn = max(0, min(int(max_envs_drawn), self.num_envs))
+        spec = TASK_SPECS[task]
+        self.agent_radius, self.landmark_radius = spec.agent_radius, spec.landmark_radius
+        self.rec = rr.RecordingStream(app_id)
+        self.rec.set_log_time_enabled(False)  # no wall clock: the same rollout gives the same data
+        self.rec.save(path)
+        self._ended = np.zeros(self.num_envs, bool)  # first episode of the env is over: stop drawing it
+        self._successes: list[bool] = []
+        self.colors = PALETTE[np.arange(self.num_agents) % len(PALETTE)]  # [M, 3]
+        self.labels = [str(i) for i in range(self.num_agents)]
+        for b in range(self.drawn):
+            self.rec.log(f"env_{b}/arena", rr.Boxes2D(centers=[0.0, 0.0], half_sizes=[ARENA_HALF_SIZE] * 2,
+                                                      colors=[(60, 60, 60)]), static=True)
+            self.rec.log(f"env_{b}", rr.TextDocument(f"{task}, M={num_agents}, env {b}"), static=True)
+
+    def log_step(self, step: int, env, actions, attention=None) -> None:
+        """The state the agents act on at ``step`` (before ``env.step(actions)``); actions [B, M]."""
+        rec = self.rec
+        rec.set_time("step", sequence=int(step))
+        reward = to_numpy(env.reward).astype(np.float64)  # [B]
+        rec.log("all/reward_mean", rr.Scalars(float(reward.mean())))
+        D = self.drawn
+        if D == 0:
+            return
+        state = env.get_state()
+        pos = to_numpy(state["pos"])[:D]  # [D, M, 2]
+        landmarks = to_numpy(state["landmarks"])[:D]  # [D, L, 2]
+        targets = to_numpy(env.targets)[:D]  # [D, M, 2]
+        adj = to_numpy(env.obs["adj"])[:D].astype(bool)  # [D, M, M]
+        acts = to_numpy(actions)[:D]  # [D, M]
+        att = None if attention is None else to_numpy(attention)[:D]  # [D, M, M]
+        for b in range(D):
+            if self._ended[b]:
+                continue
+            p = f"env_{b}"
+            rec.log(f"{p}/landmarks", rr.Points2D(landmarks[b], radii=self.landmark_radius, colors=LANDMARK_COLOR))
+            rec.log(f"{p}/targets", rr.Points2D(targets[b], radii=0.015, colors=TARGET_COLOR))
+            rec.log(f"{p}/agents", rr.Points2D(pos[b], radii=self.agent_radius, colors=self.colors,
+                                               labels=[f"{i}:{int(a)}" for i, a in enumerate(acts[b])],
+                                               class_ids=np.arange(self.num_agents)))
+            rec.log(f"{p}/comm", rr.LineStrips2D(_edges(adj[b], pos[b]), colors=EDGE_COLOR, radii=0.004))
+            if att is not None:
+                i, j = np.nonzero(att[b] > 1e-3 * (1 - np.eye(self.num_agents)))
+                keep = i != j
+                i, j = i[keep], j[keep]
+                alpha = np.clip(att[b][i, j] * 255, 0, 255).astype(np.uint8)
+                colors = np.concatenate([self.colors[i], alpha[:, None]], axis=1)
+                rec.log(f"{p}/attention", rr.LineStrips2D(np.stack([pos[b][j], pos[b][i]], axis=1), colors=colors,
+                                                          radii=0.008))
+            rec.log(f"{p}/reward", rr.Scalars(float(reward[b])))
+
+    def log_episode_ends(self, step: int, mask: np.ndarray, episode_info: dict) -> None:
+        """Envs in ``mask`` [B] bool just ended their first episode; ``episode_info`` holds
+        success/length/dist [B] (valid where mask)."""
+        rec = self.rec
+        rec.set_time("step", sequence=int(step))
+        mask = to_numpy(mask).astype(bool)
+        success = to_numpy(episode_info["success"]).astype(bool)
+        length = to_numpy(episode_info["length"])
+        dist = to_numpy(episode_info["dist"]) if "dist" in episode_info else None
+        for b in np.flatnonzero(mask):
+            if self._ended[b]:
+                continue
+            self._ended[b] = True
+            self._successes.append(bool(success[b]))
+            if b < self.drawn:
+                p = f"env_{b}"
+                rec.log(f"{p}/episode/success", rr.Scalars(float(success[b])))
+                rec.log(f"{p}/episode/length", rr.Scalars(float(length[b])))
+                if dist is not None:
+                    rec.log(f"{p}/episode/dist", rr.Scalars(float(dist[b])))
+                for name in ("agents", "comm", "attention", "targets", "landmarks"):
+                    rec.log(f"{p}/{name}", rr.Clear(recursive=False))
+        rec.log("all/success_rate", rr.Scalars(float(np.mean(self._successes))))
+
+    def close(self) -> None:
+        """Flush and close the file."""
+        self.rec.flush()
+        if hasattr(self.rec, "disconnect"):
+            self.rec.disconnect()

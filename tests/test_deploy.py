@@ -1,0 +1,318 @@
+"""Deployment: ONNX pieces equal the torch policy, manifest integrity, the message bus,
+clear errors, and the executor running with torch unimportable.
+
+Models are random-init SwarmPolicy networks (no training needed for parity), exported
+once per module.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+import taichi_swarm
+from deploy.cli import execute_main, export_main
+from deploy.executor import Agent, DeployError, Executor, ExportedModel, MessageBus
+from deploy.export import export
+from trainer import checkpoint
+from trainer.model import ModelConfig, SwarmPolicy
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """Small torch ops stall with 2 threads on a busy 2-core machine (stack notes)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _save(path: str, policy: SwarmPolicy, task: str, agents: int) -> str:
+    checkpoint.save(path, {"model_config": policy.config.to_dict(), "model": policy.state_dict(),
+                           "task": {"task": task, "agents": agents, "comm": "uc", "comm_radius": 1.0}})
+    return path
+
+
+@pytest.fixture(scope="module")
+def emp(tmp_path_factory):
+    """(policy, export dir) of a random-init EMP policy (any L)."""
+    torch.manual_seed(0)
+    policy = SwarmPolicy(ModelConfig(hidden=128, rounds=3, entity_mode="emp")).eval()
+    d = tmp_path_factory.mktemp("emp")
+    ckpt = _save(str(d / "ckpt.pt"), policy, "coverage", 3)
+    export(ckpt, str(d / "onnx"))
+    return policy, str(d / "onnx")
+
+
+@pytest.fixture(scope="module")
+def concat(tmp_path_factory):
+    """(policy, export dir) of a random-init "concat" policy built for line (L = 2), K = 2."""
+    torch.manual_seed(1)
+    policy = SwarmPolicy(ModelConfig(hidden=64, rounds=2, entity_mode="concat", num_landmarks=2)).eval()
+    d = tmp_path_factory.mktemp("concat")
+    ckpt = _save(str(d / "ckpt.pt"), policy, "line", 3)
+    export(ckpt, str(d / "onnx"))
+    return policy, str(d / "onnx")
+
+
+def _states(task: str, M: int, n_states: int = 2, B: int = 2, seed: int = 0, radius: float = 0.6):
+    """Copied observations of ``task`` after random steps: dicts of self [B,M,4], entities [B,M,L,2] and
+    adj [B,M,M] of "rc" within ``radius`` (0.6: sparse graphs, isolated agents included).
+    "uc" is the all-ones graph, so one env (one kernel compile per team size) serves both."""
+    env = taichi_swarm.make(task, B, M, comm="rc", comm_radius=radius, seed=seed, array="numpy")
+    obs = env.reset()
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n_states):
+        out.append({k: v.copy() for k, v in obs.items()})
+        for _ in range(3):
+            obs, *_ = env.step(rng.integers(0, 5, size=(B, M), dtype=np.int64))
+    return out
+
+
+def _uc(obs: dict) -> dict:
+    return {**obs, "adj": np.ones_like(obs["adj"])}
+
+
+def _torch_logits(policy: SwarmPolicy, obs: dict) -> np.ndarray:
+    with torch.no_grad():
+        logits, _ = policy(*(torch.from_numpy(np.array(obs[k])) for k in ("self", "entities", "adj")))
+    return logits.numpy()
+
+
+def _assert_parity(policy, executor: Executor, obs: dict) -> None:
+    want = _torch_logits(policy, obs)
+    got, actions, attention = executor.decide(obs["self"], obs["entities"], obs["adj"])
+    np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+    # greedy actions equal wherever the top two logits are not a numerical tie
+    top2 = np.sort(want, axis=-1)[..., -2:]
+    clear = (top2[..., 1] - top2[..., 0]) > 1e-4
+    assert (actions == want.argmax(-1))[clear].all()
+    np.testing.assert_allclose(attention.sum(-1), 1.0, atol=1e-5)  # every agent hears at least itself
+
+
+CASES = [("coverage", M) for M in (1, 2, 3, 5, 10, 20)] + [("formation", M) for M in (2, 20)]
+CASES += [("line", M) for M in (2, 10)]
+
+
+@pytest.mark.parametrize("task,M", CASES)
+def test_executor_matches_torch(emp, task, M):
+    """Same states, "uc" and "rc": ONNX agents' logits equal the batched torch policy's."""
+    policy, directory = emp
+    executor = Executor(ExportedModel(directory), num_envs=2, num_agents=M)
+    states = _states(task, M)
+    if task == "coverage" and M >= 5:
+        assert any((~s["adj"]).any() for s in states), "rc should give a sparse graph here"
+    for obs in states:
+        _assert_parity(policy, executor, obs)  # rc
+        _assert_parity(policy, executor, _uc(obs))  # uc
+
+
+@pytest.mark.parametrize("M", [2, 10])
+def test_concat_mode_matches_torch(concat, M):
+    policy, directory = concat
+    executor = Executor(ExportedModel(directory), num_envs=2, num_agents=M)
+    for obs in _states("line", M):
+        _assert_parity(policy, executor, obs)
+        _assert_parity(policy, executor, _uc(obs))
+
+
+def test_all_messages_dropped_equals_hearing_only_itself(emp):
+    """drop = 1: every agent hears only itself, i.e. the torch policy with adj = identity."""
+    policy, directory = emp
+    M = 5
+    executor = Executor(ExportedModel(directory), 2, M, drop=1.0, seed=3)
+    obs = _uc(_states("coverage", M, n_states=1)[0])
+    eye = np.broadcast_to(np.eye(M, dtype=bool), obs["adj"].shape)
+    want = _torch_logits(policy, {**obs, "adj": eye})
+    got, _, attention = executor.decide(obs["self"], obs["entities"], obs["adj"])
+    np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+    np.testing.assert_allclose(attention, eye.astype(np.float32), atol=1e-6)
+
+
+def test_delay_first_steps_hear_only_self_then_old_messages(emp):
+    """delay k = 1: step 0 hears only itself; step 1 hears the round-r messages of step 0."""
+    policy, directory = emp
+    M = 3
+    s0, s1 = (_uc(s) for s in _states("coverage", M, n_states=2))
+    executor = Executor(ExportedModel(directory), 2, M, delay=1)
+    eye = np.broadcast_to(np.eye(M, dtype=bool), s0["adj"].shape)
+    got0, _, _ = executor.decide(s0["self"], s0["entities"], s0["adj"])
+    np.testing.assert_allclose(got0, _torch_logits(policy, {**s0, "adj": eye}), atol=1e-4, rtol=0)
+    got1, _, _ = executor.decide(s1["self"], s1["entities"], s1["adj"])
+    assert not np.allclose(got1, _torch_logits(policy, {**s1, "adj": eye}), atol=1e-4)
+    # an ended episode discards messages in flight: back to hearing only itself
+    executor.bus.reset_envs(np.ones(2, bool))
+    got2, _, _ = executor.decide(s1["self"], s1["entities"], s1["adj"])
+    np.testing.assert_allclose(got2, _torch_logits(policy, {**s1, "adj": eye}), atol=1e-4, rtol=0)
+
+
+def test_zero_neighbour_round(emp):
+    """Nothing arrived (n = 0): the round attends to the agent's own message alone, like an
+    isolated agent (adj row = only itself) in the batched torch policy."""
+    policy, directory = emp
+    model = ExportedModel(directory)
+    agent = Agent(0, model)
+    H = model.hidden
+    rng = np.random.default_rng(0)
+    agent.encode(rng.normal(size=4).astype(np.float32), rng.normal(size=(3, 2)).astype(np.float32))
+    h = agent.h.copy()
+    nothing = np.zeros((0, 2, H), np.float32)
+    h_out, message, weights = agent._round.run(None, {"h": h, "heard": nothing})
+    assert weights.shape == (1,) and message.shape == (2, H)
+    np.testing.assert_allclose(weights, [1.0], atol=1e-6)
+    with torch.no_grad():
+        ht = torch.from_numpy(h)[None, None]  # [1, 1, H]: one team of one agent
+        key, value = policy.message(ht)
+        want, _ = policy.update(ht, key, value, torch.ones(1, 1, 1, dtype=torch.bool))
+        want_key, want_value = policy.message(want)
+    np.testing.assert_allclose(h_out, want[0, 0].numpy(), atol=1e-5)
+    np.testing.assert_allclose(message, np.stack([want_key[0, 0].numpy(), want_value[0, 0].numpy()]), atol=1e-5)
+    logits, _, w, _ = agent._final.run(None, {"h": h, "heard": nothing})
+    assert logits.shape == (5,) and w.shape == (1,) and np.isfinite(logits).all()
+
+
+def test_message_bus_delivers_only_along_edges():
+    B, M, H = 1, 3, 4
+    bus = MessageBus(B, M, rounds=1)
+    msgs = np.arange(B * M * 2 * H, dtype=np.float32).reshape(B, M, 2, H)
+    adj = np.array([[[1, 1, 0], [0, 1, 0], [1, 1, 1]]], dtype=bool)  # 0 hears 1; 2 hears 0, 1
+    arrived, edges = bus.exchange(0, msgs, adj)
+    assert edges.tolist() == [[[False, True, False], [False, False, False], [True, True, False]]]
+    assert bus.sent == 3 and bus.delivered == 3
+    dropped = MessageBus(B, M, rounds=1, drop=0.5, seed=0)
+    counts = sum(int(dropped.exchange(0, msgs, np.ones((B, M, M), bool))[1].sum()) for _ in range(400))
+    assert 0.4 < counts / (400 * 6) < 0.6  # each off-diagonal edge kept with probability 1 - p
+
+
+def test_manifest_hashes_checker_single_file(emp):
+    _, directory = emp
+    with open(os.path.join(directory, "manifest.json")) as f:
+        manifest = json.load(f)
+    assert manifest["rounds"] == 3 and manifest["hidden"] == 128
+    assert manifest["action_meanings"] == ["noop", "-x", "+x", "-y", "+y"]
+    assert manifest["task"] == {"task": "coverage", "agents": 3, "comm": "uc", "comm_radius": 1.0}
+    assert manifest["message"]["kind"] == "key_value"
+    assert {"torch", "onnx", "onnxruntime", "taichi-swarm"} <= set(manifest["versions"])
+    assert set(manifest["files"]) == {"encode", "round", "heads", "round_heads"}
+    for entry in manifest["files"].values():
+        path = os.path.join(directory, entry["file"])
+        with open(path, "rb") as f:
+            assert hashlib.sha256(f.read()).hexdigest() == entry["sha256"]
+        onnx.checker.check_model(path, full_check=True)
+    assert sorted(os.listdir(directory)) == ["encode.onnx", "heads.onnx", "manifest.json", "round.onnx",
+                                             "round_heads.onnx"]  # no external .data files
+
+
+# ------------------------------------------------------------------------------ errors
+def _run(main, argv, capsys) -> tuple[int, str]:
+    code = main(argv)
+    return code, capsys.readouterr().err
+
+
+def test_missing_directory(capsys, tmp_path):
+    code, err = _run(execute_main, [str(tmp_path / "nope"), "--task", "coverage", "--agents", "3"], capsys)
+    assert code == 2 and "swarm execute: error:" in err and "does not exist" in err and "Traceback" not in err
+    code, err = _run(execute_main, [str(tmp_path), "--task", "coverage"], capsys)
+    assert code == 2 and "manifest.json" in err
+
+
+def test_corrupted_file_is_refused(emp, tmp_path, capsys):
+    _, directory = emp
+    bad = tmp_path / "bad"
+    shutil.copytree(directory, bad)
+    with open(bad / "round.onnx", "ab") as f:
+        f.write(b"\0")
+    code, err = _run(execute_main, [str(bad), "--episodes", "1"], capsys)
+    assert code == 2 and "sha256" in err and "round.onnx" in err
+    os.remove(bad / "heads.onnx")
+    with pytest.raises(DeployError, match="missing"):
+        ExportedModel(str(bad))
+
+
+def test_wrong_task_for_concat_model(concat, capsys):
+    _, directory = concat
+    code, err = _run(execute_main, [directory, "--task", "coverage", "--agents", "5", "--episodes", "1"], capsys)
+    assert code == 2 and "concatenates 2 landmark" in err and "coverage" in err
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["--agents", "0"], "--agents must be >= 1"),
+    (["--episodes", "0"], "--episodes must be >= 1"),
+    (["--drop", "1.5"], "probabilities"),
+    (["--delay", "-1"], "--delay must be >= 0"),
+    (["--task", "soccer"], "task must be one of"),
+])
+def test_bad_execute_options(emp, capsys, argv, needle):
+    _, directory = emp
+    code, err = _run(execute_main, [directory, *argv], capsys)
+    assert code == 2 and needle in err and "Traceback" not in err
+
+
+def test_export_errors(tmp_path, capsys):
+    code, err = _run(export_main, [str(tmp_path / "missing.pt"), "--out", str(tmp_path / "o")], capsys)
+    assert code == 2 and "does not exist" in err
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint")
+    code, err = _run(export_main, [str(junk), "--out", str(tmp_path / "o")], capsys)
+    assert code == 2 and "swarm export: error:" in err
+
+
+# ------------------------------------------------------------------------------ no torch
+NO_TORCH = textwrap.dedent("""
+    import sys
+
+    class _NoTorch:
+        def find_spec(self, name, path=None, target=None):
+            if name == "torch" or name.startswith("torch."):
+                raise ImportError("torch is blocked in this test")
+            return None
+
+    sys.meta_path.insert(0, _NoTorch())
+    from taichi_swarm.cli import main
+
+    code = main(["execute", sys.argv[1], "--agents", "3", "--episodes", "2", "--comm", "rc", "--drop", "0", "0.5"])
+    assert code == 0, code
+    assert "torch" not in sys.modules and "rerun" not in sys.modules, "imported torch or rerun"
+    code = main(["execute", sys.argv[1], "--agents", "3", "--episodes", "2", "--delay", "2", "--record", sys.argv[2]])
+    assert code == 0, code
+    assert "torch" not in sys.modules
+    print("NO_TORCH_OK")
+""")
+
+
+def test_executor_runs_without_torch(emp, tmp_path):
+    _, directory = emp
+    rrd = str(tmp_path / "run.rrd")
+    proc = subprocess.run([sys.executable, "-c", NO_TORCH, directory, rrd], capture_output=True, text=True,
+                          cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "NO_TORCH_OK" in proc.stdout
+    assert "S%" in proc.stdout and "0.50" in proc.stdout  # the drop-rate table
+    assert os.path.getsize(rrd) > 0
+
+
+def test_execute_equals_swarm_eval(emp):
+    """Whole loop: decentralised ONNX agents give the same episodes as `swarm eval` (same seed)."""
+    from deploy.executor import resolve_settings, run_episodes
+    from trainer.evaluate import evaluate
+
+    policy, directory = emp
+    model = ExportedModel(directory)
+    got = run_episodes(model, resolve_settings(model, "coverage", 3, "rc", 0.6, episodes=4, seed=7))
+    want = evaluate(policy, "coverage", 3, "rc", 0.6, episodes=4, seed=7)
+    assert got["per_episode"]["success"] == want["per_episode"]["success"]
+    assert got["per_episode"]["length"] == want["per_episode"]["length"]
+    np.testing.assert_allclose(got["per_episode"]["dist"], want["per_episode"]["dist"], atol=1e-4)

@@ -1,0 +1,94 @@
+"""Rerun recordings: RolloutRecorder on numpy and torch envs, read back with RrdReader,
+`rerun rrd verify`, and `swarm replay`."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+
+import taichi_swarm
+from deploy.cli import replay_main
+from deploy.recording import RolloutRecorder
+from deploy.replay import rerun_command, summarize
+from trainer import checkpoint
+from trainer.model import ModelConfig, SwarmPolicy
+
+
+def _record_numpy(path: str, B: int = 3, M: int = 3, steps: int = 5, drawn: int = 2) -> None:
+    env = taichi_swarm.make("coverage", B, M, comm="rc", seed=0, array="numpy")
+    env.reset()
+    rec = RolloutRecorder(path, "coverage", B, M, max_envs_drawn=drawn)
+    rng = np.random.default_rng(0)
+    for t in range(steps):
+        actions = rng.integers(0, 5, size=(B, M), dtype=np.int64)
+        attention = np.full((B, M, M), 1.0 / M, np.float32)
+        rec.log_step(t, env, actions, attention=attention)
+        env.step(actions)
+    ended = np.array([True, False, False])
+    rec.log_episode_ends(steps, ended, {"success": np.array([True, False, False]), "length": np.full(B, steps),
+                                         "dist": np.full(B, 0.5, np.float32)})
+    rec.close()
+
+
+def test_recording_has_entities_and_steps(tmp_path):
+    path = str(tmp_path / "rollout.rrd")
+    _record_numpy(path)
+    summary = summarize(path)
+    ents = summary["entities"]
+    for b in (0, 1):
+        for name in ("agents", "landmarks", "targets", "comm", "attention", "reward"):
+            assert ents[f"/env_{b}/{name}"]["steps"][0] == 0, name
+        assert ents[f"/env_{b}/arena"]["static"]
+    assert ents["/env_0/agents"]["steps"] == (0, 5)  # steps 0..4 drawn, cleared at the end (step 5)
+    assert ents["/env_0/episode/success"]["steps"] == (5, 5)
+    assert "/env_1/episode/success" not in ents  # env 1 did not end
+    assert not any(name.startswith("/env_2") for name in ents)  # max_envs_drawn = 2
+    assert ents["/all/reward_mean"]["rows"] == 5 and "/all/success_rate" in ents
+    assert summary["steps"] == (0, 5)
+
+
+def test_rrd_verify(tmp_path):
+    path = str(tmp_path / "rollout.rrd")
+    _record_numpy(path, steps=2)
+    try:
+        proc = subprocess.run(rerun_command() + ["rrd", "verify", path], capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        pytest.skip(f"rerun binary not usable here: {exc}")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_eval_record_with_torch_env(tmp_path, capsys):
+    """`swarm eval --record` (torch env, torch actions) uses the same recorder interface."""
+    from trainer.cli import eval_main
+
+    torch.manual_seed(0)
+    policy = SwarmPolicy(ModelConfig(hidden=32, rounds=1))
+    ckpt = str(tmp_path / "ckpt.pt")
+    checkpoint.save(ckpt, {"model_config": policy.config.to_dict(), "model": policy.state_dict(),
+                           "task": {"task": "coverage", "agents": 3, "comm": "uc", "comm_radius": 1.0}})
+    rrd = str(tmp_path / "eval.rrd")
+    assert eval_main([ckpt, "--episodes", "2", "--record", rrd]) == 0
+    ents = summarize(rrd)["entities"]
+    assert "/env_1/agents" in ents and "/env_0/episode/length" in ents
+
+
+def test_replay_stats_and_no_display(tmp_path, capsys, monkeypatch):
+    path = str(tmp_path / "rollout.rrd")
+    _record_numpy(path, steps=2)
+    assert replay_main([path, "--stats"]) == 0
+    out = capsys.readouterr().out
+    assert "/env_0/agents" in out and "entity paths" in out
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert replay_main([path]) == 2
+    assert "--serve-web" in capsys.readouterr().err
+    assert replay_main([str(tmp_path / "missing.rrd"), "--stats"]) == 2
+    bad = tmp_path / "bad.rrd"
+    bad.write_bytes(b"not an rrd")
+    assert replay_main([str(bad), "--stats"]) == 2
+    assert "swarm replay: error:" in capsys.readouterr().err
+    assert os.path.exists(path)
