@@ -67,8 +67,8 @@ class PPOConfig:
 PRESETS: dict[str, PPOConfig] = {
     "paper": PPOConfig(),
     # Measured on coverage M=3 UC (docs/RESULTS.md): bigger steps on bigger, fewer
-    # minibatches; short rollouts from many envs.
-    "fast": PPOConfig(num_envs=64, num_steps=32, lr=7e-4, epochs=4, minibatches=4),
+    # minibatches; short rollouts from many envs; bootstrap at the time limit.
+    "fast": PPOConfig(num_envs=64, num_steps=32, lr=7e-4, epochs=4, minibatches=4, bootstrap_time_limit=True),
 }
 
 
