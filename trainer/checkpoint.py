@@ -70,6 +70,14 @@ def load(path: str, map_location="cpu") -> dict:
     return payload
 
 
+POLICY_KEYS = ("model_config", "model", "task", "counters", "evals")
+
+
+def save_policy_only(payload: dict, path: str) -> None:
+    """Save the inference part of a training checkpoint (no optimiser state): ~1 MB."""
+    save(path, {k: payload[k] for k in POLICY_KEYS if k in payload})
+
+
 def policy_from_payload(payload: dict, device="cpu") -> SwarmPolicy:
     try:
         config = ModelConfig(**payload["model_config"])

@@ -8,7 +8,7 @@
     evaluate: every ``eval_every`` updates, greedy, on fresh seeds
 A run directory holds config.json, metrics.jsonl, checkpoint.pt (written
 atomically every ``checkpoint_every`` updates, at the end and on Ctrl-C),
-policy.pt (the final weights alone), summary.json and curves.png; ``resume``
+policy.pt (the same weights without optimiser state), summary.json and curves.png; ``resume``
 continues where the checkpoint stopped.
 """
 
@@ -47,6 +47,7 @@ class Run:
         self.config = os.path.join(path, "config.json")
         self.metrics = os.path.join(path, "metrics.jsonl")
         self.checkpoint = os.path.join(path, "checkpoint.pt")
+        self.policy = os.path.join(path, "policy.pt")
         self.curves = os.path.join(path, "curves.png")
 
     def log(self, record: dict) -> None:
@@ -149,13 +150,16 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
         }
 
     def save_checkpoint() -> None:
-        checkpoint.save(run.checkpoint, {
+        payload = {
             **policy_payload(),
             "optimizer": optimizer.state_dict(),
             "reward_scaler": scaler.state_dict(),
             "torch_rng": torch.get_rng_state(),
             "train_config": to_dict(cfg),
-        })
+        }
+        checkpoint.save(run.checkpoint, payload)
+        # the weights alone (no optimiser): small enough to commit, loads in `swarm eval`/`export`
+        checkpoint.save_policy_only(payload, run.policy)
 
     progress = None
     if cfg.progress:
@@ -283,8 +287,6 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
     if progress is not None:
         progress.close()
     save_checkpoint()
-    # the weights alone (no optimiser): small enough to commit, loads in `swarm eval`/`export`
-    checkpoint.save(os.path.join(run.path, "policy.pt"), policy_payload())
     try:
         from trainer.plot import plot_run
 
