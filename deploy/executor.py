@@ -38,6 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 import onnxruntime as ort
 
+from taichi_swarm.metrics import FirstEpisodes, format_results
+
 MANIFEST = "manifest.json"
 FORMAT = "taichi-swarm-onnx"
 
@@ -278,13 +280,9 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
                             seed=s.seed, array="numpy")
     executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, seed=s.seed, threads=threads)
     obs = env.reset()
-    B = s.episodes
-    finished = np.zeros(B, bool)
-    success = np.zeros(B, bool)
-    length = np.zeros(B, np.int64)
-    dist = np.zeros(B, np.float64)
+    tally = FirstEpisodes(s.episodes)
     step = 0
-    while not finished.all():
+    while not tally.all_done():
         _, actions, attention = executor.decide(obs["self"], obs["entities"], obs["adj"])
         if recorder is not None:
             recorder.log_step(step, env, actions, attention=attention)
@@ -293,31 +291,17 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         done = np.array(done, dtype=bool)
         if done.any():
             executor.bus.reset_envs(done)
-        new = done & ~finished
-        if new.any():
-            ep = info["episode"]
-            success[new] = np.asarray(ep["success"])[new]
-            length[new] = np.asarray(ep["length"])[new]
-            dist[new] = np.asarray(ep["dist"])[new]
-            if recorder is not None:
-                recorder.log_episode_ends(step, new, ep)
-        finished |= done
+        new = tally.add(done, info["episode"])
+        if recorder is not None and new.any():
+            recorder.log_episode_ends(step, new, info["episode"])
     return {
-        "task": s.task, "agents": s.agents, "comm": s.comm, "comm_radius": s.comm_radius, "episodes": B,
+        "task": s.task, "agents": s.agents, "comm": s.comm, "comm_radius": s.comm_radius, "episodes": s.episodes,
         "seed": s.seed, "drop": s.drop, "delay": s.delay,
-        "success_rate": float(success.mean()), "mean_length": float(length.mean()),
-        "dist": float(dist.mean()) if s.task == "coverage" else None,
         "messages_sent": executor.bus.sent, "messages_delivered": executor.bus.delivered,
-        "per_episode": {"success": success.tolist(), "length": length.tolist(), "dist": dist.tolist()},
+        **tally.summary(s.task),
     }
 
 
 def format_table(rows: list[dict]) -> str:
     """Rows of run_episodes() results: S% (and T, DIST) against drop rate and delay."""
-    head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8} {'drop':>5} {'delay':>5} {'S%':>6} {'T':>6} {'DIST':>7}"
-    lines = [head, "-" * len(head)]
-    for r in rows:
-        d = "-" if r["dist"] is None else f"{r['dist']:.3f}"
-        lines.append(f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8} {r['drop']:>5.2f} "
-                     f"{r['delay']:>5d} {100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}")
-    return "\n".join(lines)
+    return format_results(rows, extra=("drop", "delay"))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 import taichi_swarm
+from taichi_swarm.metrics import FirstEpisodes, format_results
 
 
 @torch.no_grad()
@@ -29,47 +30,25 @@ def evaluate(policy, task: str, agents: int, comm: str = "uc", comm_radius: floa
 def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder) -> dict:
     env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed)
     obs = env.reset()
-    finished = torch.zeros(episodes, dtype=torch.bool)
-    success = torch.zeros(episodes, dtype=torch.bool)
-    length = torch.zeros(episodes, dtype=torch.int64)
-    dist = torch.zeros(episodes)
+    tally = FirstEpisodes(episodes)
     step = 0
-    while not bool(finished.all()):
+    while not tally.all_done():
         logits, _ = policy(obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device))
         actions = logits.argmax(-1).to(env.device)
         if recorder is not None:
             recorder.log_step(step, env, actions)
         obs, _, done, info = env.step(actions)
         step += 1
-        done = done.cpu()
-        new = done & ~finished
-        if bool(new.any()):
-            ep = info["episode"]
-            success[new] = ep["success"].cpu()[new]
-            length[new] = ep["length"].cpu()[new].long()
-            dist[new] = ep["dist"].cpu()[new]
-            if recorder is not None:
-                recorder.log_episode_ends(step, new.numpy(), ep)
-        finished |= done
-    return {
-        "task": task, "agents": agents, "comm": comm, "comm_radius": comm_radius, "episodes": episodes,
-        "seed": seed,
-        "success_rate": float(success.float().mean()),
-        "mean_length": float(length.float().mean()),
-        "dist": float(dist.mean()) if task == "coverage" else None,
-        "per_episode": {"success": success.tolist(), "length": length.tolist(), "dist": dist.tolist()},
-    }
+        new = tally.add(done, info["episode"])
+        if recorder is not None and new.any():
+            recorder.log_episode_ends(step, new, info["episode"])
+    return {"task": task, "agents": agents, "comm": comm, "comm_radius": comm_radius, "episodes": episodes,
+            "seed": seed, **tally.summary(task)}
 
 
 def format_table(rows: list[dict]) -> str:
     """Rows of evaluate() results as an aligned text table (S% and T as in the paper)."""
-    head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8} {'S%':>6} {'T':>6} {'DIST':>7}"
-    lines = [head, "-" * len(head)]
-    for r in rows:
-        d = "-" if r["dist"] is None else f"{r['dist']:.3f}"
-        lines.append(f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8} "
-                     f"{100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}")
-    return "\n".join(lines)
+    return format_results(rows)
 
 
 def parse_sizes(spec: list[str]) -> list[int]:

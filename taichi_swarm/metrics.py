@@ -1,0 +1,59 @@
+"""The paper's evaluation metrics (s.5), shared by ``swarm eval`` (torch) and
+``swarm execute`` (onnxruntime, no torch): one episode per environment,
+S% = share of successful episodes, T = mean episode length (the time limit
+for failures), DIST = mean landmark-to-closest-agent distance at the end
+(coverage only)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _np(x) -> np.ndarray:
+    return np.asarray(x.cpu()) if hasattr(x, "cpu") else np.asarray(x)
+
+
+class FirstEpisodes:
+    """Collects the statistics of the first episode of each of B environments."""
+
+    def __init__(self, num_envs: int):
+        self.finished = np.zeros(num_envs, bool)
+        self.success = np.zeros(num_envs, bool)
+        self.length = np.zeros(num_envs, np.int64)
+        self.dist = np.zeros(num_envs, np.float64)
+
+    def all_done(self) -> bool:
+        return bool(self.finished.all())
+
+    def add(self, done, episode_info: dict) -> np.ndarray:
+        """Record the episodes that just ended for the first time; returns that mask [B]."""
+        done = _np(done).astype(bool)
+        new = done & ~self.finished
+        if new.any():
+            self.success[new] = _np(episode_info["success"])[new]
+            self.length[new] = _np(episode_info["length"])[new]
+            self.dist[new] = _np(episode_info["dist"])[new]
+        self.finished |= done
+        return new
+
+    def summary(self, task: str) -> dict:
+        return {
+            "success_rate": float(self.success.mean()),
+            "mean_length": float(self.length.mean()),
+            "dist": float(self.dist.mean()) if task == "coverage" else None,
+            "per_episode": {"success": self.success.tolist(), "length": self.length.tolist(),
+                            "dist": self.dist.tolist()},
+        }
+
+
+def format_results(rows: list[dict], extra: tuple[str, ...] = ()) -> str:
+    """Result rows as an aligned table: task, comm, M, episodes, [extra columns], S%, T, DIST."""
+    head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8}" + "".join(f" {c:>5}" for c in extra)
+    head += f" {'S%':>6} {'T':>6} {'DIST':>7}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        d = "-" if r["dist"] is None else f"{r['dist']:.3f}"
+        cells = "".join(f" {r[c]:>5.2f}" if isinstance(r[c], float) else f" {r[c]:>5}" for c in extra)
+        lines.append(f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8}{cells} "
+                     f"{100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}")
+    return "\n".join(lines)
