@@ -72,7 +72,23 @@ def _hungarian(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i3
     p = ti.Vector.zero(ti.i32, cap)
     way = ti.Vector.zero(ti.i32, cap)
     used = ti.Vector.zero(ti.i32, cap)
+    # Column reduction (Jonker & Volgenant 1987): v[j] = min_i cost[i, j] keeps the duals
+    # feasible (u = 0) and makes each column's cheapest edge tight, so every column can take
+    # its cheapest row if that row is still free; only the rows left over need augmenting.
+    row_taken = ti.Vector.zero(ti.i32, cap)
+    for j in range(1, M + 1):
+        best, arg = INF, 1
+        for i in range(1, M + 1):
+            c = f[C + (i - 1) * M + j - 1]
+            if c < best:
+                best, arg = c, i
+        v[j] = best
+        if row_taken[arg] == 0:
+            p[j] = arg
+            row_taken[arg] = 1
     for i in range(1, M + 1):
+        if row_taken[i] != 0:
+            continue
         p[0] = i
         j0 = 0
         for j in range(M + 1):
