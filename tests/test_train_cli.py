@@ -119,3 +119,12 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     assert r.returncode == 2 and "does not exist" in r.stderr and "Traceback" not in r.stderr
     r = swarm("train", "--task", "soccer", "--run-dir", "x", *common, cwd=tmp_path)
     assert r.returncode != 0 and "Traceback" not in r.stderr
+
+
+def test_learning_rate_decays_linearly_to_lr_end(tmp_path):
+    import dataclasses
+
+    ppo = dataclasses.replace(TINY_PPO, lr=1e-3, lr_end=1e-4)
+    lrs = []
+    train(tiny(tmp_path, updates=4, ppo=ppo), on_update=lambda r: lrs.append(r["lr"]))
+    assert lrs == pytest.approx([1e-3, 7e-4, 4e-4, 1e-4])

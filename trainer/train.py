@@ -172,8 +172,9 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
     try:
         while counters["update"] < cfg.updates:
             t0 = time.perf_counter()
-            if p.anneal_lr:
-                optimizer.param_groups[0]["lr"] = p.lr * (1.0 - counters["update"] / cfg.updates)
+            if p.lr_end is not None:
+                frac = counters["update"] / max(cfg.updates - 1, 1)
+                optimizer.param_groups[0]["lr"] = p.lr + (p.lr_end - p.lr) * min(frac, 1.0)
             # ---------------------------------------------------------------- rollout
             ep_success, ep_length, raw_reward = [], [], 0.0
             t_sim = t_policy = 0.0
