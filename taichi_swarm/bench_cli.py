@@ -61,7 +61,8 @@ def sim_parser() -> argparse.ArgumentParser:
     p.add_argument("--comm", choices=("rc", "uc"), default="rc",
                    help="communication graph of taichi and numpy: rc = from distances every step (default), uc = all")
     p.add_argument("--seconds", type=_positive_float, default=1.5, help="timed seconds per cell (default 1.5)")
-    p.add_argument("--steps", type=_positive_int, default=None, help="a fixed number of timed steps per cell instead")
+    p.add_argument("--steps", type=_positive_int, default=None,
+                   help="a fixed number of timed steps per cell instead (in 5 chunks)")
     p.add_argument("--quick", action="store_true", help=f"{QUICK_SECONDS} s per cell instead of --seconds")
     p.add_argument("--json", default=None, metavar="PATH", help="also write the rows and checks to PATH (JSON)")
     p.add_argument("--serial-sweep", action="store_true",

@@ -8,9 +8,10 @@ Implementations (coverage / simple_spread, random discrete actions pre-generated
   numpy       numpy_step.NumpyCoverage, the full step including the exact assignment
               (scipy, a Python loop over the B environments)
   numpy-phys  the same without the assignment (physics, graph, observations, resets)
-Each cell: warm-up steps (Taichi compiles its kernels on the first call), then steps
-timed with ``time.perf_counter`` until ``seconds`` have passed (at least MIN_STEPS).
-Rates are agent-steps/s = B * M * steps / seconds; ms/step is per step of the whole batch.
+Each cell: warm-up steps (Taichi compiles its kernels on the first call), then REPEATS
+chunks of ~``seconds / REPEATS``, each timed with ``time.perf_counter``; the median chunk
+is reported (the machine may be shared). agent-steps/s = B * M * steps / seconds of that
+chunk; ms/step is one step of the whole batch.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import statistics
 import sys
 import time
 from collections.abc import Callable
@@ -27,7 +29,7 @@ import numpy as np
 IMPLS = ("taichi", "taichi-np", "vmas", "numpy", "numpy-phys")
 ACTION_SETS = 8  # distinct pre-generated action batches, cycled
 WARMUP_STEPS = 3
-MIN_STEPS = 3
+REPEATS = 5  # timed chunks per cell; the median chunk is reported
 MAX_FIRST_STEP_S = 30.0  # a cell whose first step (compile included) takes longer is skipped, with the reason
 COMM_RADIUS = 1.0
 # Targets: at B >= TARGET_BIG_B taichi >= 10x VMAS and >= 5 M agent-steps/s; at B = 32 <= 0.3 ms/step.
@@ -92,7 +94,10 @@ def _make(impl: str, B: int, M: int, comm: str) -> Step:
 
 
 def measure(step: Step, agents: int, seconds: float, steps: int | None = None) -> dict:
-    """Warm up, then time ``steps`` steps (or as many as fit in ``seconds``, at least MIN_STEPS)."""
+    """Warm up, then time REPEATS chunks of ``seconds / REPEATS`` each (or ``steps // REPEATS`` steps).
+
+    Reports the median chunk (robust to a busy machine) and the best and worst chunk.
+    """
     t0 = time.perf_counter()
     step(0)
     first = time.perf_counter() - t0
@@ -100,15 +105,21 @@ def measure(step: Step, agents: int, seconds: float, steps: int | None = None) -
         raise Skip(f"first step took {first:.1f} s > {MAX_FIRST_STEP_S:.0f} s cap")
     for k in range(1, WARMUP_STEPS):
         step(k)
-    n, start = 0, time.perf_counter()
-    while True:
-        step(n)
-        n += 1
-        elapsed = time.perf_counter() - start
-        if (n >= steps) if steps else (n >= MIN_STEPS and elapsed >= seconds):
-            break
+    per_step, k, total = [], 0, 0.0  # seconds per step of each chunk
+    for _ in range(REPEATS):
+        n, start = 0, time.perf_counter()
+        while True:  # at least one step per chunk
+            step(k)
+            k, n = k + 1, n + 1
+            elapsed = time.perf_counter() - start
+            if (n >= max(1, steps // REPEATS)) if steps else elapsed >= seconds / REPEATS:
+                break
+        per_step.append(elapsed / n)
+        total += elapsed
+    median = statistics.median(per_step)
     return {
-        "steps": n, "seconds": elapsed, "ms_per_step": 1e3 * elapsed / n, "agent_steps_per_s": agents * n / elapsed,
+        "steps": k, "seconds": total, "ms_per_step": 1e3 * median, "agent_steps_per_s": agents / median,
+        "ms_per_step_best": 1e3 * min(per_step), "ms_per_step_worst": 1e3 * max(per_step),
     }
 
 
@@ -137,8 +148,9 @@ def run(
 ) -> list[dict]:
     """Measure every (implementation, B, M) cell; print the table and target checks; return the rows.
 
-    Each row: impl, B, M, steps, seconds, ms_per_step, agent_steps_per_s, skipped (None or
-    the reason; then the numbers are None). ``steps`` fixes the step count per cell,
+    Each row: impl, B, M, steps and seconds (all timed chunks), ms_per_step and
+    agent_steps_per_s (median chunk), ms_per_step_best/worst, skipped (None or the
+    reason; then the numbers are None). ``steps`` fixes the timed steps per cell,
     otherwise each cell runs for ~``seconds``. ``comm``: "rc" computes the graph from
     distances every step (taichi and numpy), "uc" is all-to-all.
     """
@@ -151,8 +163,9 @@ def run(
         for B in batch_sizes:
             for M in team_sizes:
                 for impl in IMPLS:
-                    row = {"impl": impl, "B": B, "M": M, "steps": None, "seconds": None,
-                           "ms_per_step": None, "agent_steps_per_s": None, "skipped": disabled.get(impl)}
+                    row = {"impl": impl, "B": B, "M": M, "steps": None, "seconds": None, "ms_per_step": None,
+                           "agent_steps_per_s": None, "ms_per_step_best": None, "ms_per_step_worst": None,
+                           "skipped": disabled.get(impl)}
                     if row["skipped"] is None:
                         try:
                             row.update(measure(_make(impl, B, M, comm), B * M, seconds, steps))
@@ -177,7 +190,9 @@ def _progress(row: dict) -> str:
     where = f"  {row['impl']:<10} B={row['B']:<5} M={row['M']:<3}"
     if row["skipped"]:
         return f"{where} skipped: {row['skipped']}"
-    return f"{where} {_rate(row['agent_steps_per_s'])} agent-steps/s ({row['steps']} steps, {row['seconds']:.2f} s)"
+    return (f"{where} {_rate(row['agent_steps_per_s'])} agent-steps/s, {row['ms_per_step']:.3f} ms/step "
+            f"(chunks {row['ms_per_step_best']:.3f}..{row['ms_per_step_worst']:.3f}; {row['steps']} steps, "
+            f"{row['seconds']:.2f} s)")
 
 
 def _rate(x: float | None) -> str:
@@ -206,11 +221,11 @@ def target_checks(rows: list[dict]) -> list[dict]:
         ms = c["taichi"]["ms_per_step"]
         if B >= TARGET_BIG_B:
             if t is None or v is None:
-                why = c["taichi"]["skipped"] if t is None else c["vmas"]["skipped"]
+                why = c["taichi"]["skipped"] if t is None else c.get("vmas", {}).get("skipped", "not run")
                 out.append(_check(f"taichi >= {TARGET_VS_VMAS:.0f}x vmas", B, M, None, f"not measured: {why}"))
             else:
                 out.append(_check(f"taichi >= {TARGET_VS_VMAS:.0f}x vmas", B, M, t >= TARGET_VS_VMAS * v,
-                                  f"taichi {_rate(t)} / vmas {_rate(v)} = {t / v:.1f}x"))
+                                  f"taichi {_rate(t)} / vmas {_rate(v)} = {t / v:.2f}x"))
             out.append(_check(f"taichi >= {TARGET_RATE / 1e6:.0f}M agent-steps/s", B, M,
                               None if t is None else t >= TARGET_RATE, f"taichi {_rate(t)}"))
         if B == TARGET_SMALL_B:
@@ -232,7 +247,8 @@ def format_report(rows: list[dict], checks: list[dict], meta: dict) -> str:
     lines = [
         f"Simulator benchmark: coverage (VMAS: simple_spread), comm={meta['comm']}, {meta['cpu_count']} CPU cores, "
         f"torch threads={meta['torch_threads']}, taichi threads={meta['taichi_threads']}",
-        "agent-steps/s (M = million, k = thousand); ms/step = one step of the whole batch of B envs",
+        f"agent-steps/s (M = million, k = thousand); ms/step = one step of the whole batch of B envs; "
+        f"median of {REPEATS} timed chunks per cell",
         head, "-" * len(head),
     ]
     skipped: dict[str, list[str]] = {}
@@ -295,25 +311,26 @@ def write_json(path: str, payload: dict) -> None:
 
 def serial_sweep(team_sizes: tuple[int, ...] = (3, 10), batch_sizes: tuple[int, ...] = (16, 64, 128, 256, 512, 1024),
                  seconds: float = 0.5, comm: str = "rc") -> list[dict]:
-    """Taichi step with the env loop serial vs parallel (the ``SERIAL_BELOW_AGENTS`` switch of env.py)."""
+    """Taichi step with the env loop serial vs parallel, and which one ``SwarmEnv`` picks (env.py)."""
     import torch
 
     import taichi_swarm
-    from taichi_swarm.env import SERIAL_BELOW_AGENTS
 
-    print(f"serial vs parallel Taichi step (env.py switches to parallel at B*M >= {SERIAL_BELOW_AGENTS})")
-    print(f"{'B':>6} {'M':>3} {'B*M':>6} | {'serial ms':>9} {'parallel ms':>11} | faster")
+    print("serial vs parallel Taichi step ('env picks': the loop SwarmEnv chooses for this B, M)")
+    print(f"{'B':>6} {'M':>3} | {'serial ms':>9} {'parallel ms':>11} | {'faster':>8} {'env picks':>9}")
     out = []
     for M in team_sizes:
         for B in batch_sizes:
             env = taichi_swarm.make("coverage", B, M, comm=comm, comm_radius=COMM_RADIUS, seed=0)
             env.reset()
+            picked = env._parallel  # the switch SwarmEnv.__init__ sets from B and M
             acts = torch.randint(0, 5, (B, M), generator=torch.Generator().manual_seed(0))
             ms = {}
             for parallel in (False, True):
-                env._parallel = parallel  # the switch SwarmEnv.__init__ sets from B * M
+                env._parallel = parallel
                 ms[parallel] = measure(lambda k, e=env, a=acts: e.step(a), B * M, seconds)["ms_per_step"]
             faster = "parallel" if ms[True] < ms[False] else "serial"
-            print(f"{B:>6} {M:>3} {B * M:>6} | {ms[False]:>9.3f} {ms[True]:>11.3f} | {faster}")
-            out.append({"B": B, "M": M, "serial_ms": ms[False], "parallel_ms": ms[True]})
+            print(f"{B:>6} {M:>3} | {ms[False]:>9.3f} {ms[True]:>11.3f} | {faster:>8} "
+                  f"{'parallel' if picked else 'serial':>9}")
+            out.append({"B": B, "M": M, "serial_ms": ms[False], "parallel_ms": ms[True], "env_parallel": picked})
     return out

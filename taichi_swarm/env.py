@@ -31,9 +31,10 @@ from .tasks import COMMON_PARAMS, TASK_SPECS, TASKS
 
 COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
-# Taichi's CPU thread pool costs ~120 us per parallel loop: below this many agents
-# per batch one thread is faster (measured by `swarm bench sim --serial-sweep`).
-SERIAL_BELOW_AGENTS = 2048
+# Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
+# like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
+# (crossover measured at M = 3, 5, 10 on 2 cores: B*M^2 between ~13k and ~37k).
+SERIAL_BELOW_WORK = 32768
 _TASK_PARAM_NAME = {"formation": "formation_radius", "line": "line_length"}
 
 
@@ -102,7 +103,7 @@ class SwarmEnv:
         if self.arch == "cuda" and array == "numpy":
             raise ValueError("array='numpy' needs arch='cpu': CUDA buffers are torch tensors")
         self.device = "cuda" if self.arch == "cuda" else "cpu"
-        self._parallel = self.arch == "cuda" or self.num_envs * self.num_agents >= SERIAL_BELOW_AGENTS
+        self._parallel = self.arch == "cuda" or self.num_envs * self.num_agents**2 >= SERIAL_BELOW_WORK
         self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks)
         self._allocate()
         self._write_header()
