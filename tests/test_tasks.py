@@ -170,3 +170,20 @@ def test_large_teams_run(M):
     obs, r, d, _ = env.step(np.random.default_rng(0).integers(0, 5, size=(2, M)))
     assert np.isfinite(obs["self"]).all() and np.isfinite(r).all()
     assert sorted(env.assignment[0].tolist()) == list(range(M))
+
+
+@pytest.mark.parametrize("M", [3, 10])
+def test_assignment_stays_optimal_while_agents_move(M):
+    """Step after step the solver warm-starts from the previous assignment and duals;
+    every step must still match scipy's optimum (episodes reset inside too)."""
+    B = 16
+    env = taichi_swarm.make("coverage", B, M, seed=M, array="numpy", max_steps=12)
+    env.reset()
+    rng = np.random.default_rng(M)
+    for _ in range(30):
+        env.step(rng.integers(0, 5, size=(B, M)))
+        s = env.get_state()
+        for b in range(B):
+            _, ref_cost = matched_distances(s["pos"][b], s["landmarks"][b])
+            assert sorted(env.assignment[b].tolist()) == list(range(M))
+            np.testing.assert_allclose(env.matched_dist[b].sum(), ref_cost, rtol=1e-5, atol=1e-5)
