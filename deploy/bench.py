@@ -36,8 +36,14 @@ def _median_ms(fn, repeats: int, warmup: int) -> float:
     return float(np.median(times) * 1e3)
 
 
-def run(checkpoint: str | None = None, agents: int = 5, landmarks: int | None = None, repeats: int = 3000,
-        warmup: int = 300, seed: int = 0) -> dict:
+def run(
+    checkpoint: str | None = None,
+    agents: int = 5,
+    landmarks: int | None = None,
+    repeats: int = 3000,
+    warmup: int = 300,
+    seed: int = 0,
+) -> dict:
     """Time one agent-step both ways; returns the numbers and the verdicts."""
     import logging
 
@@ -58,8 +64,14 @@ def run(checkpoint: str | None = None, agents: int = 5, landmarks: int | None = 
         if checkpoint is None:
             policy = SwarmPolicy(ModelConfig())
             checkpoint = os.path.join(tmp, "random_init.pt")
-            ckpt.save(checkpoint, {"model_config": policy.config.to_dict(), "model": policy.state_dict(),
-                                   "task": {"task": "coverage", "agents": agents, "comm": "uc", "comm_radius": 1.0}})
+            ckpt.save(
+                checkpoint,
+                {
+                    "model_config": policy.config.to_dict(),
+                    "model": policy.state_dict(),
+                    "task": {"task": "coverage", "agents": agents, "comm": "uc", "comm_radius": 1.0},
+                },
+            )
             source = "random-init SwarmPolicy (H=128, K=3, emp)"
         else:
             source = checkpoint
@@ -101,12 +113,24 @@ def run(checkpoint: str | None = None, agents: int = 5, landmarks: int | None = 
     torch_ms = _median_ms(torch_step, repeats, warmup)
     speedup = torch_ms / onnx_ms
     return {
-        "source": source, "agents": agents, "neighbours_heard": n, "landmarks": L, "hidden": H, "rounds": K,
-        "onnx_calls_per_step": 1 + max(K, 1), "repeats": repeats,
-        "onnxruntime_ms": onnx_ms, "torch_ms": torch_ms, "speedup": speedup,
-        "pass_latency": onnx_ms <= TARGET_MS, "pass_speedup": speedup >= TARGET_SPEEDUP,
-        "versions": {"torch": torch.__version__, "onnxruntime": onnxruntime.__version__,
-                     "python": platform.python_version()},
+        "source": source,
+        "agents": agents,
+        "neighbours_heard": n,
+        "landmarks": L,
+        "hidden": H,
+        "rounds": K,
+        "onnx_calls_per_step": 1 + max(K, 1),
+        "repeats": repeats,
+        "onnxruntime_ms": onnx_ms,
+        "torch_ms": torch_ms,
+        "speedup": speedup,
+        "pass_latency": onnx_ms <= TARGET_MS,
+        "pass_speedup": speedup >= TARGET_SPEEDUP,
+        "versions": {
+            "torch": torch.__version__,
+            "onnxruntime": onnxruntime.__version__,
+            "python": platform.python_version(),
+        },
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
     }
 
@@ -115,17 +139,19 @@ def format_result(r: dict) -> str:
     def verdict(ok: bool) -> str:
         return "PASS" if ok else "FAIL"
 
-    return "\n".join([
-        f"per-agent decision latency (batch 1, 1 thread): {r['source']}",
-        f"  M={r['agents']} (heard {r['neighbours_heard']} + self), L={r['landmarks']}, H={r['hidden']}, "
-        f"K={r['rounds']}, {r['onnx_calls_per_step']} onnxruntime calls per step, median of {r['repeats']}",
-        f"  {'backend':<26} {'ms/agent-step':>13}",
-        f"  {'onnxruntime ' + r['versions']['onnxruntime']:<26} {r['onnxruntime_ms']:>13.4f}",
-        f"  {'torch eager ' + r['versions']['torch']:<26} {r['torch_ms']:>13.4f}",
-        f"  speedup onnxruntime vs torch: {r['speedup']:.2f}x",
-        f"  target <= {TARGET_MS} ms per agent-step: {verdict(r['pass_latency'])} ({r['onnxruntime_ms']:.3f} ms)",
-        f"  target >= {TARGET_SPEEDUP:.0f}x faster than torch: {verdict(r['pass_speedup'])} ({r['speedup']:.2f}x)",
-    ])
+    return "\n".join(
+        [
+            f"per-agent decision latency (batch 1, 1 thread): {r['source']}",
+            f"  M={r['agents']} (heard {r['neighbours_heard']} + self), L={r['landmarks']}, H={r['hidden']}, "
+            f"K={r['rounds']}, {r['onnx_calls_per_step']} onnxruntime calls per step, median of {r['repeats']}",
+            f"  {'backend':<26} {'ms/agent-step':>13}",
+            f"  {'onnxruntime ' + r['versions']['onnxruntime']:<26} {r['onnxruntime_ms']:>13.4f}",
+            f"  {'torch eager ' + r['versions']['torch']:<26} {r['torch_ms']:>13.4f}",
+            f"  speedup onnxruntime vs torch: {r['speedup']:.2f}x",
+            f"  target <= {TARGET_MS} ms per agent-step: {verdict(r['pass_latency'])} ({r['onnxruntime_ms']:.3f} ms)",
+            f"  target >= {TARGET_SPEEDUP:.0f}x faster than torch: {verdict(r['pass_speedup'])} ({r['speedup']:.2f}x)",
+        ]
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

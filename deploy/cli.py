@@ -27,8 +27,9 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str]):
 
 # ----------------------------------------------------------------------------- export
 def export_main(argv: list[str]) -> int:
-    ap = _parser("swarm export", "Export a checkpoint to per-agent ONNX pieces (encode, round, heads) "
-                                 "and a manifest.json.")
+    ap = _parser(
+        "swarm export", "Export a checkpoint to per-agent ONNX pieces (encode, round, heads) and a manifest.json."
+    )
     ap.add_argument("checkpoint", help="checkpoint file or run directory")
     ap.add_argument("--out", required=True, help="output directory (created)")
     ap.add_argument("--task", default=None, help="task to record in the manifest (default: the training task)")
@@ -51,29 +52,43 @@ def export_main(argv: list[str]) -> int:
     from .export import export
 
     try:
-        manifest = export(args.checkpoint, args.out, {"task": args.task, "agents": args.agents, "comm": args.comm,
-                                                       "comm_radius": args.comm_radius})
+        manifest = export(
+            args.checkpoint,
+            args.out,
+            {"task": args.task, "agents": args.agents, "comm": args.comm, "comm_radius": args.comm_radius},
+        )
     except (CheckpointError, ValueError, FileExistsError, OSError) as exc:
         return _fail("export", exc)
     files = ", ".join(f["file"] for f in manifest["files"].values())
-    print(f"exported {args.checkpoint} -> {args.out}: {files}, manifest.json "
-          f"(K={manifest['rounds']}, H={manifest['hidden']}, entity_mode={manifest['entity_mode']}, "
-          f"task={manifest['task']['task']})")
+    print(
+        f"exported {args.checkpoint} -> {args.out}: {files}, manifest.json "
+        f"(K={manifest['rounds']}, H={manifest['hidden']}, entity_mode={manifest['entity_mode']}, "
+        f"task={manifest['task']['task']})"
+    )
     return 0
 
 
 # ----------------------------------------------------------------------------- execute
 def execute_main(argv: list[str]) -> int:
-    ap = _parser("swarm execute", "Run exported models decentralised: one onnxruntime agent per agent, messages "
-                                  "only along the communication graph; prints S%, T, DIST per drop rate.")
+    ap = _parser(
+        "swarm execute",
+        "Run exported models decentralised: one onnxruntime agent per agent, messages "
+        "only along the communication graph; prints S%, T, DIST per drop rate.",
+    )
     ap.add_argument("directory", help="directory written by `swarm export`")
     ap.add_argument("--task", default=None, help="coverage | formation | line (default: the manifest's)")
     ap.add_argument("--agents", type=int, default=None, help="team size M (default: the manifest's)")
     ap.add_argument("--episodes", type=int, default=10, help="episodes, one per environment (default 10)")
     ap.add_argument("--comm", choices=("uc", "rc"), default=None, help="communication graph (default: manifest)")
     ap.add_argument("--comm-radius", type=float, default=None)
-    ap.add_argument("--drop", type=float, nargs="+", default=[0.0], metavar="P",
-                    help="message drop probabilities, one row each (e.g. --drop 0 0.1 0.3)")
+    ap.add_argument(
+        "--drop",
+        type=float,
+        nargs="+",
+        default=[0.0],
+        metavar="P",
+        help="message drop probabilities, one row each (e.g. --drop 0 0.1 0.3)",
+    )
     ap.add_argument("--delay", type=int, default=0, metavar="K", help="deliver messages K steps late (default 0)")
     ap.add_argument("--record", default=None, metavar="FILE.rrd", help="write a Rerun recording (first drop rate)")
     ap.add_argument("--seed", type=int, default=12345, help="seed of the episodes and of the drops")
@@ -101,8 +116,17 @@ def execute_main(argv: list[str]) -> int:
         model = ExportedModel(args.directory)
         rows = []
         for k, p in enumerate(args.drop):
-            s = resolve_settings(model, args.task, args.agents, args.comm, args.comm_radius, episodes=args.episodes,
-                                 drop=p, delay=args.delay, seed=args.seed)
+            s = resolve_settings(
+                model,
+                args.task,
+                args.agents,
+                args.comm,
+                args.comm_radius,
+                episodes=args.episodes,
+                drop=p,
+                delay=args.delay,
+                seed=args.seed,
+            )
             recorder = None
             if args.record and k == 0:
                 from .recording import RolloutRecorder
@@ -146,7 +170,10 @@ def replay_main(argv: list[str]) -> int:
         print(replay.format_summary(summary))
         return 0
     if not args.serve_web and not replay.has_display():
-        return _fail("replay", "no display found (DISPLAY/WAYLAND_DISPLAY unset): the native Rerun viewer needs a "
-                               "display and a GPU. Use `swarm replay FILE --serve-web` and open the printed URL, "
-                               "or `swarm replay FILE --stats` for a text summary")
+        return _fail(
+            "replay",
+            "no display found (DISPLAY/WAYLAND_DISPLAY unset): the native Rerun viewer needs a "
+            "display and a GPU. Use `swarm replay FILE --serve-web` and open the printed URL, "
+            "or `swarm replay FILE --stats` for a text summary",
+        )
     return replay.view(args.file, serve_web=args.serve_web, port=args.port)

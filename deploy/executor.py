@@ -86,8 +86,10 @@ class ExportedModel:
             with open(file, "rb") as f:
                 data = f.read()
             if _sha256(data) != entry["sha256"]:
-                raise DeployError(f"{file} does not match the sha256 in {MANIFEST}: the file is corrupted or "
-                                  "was changed after export; export again")
+                raise DeployError(
+                    f"{file} does not match the sha256 in {MANIFEST}: the file is corrupted or "
+                    "was changed after export; export again"
+                )
             self.models[name] = data
 
     def check_landmarks(self, task: str, num_landmarks: int) -> None:
@@ -95,10 +97,13 @@ class ExportedModel:
         if self.entity_mode == "concat" and num_landmarks != self.manifest["num_landmarks"]:
             raise DeployError(
                 f"this model concatenates {self.manifest['num_landmarks']} landmark offsets (entity_mode 'concat', "
-                f"trained on {self.task.get('task')!r}); task {task!r} has {num_landmarks} landmarks")
+                f"trained on {self.task.get('task')!r}); task {task!r} has {num_landmarks} landmarks"
+            )
         if self.entity_mode == "padded" and num_landmarks > int(self.manifest["max_landmarks"]):
-            raise DeployError(f"this model holds at most {self.manifest['max_landmarks']} landmarks "
-                              f"(entity_mode 'padded'); task {task!r} has {num_landmarks}")
+            raise DeployError(
+                f"this model holds at most {self.manifest['max_landmarks']} landmarks "
+                f"(entity_mode 'padded'); task {task!r} has {num_landmarks}"
+            )
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -120,8 +125,9 @@ class Agent:
         opts = session_options(threads)
         providers = ["CPUExecutionProvider"]
         self._encode = ort.InferenceSession(model.models["encode"], opts, providers=providers)
-        self._round = ort.InferenceSession(model.models["round"], opts, providers=providers) if self.rounds > 1 \
-            else None
+        self._round = (
+            ort.InferenceSession(model.models["round"], opts, providers=providers) if self.rounds > 1 else None
+        )
         final = "round_heads" if self.rounds >= 1 else "heads"
         self._final = ort.InferenceSession(model.models[final], opts, providers=providers)
         self._encode_out = ["h", "message"]
@@ -151,8 +157,7 @@ class Agent:
 class MessageBus:
     """The radio between agents of B teams: delivers only along edges, with seeded drops and delays."""
 
-    def __init__(self, num_envs: int, num_agents: int, rounds: int, drop: float = 0.0, delay: int = 0,
-                 seed: int = 0):
+    def __init__(self, num_envs: int, num_agents: int, rounds: int, drop: float = 0.0, delay: int = 0, seed: int = 0):
         if not 0.0 <= drop <= 1.0:
             raise DeployError(f"drop probability must be in [0, 1], got {drop}")
         if delay < 0:
@@ -190,8 +195,16 @@ class MessageBus:
 class Executor:
     """B teams of M ``Agent`` objects and their message bus; ``decide`` is one decision step."""
 
-    def __init__(self, model: ExportedModel, num_envs: int, num_agents: int, drop: float = 0.0, delay: int = 0,
-                 seed: int = 0, threads: int = 1):
+    def __init__(
+        self,
+        model: ExportedModel,
+        num_envs: int,
+        num_agents: int,
+        drop: float = 0.0,
+        delay: int = 0,
+        seed: int = 0,
+        threads: int = 1,
+    ):
         if num_agents < 1:
             raise DeployError(f"agents must be >= 1, got {num_agents}")
         if num_envs < 1:
@@ -249,8 +262,14 @@ class ExecuteSettings:
     seed: int = 12345
 
 
-def resolve_settings(model: ExportedModel, task: str | None = None, agents: int | None = None,
-                     comm: str | None = None, comm_radius: float | None = None, **rest) -> ExecuteSettings:
+def resolve_settings(
+    model: ExportedModel,
+    task: str | None = None,
+    agents: int | None = None,
+    comm: str | None = None,
+    comm_radius: float | None = None,
+    **rest,
+) -> ExecuteSettings:
     """Fill unset options from the manifest's training setting."""
     trained = model.task
     task = task or trained.get("task")
@@ -259,9 +278,13 @@ def resolve_settings(model: ExportedModel, task: str | None = None, agents: int 
         raise DeployError("the manifest does not say its task: pass --task")
     if agents is None:
         raise DeployError("the manifest does not say its team size: pass --agents")
-    return ExecuteSettings(task=task, agents=int(agents), comm=comm or trained.get("comm", "uc"),
-                           comm_radius=float(comm_radius if comm_radius is not None
-                                             else trained.get("comm_radius", 1.0)), **rest)
+    return ExecuteSettings(
+        task=task,
+        agents=int(agents),
+        comm=comm or trained.get("comm", "uc"),
+        comm_radius=float(comm_radius if comm_radius is not None else trained.get("comm_radius", 1.0)),
+        **rest,
+    )
 
 
 def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, threads: int = 1) -> dict:
@@ -276,8 +299,9 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
     if s.task not in taichi_swarm.TASK_SPECS:
         raise DeployError(f"task must be one of {taichi_swarm.TASKS}, got {s.task!r}")
     model.check_landmarks(s.task, taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents))
-    env = taichi_swarm.make(s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu",
-                            seed=s.seed, array="numpy")
+    env = taichi_swarm.make(
+        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy"
+    )
     executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, seed=s.seed, threads=threads)
     obs = env.reset()
     tally = FirstEpisodes(s.episodes)
@@ -295,9 +319,16 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         if recorder is not None and new.any():
             recorder.log_episode_ends(step, new, info["episode"])
     return {
-        "task": s.task, "agents": s.agents, "comm": s.comm, "comm_radius": s.comm_radius, "episodes": s.episodes,
-        "seed": s.seed, "drop": s.drop, "delay": s.delay,
-        "messages_sent": executor.bus.sent, "messages_delivered": executor.bus.delivered,
+        "task": s.task,
+        "agents": s.agents,
+        "comm": s.comm,
+        "comm_radius": s.comm_radius,
+        "episodes": s.episodes,
+        "seed": s.seed,
+        "drop": s.drop,
+        "delay": s.delay,
+        "messages_sent": executor.bus.sent,
+        "messages_delivered": executor.bus.delivered,
         **tally.summary(s.task),
     }
 

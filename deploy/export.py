@@ -143,8 +143,14 @@ def export_piece(name: str, policy: SwarmPolicy, path: str) -> None:
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         program = torch.onnx.export(
-            module, args, dynamo=True, dynamic_shapes=dynamic_shapes, opset_version=OPSET,
-            input_names=list(input_names), output_names=list(output_names), verbose=False,
+            module,
+            args,
+            dynamo=True,
+            dynamic_shapes=dynamic_shapes,
+            opset_version=OPSET,
+            input_names=list(input_names),
+            output_names=list(output_names),
+            verbose=False,
         )
     tmp = path + ".tmp"
     program.save(tmp, external_data=False)
@@ -161,8 +167,13 @@ def _versions() -> dict:
         swarm_version = version("taichi-swarm")
     except Exception:  # noqa: BLE001 - not installed as a distribution
         swarm_version = "unknown"
-    return {"torch": torch.__version__, "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__,
-            "taichi-swarm": swarm_version, "python": platform.python_version()}
+    return {
+        "torch": torch.__version__,
+        "onnx": onnx.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "taichi-swarm": swarm_version,
+        "python": platform.python_version(),
+    }
 
 
 def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
@@ -189,14 +200,22 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
         path = os.path.join(out_dir, f"{name}.onnx")
         export_piece(name, policy, path)
         onnx.checker.check_model(path, full_check=True)
-        files[name] = {"file": f"{name}.onnx", "sha256": sha256_file(path), "inputs": list(inputs),
-                       "outputs": list(outputs)}
+        files[name] = {
+            "file": f"{name}.onnx",
+            "sha256": sha256_file(path),
+            "inputs": list(inputs),
+            "outputs": list(outputs),
+        }
     H = cfg.hidden
     manifest = {
         "format": FORMAT,
         "version": VERSION,
-        "task": {"task": trained["task"], "agents": trained.get("agents"), "comm": trained.get("comm", "uc"),
-                 "comm_radius": float(trained.get("comm_radius", 1.0))},
+        "task": {
+            "task": trained["task"],
+            "agents": trained.get("agents"),
+            "comm": trained.get("comm", "uc"),
+            "comm_radius": float(trained.get("comm_radius", 1.0)),
+        },
         "model_config": cfg.to_dict(),
         "rounds": cfg.rounds,
         "hidden": H,
@@ -205,24 +224,31 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
         "max_landmarks": PADDED_SLOTS if cfg.entity_mode == "padded" else None,
         "observation": {
             "self_obs": {"shape": [SELF_DIM], "layout": ["vx", "vy", "px", "py"], "dtype": "float32"},
-            "entities": {"shape": ["L", 2], "layout": "landmark position - own position, per landmark",
-                         "dtype": "float32",
-                         "L": "coverage: M; formation: 1; line: 2"},
+            "entities": {
+                "shape": ["L", 2],
+                "layout": "landmark position - own position, per landmark",
+                "dtype": "float32",
+                "L": "coverage: M; formation: 1; line: 2",
+            },
         },
         "message": {
             "kind": "key_value",
             "shape": [2, H],
             "doc": "policy.message(h): the sender's attention key (row 0) and value (row 1). A receiver stacks "
-                   "the n messages that arrived from others into heard [n, 2, H]; the round graphs add the "
-                   "agent's own message (recomputed from h: it always hears itself), so n = 0 is valid. "
-                   "weights [n + 1]: attention on [own; heard].",
+            "the n messages that arrived from others into heard [n, 2, H]; the round graphs add the "
+            "agent's own message (recomputed from h: it always hears itself), so n = 0 is valid. "
+            "weights [n + 1]: attention on [own; heard].",
         },
         "schedule": {
             "doc": "per step: encode -> send message; rounds 1..K-1: round(h, heard) -> send message; "
-                   "round K: round_heads(h, heard) -> logits (K = 0: heads(h)); action = argmax(logits)",
+            "round K: round_heads(h, heard) -> logits (K = 0: heads(h)); action = argmax(logits)",
             "calls_per_step": 1 + max(cfg.rounds, 1),
-            "inputs": {"encode": ["self_obs [4]", "entities [L, 2]"], "round": ["h [H]", "heard [n, 2, H]"],
-                       "round_heads": ["h [H]", "heard [n, 2, H]"], "heads": ["h [H]"]},
+            "inputs": {
+                "encode": ["self_obs [4]", "entities [L, 2]"],
+                "round": ["h [H]", "heard [n, 2, H]"],
+                "round_heads": ["h [H]", "heard [n, 2, H]"],
+                "heads": ["h [H]"],
+            },
         },
         "action_meanings": list(ACTION_MEANINGS),
         "num_actions": NUM_ACTIONS,

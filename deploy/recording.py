@@ -23,10 +23,21 @@ import numpy as np
 import rerun as rr
 
 # tab10, RGB
-PALETTE = np.array([
-    [31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189],
-    [140, 86, 75], [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207],
-], dtype=np.uint8)
+PALETTE = np.array(
+    [
+        [31, 119, 180],
+        [255, 127, 14],
+        [44, 160, 44],
+        [214, 39, 40],
+        [148, 103, 189],
+        [140, 86, 75],
+        [227, 119, 194],
+        [127, 127, 127],
+        [188, 189, 34],
+        [23, 190, 207],
+    ],
+    dtype=np.uint8,
+)
 LANDMARK_COLOR = (90, 90, 90)
 TARGET_COLOR = (0, 0, 0)
 EDGE_COLOR = (150, 150, 220, 140)
@@ -50,8 +61,15 @@ def _edges(adj: np.ndarray, pos: np.ndarray) -> np.ndarray:
 class RolloutRecorder:
     """Writes one .rrd file of a batched rollout; draw the first ``max_envs_drawn`` envs."""
 
-    def __init__(self, path: str, task: str, num_envs: int, num_agents: int, max_envs_drawn: int = 8,
-                 app_id: str = "taichi_swarm"):
+    def __init__(
+        self,
+        path: str,
+        task: str,
+        num_envs: int,
+        num_agents: int,
+        max_envs_drawn: int = 8,
+        app_id: str = "taichi_swarm",
+    ):
         from taichi_swarm.tasks import TASK_SPECS
 
         self.path = path
@@ -68,8 +86,11 @@ class RolloutRecorder:
         self.colors = PALETTE[np.arange(self.num_agents) % len(PALETTE)]  # [M, 3]
         self.labels = [str(i) for i in range(self.num_agents)]
         for b in range(self.drawn):
-            self.rec.log(f"env_{b}/arena", rr.Boxes2D(centers=[0.0, 0.0], half_sizes=[ARENA_HALF_SIZE] * 2,
-                                                      colors=[(60, 60, 60)]), static=True)
+            self.rec.log(
+                f"env_{b}/arena",
+                rr.Boxes2D(centers=[0.0, 0.0], half_sizes=[ARENA_HALF_SIZE] * 2, colors=[(60, 60, 60)]),
+                static=True,
+            )
             self.rec.log(f"env_{b}", rr.TextDocument(f"{task}, M={num_agents}, env {b}"), static=True)
 
     def log_step(self, step: int, env, actions, attention=None) -> None:
@@ -94,9 +115,16 @@ class RolloutRecorder:
             p = f"env_{b}"
             rec.log(f"{p}/landmarks", rr.Points2D(landmarks[b], radii=self.landmark_radius, colors=LANDMARK_COLOR))
             rec.log(f"{p}/targets", rr.Points2D(targets[b], radii=0.015, colors=TARGET_COLOR))
-            rec.log(f"{p}/agents", rr.Points2D(pos[b], radii=self.agent_radius, colors=self.colors,
-                                               labels=[f"{i}:{int(a)}" for i, a in enumerate(acts[b])],
-                                               class_ids=np.arange(self.num_agents)))
+            rec.log(
+                f"{p}/agents",
+                rr.Points2D(
+                    pos[b],
+                    radii=self.agent_radius,
+                    colors=self.colors,
+                    labels=[f"{i}:{int(a)}" for i, a in enumerate(acts[b])],
+                    class_ids=np.arange(self.num_agents),
+                ),
+            )
             rec.log(f"{p}/comm", rr.LineStrips2D(_edges(adj[b], pos[b]), colors=EDGE_COLOR, radii=0.004))
             if att is not None:
                 i, j = np.nonzero(att[b] > 1e-3 * (1 - np.eye(self.num_agents)))
@@ -104,8 +132,10 @@ class RolloutRecorder:
                 i, j = i[keep], j[keep]
                 alpha = np.clip(att[b][i, j] * 255, 0, 255).astype(np.uint8)
                 colors = np.concatenate([self.colors[i], alpha[:, None]], axis=1)
-                rec.log(f"{p}/attention", rr.LineStrips2D(np.stack([pos[b][j], pos[b][i]], axis=1), colors=colors,
-                                                          radii=0.008))
+                rec.log(
+                    f"{p}/attention",
+                    rr.LineStrips2D(np.stack([pos[b][j], pos[b][i]], axis=1), colors=colors, radii=0.008),
+                )
             rec.log(f"{p}/reward", rr.Scalars(float(reward[b])))
 
     def log_episode_ends(self, step: int, mask: np.ndarray, episode_info: dict) -> None:

@@ -33,19 +33,27 @@ def summarize(path: str) -> dict:
             lo, hi = min(col), max(col)
             e["steps"] = (lo, hi) if e["steps"] is None else (min(lo, e["steps"][0]), max(hi, e["steps"][1]))
     steps = [e["steps"] for e in entities.values() if e["steps"]]
-    return {"path": path, "bytes": os.path.getsize(path), "entities": entities,
-            "steps": (min(s[0] for s in steps), max(s[1] for s in steps)) if steps else None}
+    return {
+        "path": path,
+        "bytes": os.path.getsize(path),
+        "entities": entities,
+        "steps": (min(s[0] for s in steps), max(s[1] for s in steps)) if steps else None,
+    }
 
 
 def format_summary(summary: dict) -> str:
-    lines = [f"{summary['path']}: {summary['bytes'] / 1e6:.2f} MB, {len(summary['entities'])} entity paths, "
-             f"steps {summary['steps'][0]}..{summary['steps'][1]}" if summary["steps"] else
-             f"{summary['path']}: {summary['bytes'] / 1e6:.2f} MB, {len(summary['entities'])} entity paths"]
+    lines = [
+        f"{summary['path']}: {summary['bytes'] / 1e6:.2f} MB, {len(summary['entities'])} entity paths, "
+        f"steps {summary['steps'][0]}..{summary['steps'][1]}"
+        if summary["steps"]
+        else f"{summary['path']}: {summary['bytes'] / 1e6:.2f} MB, {len(summary['entities'])} entity paths"
+    ]
     lines.append(f"  {'entity':<28} {'rows':>6}  steps")
     for name in sorted(summary["entities"]):
         e = summary["entities"][name]
-        steps = "static" if e["static"] and not e["steps"] else (f"{e['steps'][0]}..{e['steps'][1]}"
-                                                                  if e["steps"] else "-")
+        steps = (
+            "static" if e["static"] and not e["steps"] else (f"{e['steps'][0]}..{e['steps'][1]}" if e["steps"] else "-")
+        )
         lines.append(f"  {name:<28} {e['rows']:>6}  {steps}")
     return "\n".join(lines)
 

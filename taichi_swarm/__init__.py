@@ -14,5 +14,13 @@ from .runtime import init
 from .tasks import TASK_SPECS, TASKS
 
 __all__ = [
-    "ACTION_MEANINGS", "ARRAYS", "COMMS", "NUM_ACTIONS", "TASKS", "TASK_SPECS", "SwarmEnv", "init", "make",
+    "ACTION_MEANINGS",
+    "ARRAYS",
+    "COMMS",
+    "NUM_ACTIONS",
+    "TASKS",
+    "TASK_SPECS",
+    "SwarmEnv",
+    "init",
+    "make",
 ]

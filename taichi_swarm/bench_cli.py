@@ -50,23 +50,43 @@ def sim_parser() -> argparse.ArgumentParser:
         description="Agent-steps/s of the taichi_swarm coverage step vs VMAS simple_spread vs plain NumPy, "
         "measured side by side in one process; prints a table and the target checks.",
     )
-    p.add_argument("--batch-sizes", type=_positive_int, nargs="+", default=[32, 1024, 8192], metavar="B",
-                   help="numbers of environments (default: 32 1024 8192)")
-    p.add_argument("--agents", type=_positive_int, nargs="+", default=[3, 10], metavar="M",
-                   help="team sizes (default: 3 10)")
+    p.add_argument(
+        "--batch-sizes",
+        type=_positive_int,
+        nargs="+",
+        default=[32, 1024, 8192],
+        metavar="B",
+        help="numbers of environments (default: 32 1024 8192)",
+    )
+    p.add_argument(
+        "--agents", type=_positive_int, nargs="+", default=[3, 10], metavar="M", help="team sizes (default: 3 10)"
+    )
     p.add_argument("--no-vmas", action="store_true", help="leave out VMAS (shown as skipped)")
     p.add_argument("--no-numpy", action="store_true", help="leave out the NumPy baselines (shown as skipped)")
-    p.add_argument("--torch-threads", type=_positive_int, default=1, metavar="N",
-                   help="torch.set_num_threads during the run (default 1: see docs/BENCHMARKS.md)")
-    p.add_argument("--comm", choices=("rc", "uc"), default="rc",
-                   help="communication graph of taichi and numpy: rc = from distances every step (default), uc = all")
+    p.add_argument(
+        "--torch-threads",
+        type=_positive_int,
+        default=1,
+        metavar="N",
+        help="torch.set_num_threads during the run (default 1: see docs/BENCHMARKS.md)",
+    )
+    p.add_argument(
+        "--comm",
+        choices=("rc", "uc"),
+        default="rc",
+        help="communication graph of taichi and numpy: rc = from distances every step (default), uc = all",
+    )
     p.add_argument("--seconds", type=_positive_float, default=1.5, help="timed seconds per cell (default 1.5)")
-    p.add_argument("--steps", type=_positive_int, default=None,
-                   help="a fixed number of timed steps per cell instead (in 5 chunks)")
+    p.add_argument(
+        "--steps", type=_positive_int, default=None, help="a fixed number of timed steps per cell instead (in 5 chunks)"
+    )
     p.add_argument("--quick", action="store_true", help=f"{QUICK_SECONDS} s per cell instead of --seconds")
     p.add_argument("--json", default=None, metavar="PATH", help="also write the rows and checks to PATH (JSON)")
-    p.add_argument("--serial-sweep", action="store_true",
-                   help="instead: time the Taichi step with a serial vs parallel env loop over small B")
+    p.add_argument(
+        "--serial-sweep",
+        action="store_true",
+        help="instead: time the Taichi step with a serial vs parallel env loop over small B",
+    )
     return p
 
 
@@ -85,9 +105,15 @@ def sim_main(argv: list[str]) -> int:
         bench_sim.serial_sweep(tuple(args.agents), seconds=seconds, comm=args.comm)
         return 0
     bench_sim.run(
-        batch_sizes=tuple(args.batch_sizes), team_sizes=tuple(args.agents), steps=args.steps, seconds=seconds,
-        include_vmas=not args.no_vmas, include_numpy=not args.no_numpy, out_json=args.json,
-        torch_threads=args.torch_threads, comm=args.comm,
+        batch_sizes=tuple(args.batch_sizes),
+        team_sizes=tuple(args.agents),
+        steps=args.steps,
+        seconds=seconds,
+        include_vmas=not args.no_vmas,
+        include_numpy=not args.no_numpy,
+        out_json=args.json,
+        torch_threads=args.torch_threads,
+        comm=args.comm,
     )
     return 0
 

@@ -66,7 +66,12 @@ def _vmas(B: int, M: int) -> Step:
     except ImportError as exc:
         raise Skip(f"vmas not importable ({exc}); pip install vmas") from exc
     env = vmas.make_env(
-        scenario="simple_spread", num_envs=B, device="cpu", continuous_actions=False, n_agents=M, seed=0,
+        scenario="simple_spread",
+        num_envs=B,
+        device="cpu",
+        continuous_actions=False,
+        n_agents=M,
+        seed=0,
     )
     env.reset()
     n = env.action_space[0].n  # 9 in vmas 1.5.2: {-, 0, +} per axis
@@ -118,8 +123,12 @@ def measure(step: Step, agents: int, seconds: float, steps: int | None = None) -
         total += elapsed
     median = statistics.median(per_step)
     return {
-        "steps": k, "seconds": total, "ms_per_step": 1e3 * median, "agent_steps_per_s": agents / median,
-        "ms_per_step_best": 1e3 * min(per_step), "ms_per_step_worst": 1e3 * max(per_step),
+        "steps": k,
+        "seconds": total,
+        "ms_per_step": 1e3 * median,
+        "agent_steps_per_s": agents / median,
+        "ms_per_step_best": 1e3 * min(per_step),
+        "ms_per_step_worst": 1e3 * max(per_step),
     }
 
 
@@ -163,9 +172,18 @@ def run(
         for B in batch_sizes:
             for M in team_sizes:
                 for impl in IMPLS:
-                    row = {"impl": impl, "B": B, "M": M, "steps": None, "seconds": None, "ms_per_step": None,
-                           "agent_steps_per_s": None, "ms_per_step_best": None, "ms_per_step_worst": None,
-                           "skipped": disabled.get(impl)}
+                    row = {
+                        "impl": impl,
+                        "B": B,
+                        "M": M,
+                        "steps": None,
+                        "seconds": None,
+                        "ms_per_step": None,
+                        "agent_steps_per_s": None,
+                        "ms_per_step_best": None,
+                        "ms_per_step_worst": None,
+                        "skipped": disabled.get(impl),
+                    }
                     if row["skipped"] is None:
                         try:
                             row.update(measure(_make(impl, B, M, comm), B * M, seconds, steps))
@@ -190,9 +208,11 @@ def _progress(row: dict) -> str:
     where = f"  {row['impl']:<10} B={row['B']:<5} M={row['M']:<3}"
     if row["skipped"]:
         return f"{where} skipped: {row['skipped']}"
-    return (f"{where} {_rate(row['agent_steps_per_s'])} agent-steps/s, {row['ms_per_step']:.3f} ms/step "
-            f"(chunks {row['ms_per_step_best']:.3f}..{row['ms_per_step_worst']:.3f}; {row['steps']} steps, "
-            f"{row['seconds']:.2f} s)")
+    return (
+        f"{where} {_rate(row['agent_steps_per_s'])} agent-steps/s, {row['ms_per_step']:.3f} ms/step "
+        f"(chunks {row['ms_per_step_best']:.3f}..{row['ms_per_step_worst']:.3f}; {row['steps']} steps, "
+        f"{row['seconds']:.2f} s)"
+    )
 
 
 def _rate(x: float | None) -> str:
@@ -224,14 +244,35 @@ def target_checks(rows: list[dict]) -> list[dict]:
                 why = c["taichi"]["skipped"] if t is None else c.get("vmas", {}).get("skipped", "not run")
                 out.append(_check(f"taichi >= {TARGET_VS_VMAS:.0f}x vmas", B, M, None, f"not measured: {why}"))
             else:
-                out.append(_check(f"taichi >= {TARGET_VS_VMAS:.0f}x vmas", B, M, t >= TARGET_VS_VMAS * v,
-                                  f"taichi {_rate(t)} / vmas {_rate(v)} = {t / v:.2f}x"))
-            out.append(_check(f"taichi >= {TARGET_RATE / 1e6:.0f}M agent-steps/s", B, M,
-                              None if t is None else t >= TARGET_RATE, f"taichi {_rate(t)}"))
+                out.append(
+                    _check(
+                        f"taichi >= {TARGET_VS_VMAS:.0f}x vmas",
+                        B,
+                        M,
+                        t >= TARGET_VS_VMAS * v,
+                        f"taichi {_rate(t)} / vmas {_rate(v)} = {t / v:.2f}x",
+                    )
+                )
+            out.append(
+                _check(
+                    f"taichi >= {TARGET_RATE / 1e6:.0f}M agent-steps/s",
+                    B,
+                    M,
+                    None if t is None else t >= TARGET_RATE,
+                    f"taichi {_rate(t)}",
+                )
+            )
         if B == TARGET_SMALL_B:
             ok = None if ms is None else ms <= TARGET_SMALL_MS
-            out.append(_check(f"taichi <= {TARGET_SMALL_MS} ms/step", B, M, ok,
-                              "not measured" if ms is None else f"taichi {ms:.3f} ms/step"))
+            out.append(
+                _check(
+                    f"taichi <= {TARGET_SMALL_MS} ms/step",
+                    B,
+                    M,
+                    ok,
+                    "not measured" if ms is None else f"taichi {ms:.3f} ms/step",
+                )
+            )
     return out
 
 
@@ -242,14 +283,17 @@ def _check(name: str, B: int, M: int, ok: bool | None, detail: str) -> dict:
 
 def format_report(rows: list[dict], checks: list[dict], meta: dict) -> str:
     """The printed table (agent-steps/s, M = million) and the target checks."""
-    head = (f"{'B':>6} {'M':>3} | {'taichi':>8} {'ms/step':>8} | {'taichi-np':>9} | {'vmas':>8} {'ms/step':>8} | "
-            f"{'numpy':>8} {'numpy-phys':>10} | {'t/vmas':>7} {'t/numpy':>7} {'t/np-phys':>9}")
+    head = (
+        f"{'B':>6} {'M':>3} | {'taichi':>8} {'ms/step':>8} | {'taichi-np':>9} | {'vmas':>8} {'ms/step':>8} | "
+        f"{'numpy':>8} {'numpy-phys':>10} | {'t/vmas':>7} {'t/numpy':>7} {'t/np-phys':>9}"
+    )
     lines = [
         f"Simulator benchmark: coverage (VMAS: simple_spread), comm={meta['comm']}, {meta['cpu_count']} CPU cores, "
         f"torch threads={meta['torch_threads']}, taichi threads={meta['taichi_threads']}",
         f"agent-steps/s (M = million, k = thousand); ms/step = one step of the whole batch of B envs; "
         f"median of {REPEATS} timed chunks per cell",
-        head, "-" * len(head),
+        head,
+        "-" * len(head),
     ]
     skipped: dict[str, list[str]] = {}
     for (B, M), c in _cells(rows).items():
@@ -293,9 +337,15 @@ def machine_info(torch_threads: int, comm: str, seconds: float, steps: int | Non
     except OSError:
         pass
     return {
-        "cpu": cpu, "cpu_count": os.cpu_count(), "platform": platform.platform(), "versions": versions,
-        "torch_threads": torch_threads, "taichi_threads": os.environ.get("TAICHI_SWARM_THREADS") or "all cores",
-        "comm": comm, "seconds_per_cell": seconds, "steps_per_cell": steps,
+        "cpu": cpu,
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "versions": versions,
+        "torch_threads": torch_threads,
+        "taichi_threads": os.environ.get("TAICHI_SWARM_THREADS") or "all cores",
+        "comm": comm,
+        "seconds_per_cell": seconds,
+        "steps_per_cell": steps,
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
 
@@ -309,8 +359,12 @@ def write_json(path: str, payload: dict) -> None:
     os.replace(tmp, path)
 
 
-def serial_sweep(team_sizes: tuple[int, ...] = (3, 10), batch_sizes: tuple[int, ...] = (16, 64, 128, 256, 512, 1024),
-                 seconds: float = 0.5, comm: str = "rc") -> list[dict]:
+def serial_sweep(
+    team_sizes: tuple[int, ...] = (3, 10),
+    batch_sizes: tuple[int, ...] = (16, 64, 128, 256, 512, 1024),
+    seconds: float = 0.5,
+    comm: str = "rc",
+) -> list[dict]:
     """Taichi step with the env loop serial vs parallel, and which one ``SwarmEnv`` picks (env.py)."""
     import torch
 
@@ -330,7 +384,9 @@ def serial_sweep(team_sizes: tuple[int, ...] = (3, 10), batch_sizes: tuple[int, 
                 env._parallel = parallel
                 ms[parallel] = measure(lambda k, e=env, a=acts: e.step(a), B * M, seconds)["ms_per_step"]
             faster = "parallel" if ms[True] < ms[False] else "serial"
-            print(f"{B:>6} {M:>3} | {ms[False]:>9.3f} {ms[True]:>11.3f} | {faster:>8} "
-                  f"{'parallel' if picked else 'serial':>9}")
+            print(
+                f"{B:>6} {M:>3} | {ms[False]:>9.3f} {ms[True]:>11.3f} | {faster:>8} "
+                f"{'parallel' if picked else 'serial':>9}"
+            )
             out.append({"B": B, "M": M, "serial_ms": ms[False], "parallel_ms": ms[True], "env_parallel": picked})
     return out

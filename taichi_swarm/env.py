@@ -92,8 +92,7 @@ class SwarmEnv:
             raise ValueError(f"unknown parameter(s) {unknown} for task {task!r}; known: {sorted(allowed)}")
         params = {**allowed, **task_params}
         self.params = {
-            k: (_check_int(k, v, 1) if k == "max_steps" else _check_float(k, v, 0.0))
-            for k, v in params.items()
+            k: (_check_int(k, v, 1) if k == "max_steps" else _check_float(k, v, 0.0)) for k, v in params.items()
         }
         self.num_actions = NUM_ACTIONS
         self._task_id = spec.task_id
@@ -151,7 +150,9 @@ class SwarmEnv:
                 "dist": v("ep_dist"),  # DIST: mean target -> closest agent distance
             },
             "terminal_obs": {
-                "self": v("term_self"), "entities": v("term_entities"), "adj": v("term_adj", bool),
+                "self": v("term_self"),
+                "entities": v("term_entities"),
+                "adj": v("term_adj", bool),
             },
         }
         # current state extras (targets for drawing, d*_i, who is matched to what)
@@ -232,9 +233,7 @@ class SwarmEnv:
         if not hasattr(self, "_actions_t"):
             import torch
 
-            self._actions_t = (
-                self._actions_in if self._host is None else torch.from_numpy(self._actions_host)
-            )
+            self._actions_t = self._actions_in if self._host is None else torch.from_numpy(self._actions_host)
         return self._actions_t
 
     def _check_actions(self, actions) -> None:

@@ -70,8 +70,16 @@ def match(task: ti.template(), cap: ti.template(), f: ti.template(), ib: ti.temp
 
 
 @ti.func
-def write_obs(f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32, i: ti.i32,
-              self_off: ti.i32, ent_off: ti.i32, adj_off: ti.i32):
+def write_obs(
+    f: ti.template(),
+    ib: ti.template(),
+    u8: ti.template(),
+    b: ti.i32,
+    i: ti.i32,
+    self_off: ti.i32,
+    ent_off: ti.i32,
+    adj_off: ti.i32,
+):
     """Agent i's observation: self [4] = (vel, pos), entities [L, 2] = landmark - pos,
     adjacency row [M] = who i hears (itself always; "rc": within comm radius)."""
     M, L = ib[H_M], ib[H_L]
@@ -99,8 +107,15 @@ def write_obs(f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32,
 
 
 @ti.func
-def write_team_obs(f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32,
-                   self_off: ti.i32, ent_off: ti.i32, adj_off: ti.i32):
+def write_team_obs(
+    f: ti.template(),
+    ib: ti.template(),
+    u8: ti.template(),
+    b: ti.i32,
+    self_off: ti.i32,
+    ent_off: ti.i32,
+    adj_off: ti.i32,
+):
     for i in range(ib[H_M]):
         write_obs(f, ib, u8, b, i, self_off, ent_off, adj_off)
 

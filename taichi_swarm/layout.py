@@ -22,13 +22,33 @@ H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
 # --- int32 header: where each block starts (in its own buffer) -----------------------
 (
     # float32 blocks
-    O_POS, O_VEL, O_LMK, O_TGT, O_OBS_SELF, O_OBS_ENT, O_REWARD, O_MATCHED,
-    O_EP_MATCHED, O_EP_DIST, O_EP_RETURN, O_RET_ACC, O_TERM_SELF, O_TERM_ENT,
+    O_POS,
+    O_VEL,
+    O_LMK,
+    O_TGT,
+    O_OBS_SELF,
+    O_OBS_ENT,
+    O_REWARD,
+    O_MATCHED,
+    O_EP_MATCHED,
+    O_EP_DIST,
+    O_EP_RETURN,
+    O_RET_ACC,
+    O_TERM_SELF,
+    O_TERM_ENT,
     O_HU_COST,
     # int32 blocks
-    O_STEP, O_RNG, O_EP_LEN, O_ASSIGN, O_ACTIONS,
+    O_STEP,
+    O_RNG,
+    O_EP_LEN,
+    O_ASSIGN,
+    O_ACTIONS,
     # uint8 blocks
-    O_ADJ, O_DONE, O_EP_SUCCESS, O_EP_TRUNC, O_TERM_ADJ,
+    O_ADJ,
+    O_DONE,
+    O_EP_SUCCESS,
+    O_EP_TRUNC,
+    O_TERM_ADJ,
 ) = range(5, 5 + 25)
 INT_HEADER = 5 + 25
 # --- float32 header: physical and task parameters ------------------------------------

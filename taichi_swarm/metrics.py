@@ -41,8 +41,11 @@ class FirstEpisodes:
             "success_rate": float(self.success.mean()),
             "mean_length": float(self.length.mean()),
             "dist": float(self.dist.mean()) if task == "coverage" else None,
-            "per_episode": {"success": self.success.tolist(), "length": self.length.tolist(),
-                            "dist": self.dist.tolist()},
+            "per_episode": {
+                "success": self.success.tolist(),
+                "length": self.length.tolist(),
+                "dist": self.dist.tolist(),
+            },
         }
 
 
@@ -54,6 +57,8 @@ def format_results(rows: list[dict], extra: tuple[str, ...] = ()) -> str:
     for r in rows:
         d = "-" if r["dist"] is None else f"{r['dist']:.3f}"
         cells = "".join(f" {r[c]:>5.2f}" if isinstance(r[c], float) else f" {r[c]:>5}" for c in extra)
-        lines.append(f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8}{cells} "
-                     f"{100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}")
+        lines.append(
+            f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8}{cells} "
+            f"{100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}"
+        )
     return "\n".join(lines)

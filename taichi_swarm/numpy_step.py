@@ -36,8 +36,9 @@ def pairwise(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return delta, np.sqrt(delta[0] * delta[0] + delta[1] * delta[1])
 
 
-def physics(pos: np.ndarray, vel: np.ndarray, actions: np.ndarray,
-            agent_radius: float = AGENT_RADIUS) -> tuple[np.ndarray, np.ndarray]:
+def physics(
+    pos: np.ndarray, vel: np.ndarray, actions: np.ndarray, agent_radius: float = AGENT_RADIUS
+) -> tuple[np.ndarray, np.ndarray]:
     """One MPE world step: pos, vel [B, M, 2] float32, actions int [B, M] -> new pos, vel."""
     force = SENSITIVITY * ACTION_DIRS[actions]  # [B, M, 2]
     delta, dist = pairwise(pos, pos)  # [2, B, M, M] p_i - p_j, [B, M, M]
@@ -83,8 +84,9 @@ class NumpyCoverage:
     episodes then end at the time limit only.
     """
 
-    def __init__(self, num_envs: int, num_agents: int, comm_radius: float | None = None,
-                 assign: bool = True, seed: int = 0):
+    def __init__(
+        self, num_envs: int, num_agents: int, comm_radius: float | None = None, assign: bool = True, seed: int = 0
+    ):
         self.B, self.M = num_envs, num_agents
         self.comm_radius, self.assign = comm_radius, assign
         self.rng = np.random.default_rng(seed)

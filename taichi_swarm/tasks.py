@@ -10,7 +10,6 @@ Adding a task: a new id, its ``TaskSpec`` in ``TASK_SPECS`` and a branch in
 each of the three functions below.
 """
 
-
 import math
 from dataclasses import dataclass, field
 
@@ -41,15 +40,27 @@ class TaskSpec:
 COMMON_PARAMS = {"max_steps": 50}
 TASK_SPECS: dict[str, TaskSpec] = {
     "coverage": TaskSpec(
-        COVERAGE, 0.05, 0.05, 1, {"success_threshold": 0.1},
+        COVERAGE,
+        0.05,
+        0.05,
+        1,
+        {"success_threshold": 0.1},
         "M agents cover M landmarks (MPE simple_spread with matched distances).",
     ),
     "formation": TaskSpec(
-        FORMATION, 0.05, 0.03, 2, {"success_threshold": 0.05, "formation_radius": 0.5},
+        FORMATION,
+        0.05,
+        0.03,
+        2,
+        {"success_threshold": 0.05, "formation_radius": 0.5},
         "M agents form a regular M-gon round one landmark.",
     ),
     "line": TaskSpec(
-        LINE, 0.03, 0.02, 2, {"success_threshold": 0.05, "line_length": 1.25},
+        LINE,
+        0.03,
+        0.02,
+        2,
+        {"success_threshold": 0.05, "line_length": 1.25},
         "M agents spread evenly on the segment between two landmarks.",
     ),
 }

@@ -16,8 +16,18 @@ def test_tiny_run_gives_sane_rows_and_json(tmp_path, capsys):
     rows = bench_sim.run(batch_sizes=(4,), team_sizes=(3,), steps=5, include_vmas=False, out_json=str(out))
     assert [r["impl"] for r in rows] == list(bench_sim.IMPLS)
     for r in rows:
-        assert set(r) == {"impl", "B", "M", "steps", "seconds", "ms_per_step", "agent_steps_per_s",
-                          "ms_per_step_best", "ms_per_step_worst", "skipped"}
+        assert set(r) == {
+            "impl",
+            "B",
+            "M",
+            "steps",
+            "seconds",
+            "ms_per_step",
+            "agent_steps_per_s",
+            "ms_per_step_best",
+            "ms_per_step_worst",
+            "skipped",
+        }
         assert (r["B"], r["M"]) == (4, 3)
     for r in (r for r in rows if r["impl"] in MEASURED):
         assert r["skipped"] is None and r["steps"] == 5 and r["seconds"] > 0

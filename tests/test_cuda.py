@@ -25,6 +25,7 @@ def test_cuda_env_steps_torch_tensors_on_the_gpu():
     for b in range(8):
         if env.done[b]:
             continue
-        ref_pos, ref_vel = mpe_step(state["pos"][b].cpu().numpy(), state["vel"][b].cpu().numpy(),
-                                    actions[b].cpu().numpy(), 0.05)
+        ref_pos, ref_vel = mpe_step(
+            state["pos"][b].cpu().numpy(), state["vel"][b].cpu().numpy(), actions[b].cpu().numpy(), 0.05
+        )
         np.testing.assert_allclose(new["pos"][b].cpu().numpy(), ref_pos, atol=2e-5)

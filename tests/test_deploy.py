@@ -40,8 +40,14 @@ def one_torch_thread():
 
 
 def _save(path: str, policy: SwarmPolicy, task: str, agents: int) -> str:
-    checkpoint.save(path, {"model_config": policy.config.to_dict(), "model": policy.state_dict(),
-                           "task": {"task": task, "agents": agents, "comm": "uc", "comm_radius": 1.0}})
+    checkpoint.save(
+        path,
+        {
+            "model_config": policy.config.to_dict(),
+            "model": policy.state_dict(),
+            "task": {"task": task, "agents": agents, "comm": "uc", "comm_radius": 1.0},
+        },
+    )
     return path
 
 
@@ -212,8 +218,13 @@ def test_manifest_hashes_checker_single_file(emp):
         with open(path, "rb") as f:
             assert hashlib.sha256(f.read()).hexdigest() == entry["sha256"]
         onnx.checker.check_model(path, full_check=True)
-    assert sorted(os.listdir(directory)) == ["encode.onnx", "heads.onnx", "manifest.json", "round.onnx",
-                                             "round_heads.onnx"]  # no external .data files
+    assert sorted(os.listdir(directory)) == [
+        "encode.onnx",
+        "heads.onnx",
+        "manifest.json",
+        "round.onnx",
+        "round_heads.onnx",
+    ]  # no external .data files
 
 
 # ------------------------------------------------------------------------------ errors
@@ -248,13 +259,16 @@ def test_wrong_task_for_concat_model(concat, capsys):
     assert code == 2 and "concatenates 2 landmark" in err and "coverage" in err
 
 
-@pytest.mark.parametrize("argv,needle", [
-    (["--agents", "0"], "--agents must be >= 1"),
-    (["--episodes", "0"], "--episodes must be >= 1"),
-    (["--drop", "1.5"], "probabilities"),
-    (["--delay", "-1"], "--delay must be >= 0"),
-    (["--task", "soccer"], "task must be one of"),
-])
+@pytest.mark.parametrize(
+    "argv,needle",
+    [
+        (["--agents", "0"], "--agents must be >= 1"),
+        (["--episodes", "0"], "--episodes must be >= 1"),
+        (["--drop", "1.5"], "probabilities"),
+        (["--delay", "-1"], "--delay must be >= 0"),
+        (["--task", "soccer"], "task must be one of"),
+    ],
+)
 def test_bad_execute_options(emp, capsys, argv, needle):
     _, directory = emp
     code, err = _run(execute_main, [directory, *argv], capsys)
@@ -296,8 +310,9 @@ NO_TORCH = textwrap.dedent("""
 def test_executor_runs_without_torch(emp, tmp_path):
     _, directory = emp
     rrd = str(tmp_path / "run.rrd")
-    proc = subprocess.run([sys.executable, "-c", NO_TORCH, directory, rrd], capture_output=True, text=True,
-                          cwd=ROOT, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", NO_TORCH, directory, rrd], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "NO_TORCH_OK" in proc.stdout
     assert "S%" in proc.stdout and "0.50" in proc.stdout  # the drop-rate table

@@ -70,5 +70,3 @@ def test_step_before_reset_is_an_error():
     env = taichi_swarm.make("coverage", 1, 2)
     with pytest.raises(RuntimeError, match="reset"):
         env.step(np.zeros((1, 2), dtype=np.int64))
-
-

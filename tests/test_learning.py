@@ -10,8 +10,16 @@ from trainer.train import train
 
 def test_single_agent_coverage_learns(tmp_path):
     cfg = TrainConfig(
-        task="coverage", agents=1, updates=40, eval_every=40, eval_episodes=200, seed=1,
-        run_dir=str(tmp_path / "run"), progress=False, torch_threads=1, checkpoint_every=40,
+        task="coverage",
+        agents=1,
+        updates=40,
+        eval_every=40,
+        eval_episodes=200,
+        seed=1,
+        run_dir=str(tmp_path / "run"),
+        progress=False,
+        torch_threads=1,
+        checkpoint_every=40,
         model=ModelConfig(hidden=32, rounds=1),
         ppo=PPOConfig(num_envs=32, num_steps=32, lr=3e-3, epochs=4, minibatches=2),
     )

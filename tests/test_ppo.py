@@ -38,8 +38,9 @@ def test_ppo_loss_by_hand():
     values = torch.tensor([[1.0, 0.0]])
     old_values = torch.tensor([[0.5, 0.0]])
     returns = torch.tensor([[0.0, 1.0]])
-    total, info = ppo_loss(logits, values, actions, old_logp, old_values, adv, returns,
-                           clip=0.2, value_coef=0.5, entropy_coef=0.01)
+    total, info = ppo_loss(
+        logits, values, actions, old_logp, old_values, adv, returns, clip=0.2, value_coef=0.5, entropy_coef=0.01
+    )
     # policy: sample 0 ratio 1.6487 -> min(1.6487, 1.2) * 1 = 1.2; sample 1 ratio 0.6065 -> 0.6065
     pg = -(1.2 + math.exp(-0.5)) / 2
     # value: sample 0 v=1, clipped 0.5+0.2=0.7, R=0 -> max(1, 0.49) = 1; sample 1 -> max(1, 1) = 1

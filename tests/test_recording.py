@@ -29,8 +29,11 @@ def _record_numpy(path: str, B: int = 3, M: int = 3, steps: int = 5, drawn: int 
         rec.log_step(t, env, actions, attention=attention)
         env.step(actions)
     ended = np.array([True, False, False])
-    rec.log_episode_ends(steps, ended, {"success": np.array([True, False, False]), "length": np.full(B, steps),
-                                         "dist": np.full(B, 0.5, np.float32)})
+    rec.log_episode_ends(
+        steps,
+        ended,
+        {"success": np.array([True, False, False]), "length": np.full(B, steps), "dist": np.full(B, 0.5, np.float32)},
+    )
     rec.close()
 
 
@@ -68,8 +71,14 @@ def test_eval_record_with_torch_env(tmp_path, capsys):
     torch.manual_seed(0)
     policy = SwarmPolicy(ModelConfig(hidden=32, rounds=1))
     ckpt = str(tmp_path / "ckpt.pt")
-    checkpoint.save(ckpt, {"model_config": policy.config.to_dict(), "model": policy.state_dict(),
-                           "task": {"task": "coverage", "agents": 3, "comm": "uc", "comm_radius": 1.0}})
+    checkpoint.save(
+        ckpt,
+        {
+            "model_config": policy.config.to_dict(),
+            "model": policy.state_dict(),
+            "task": {"task": "coverage", "agents": 3, "comm": "uc", "comm_radius": 1.0},
+        },
+    )
     rrd = str(tmp_path / "eval.rrd")
     assert eval_main([ckpt, "--episodes", "2", "--record", rrd]) == 0
     ents = summarize(rrd)["entities"]

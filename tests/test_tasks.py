@@ -62,7 +62,19 @@ def test_coverage_reward_and_success_threshold():
     env.reset()
     lmk = np.array([[[0.5, 0.5], [-0.5, 0.5], [0.0, -0.5]]] * 2)
     # env 0: every agent 0.05 from a landmark (success, < 0.1); env 1: one agent 0.15 away
-    pos = lmk + np.array([[[0.05, 0, ], [0, 0.05], [-0.05, 0]], [[0.05, 0], [0, 0.05], [-0.15, 0]]])
+    pos = lmk + np.array(
+        [
+            [
+                [
+                    0.05,
+                    0,
+                ],
+                [0, 0.05],
+                [-0.05, 0],
+            ],
+            [[0.05, 0], [0, 0.05], [-0.15, 0]],
+        ]
+    )
     env.set_state(pos=pos, vel=np.zeros((2, M, 2)), landmarks=lmk, step=np.zeros(2, dtype=np.int32))
     env.step(np.zeros((2, M), dtype=np.int64))  # no-op: nobody moves
     assert env.done.tolist() == [True, False]

@@ -19,8 +19,19 @@ TINY_MODEL = ModelConfig(hidden=16, rounds=1)
 
 
 def tiny(tmp_path, **kw):
-    base = dict(task="coverage", agents=2, updates=3, eval_every=2, eval_episodes=4, checkpoint_every=1,
-                run_dir=str(tmp_path / "run"), progress=False, torch_threads=1, model=TINY_MODEL, ppo=TINY_PPO)
+    base = dict(
+        task="coverage",
+        agents=2,
+        updates=3,
+        eval_every=2,
+        eval_episodes=4,
+        checkpoint_every=1,
+        run_dir=str(tmp_path / "run"),
+        progress=False,
+        torch_threads=1,
+        model=TINY_MODEL,
+        ppo=TINY_PPO,
+    )
     return TrainConfig(**(base | kw))
 
 
@@ -90,16 +101,38 @@ def test_config_validation_names_the_option(tmp_path):
 
 def swarm(*args, cwd):
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    return subprocess.run([sys.executable, "-m", "taichi_swarm.cli", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "taichi_swarm.cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
+    )
 
 
 def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
-    common = ["--updates", "2", "--eval-every", "2", "--eval-episodes", "4", "--no-progress",
-              "--ppo.num-envs", "4", "--ppo.num-steps", "8", "--ppo.minibatches", "2", "--ppo.epochs", "1",
-              "--model.hidden", "16", "--model.rounds", "1", "--torch-threads", "1"]
-    r = swarm("train", "--task", "formation", "--agents", "3", "--comm", "rc", "--run-dir", "run", *common,
-              cwd=tmp_path)
+    common = [
+        "--updates",
+        "2",
+        "--eval-every",
+        "2",
+        "--eval-episodes",
+        "4",
+        "--no-progress",
+        "--ppo.num-envs",
+        "4",
+        "--ppo.num-steps",
+        "8",
+        "--ppo.minibatches",
+        "2",
+        "--ppo.epochs",
+        "1",
+        "--model.hidden",
+        "16",
+        "--model.rounds",
+        "1",
+        "--torch-threads",
+        "1",
+    ]
+    r = swarm(
+        "train", "--task", "formation", "--agents", "3", "--comm", "rc", "--run-dir", "run", *common, cwd=tmp_path
+    )
     assert r.returncode == 0, r.stderr
     assert "eval S%" in r.stdout
     r = swarm("eval", "run", "--agents", "4", "--episodes", "5", "--json", "ev.json", cwd=tmp_path)
@@ -107,8 +140,22 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     assert "formation" in r.stdout and json.load(open(tmp_path / "ev.json"))["agents"] == 4
     r = swarm("zero-shot", "run/checkpoint.pt", "--sizes", "2-3", "--episodes", "3", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    r = swarm("curriculum", "--task", "coverage", "--sizes", "2", "3", "--threshold", "0.99",
-              "--max-updates-per-stage", "2", "--run-dir", "cur", *common, cwd=tmp_path)
+    r = swarm(
+        "curriculum",
+        "--task",
+        "coverage",
+        "--sizes",
+        "2",
+        "3",
+        "--threshold",
+        "0.99",
+        "--max-updates-per-stage",
+        "2",
+        "--run-dir",
+        "cur",
+        *common,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     stages = json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"]
     assert [s["agents"] for s in stages] == [2, 3]

@@ -21,9 +21,19 @@ from trainer.train import train
 def measure(preset: str, task: str, agents: int, updates: int, threads: int) -> dict:
     tmp = tempfile.mkdtemp(prefix="swarm-bench-")
     try:
-        cfg = TrainConfig(task=task, agents=agents, preset=preset, ppo=copy.deepcopy(PRESETS[preset]),
-                          updates=updates + 1, eval_every=10**6, eval_episodes=1, checkpoint_every=10**6,
-                          run_dir=os.path.join(tmp, "run"), progress=False, torch_threads=threads)
+        cfg = TrainConfig(
+            task=task,
+            agents=agents,
+            preset=preset,
+            ppo=copy.deepcopy(PRESETS[preset]),
+            updates=updates + 1,
+            eval_every=10**6,
+            eval_episodes=1,
+            checkpoint_every=10**6,
+            run_dir=os.path.join(tmp, "run"),
+            progress=False,
+            torch_threads=threads,
+        )
         records: list[dict] = []
         train(cfg, on_update=records.append)
     finally:
@@ -33,10 +43,16 @@ def measure(preset: str, task: str, agents: int, updates: int, threads: int) -> 
     steps = per_update * len(rows)
     wall = sum(per_update / r["sps"] for r in rows)
     sim, pol, upd = (sum(r[k] for r in rows) for k in ("time_sim", "time_policy", "time_update"))
-    return {"preset": preset, "threads": threads, "env_steps_per_s": steps / wall,
-            "agent_samples_per_update": cfg.ppo.num_envs * cfg.ppo.num_steps * agents,
-            "share_sim": sim / wall, "share_policy": pol / wall, "share_update": upd / wall,
-            "seconds_per_update": wall / len(rows)}
+    return {
+        "preset": preset,
+        "threads": threads,
+        "env_steps_per_s": steps / wall,
+        "agent_samples_per_update": cfg.ppo.num_envs * cfg.ppo.num_steps * agents,
+        "share_sim": sim / wall,
+        "share_policy": pol / wall,
+        "share_update": upd / wall,
+        "seconds_per_update": wall / len(rows),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -49,21 +65,25 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     bad = [p for p in args.presets if p not in PRESETS]
     if bad or args.updates < 1 or min(args.threads) < 1:
-        print(f"swarm bench train: error: presets must be in {tuple(PRESETS)}, updates and threads >= 1",
-              flush=True)
+        print(f"swarm bench train: error: presets must be in {tuple(PRESETS)}, updates and threads >= 1", flush=True)
         return 2
     rows = [measure(p, args.task, args.agents, args.updates, t) for p in args.presets for t in args.threads]
     print(f"\nPPO cycle, {args.task} M={args.agents}, {args.updates} timed updates per row")
-    head = f"{'preset':<7} {'threads':>7} {'env steps/s':>12} {'s/update':>9} {'sim':>6} {'policy fwd':>10} " \
-           f"{'update':>7}"
+    head = (
+        f"{'preset':<7} {'threads':>7} {'env steps/s':>12} {'s/update':>9} {'sim':>6} {'policy fwd':>10} {'update':>7}"
+    )
     print(head + "\n" + "-" * len(head))
     for r in rows:
-        print(f"{r['preset']:<7} {r['threads']:>7} {r['env_steps_per_s']:>12.0f} {r['seconds_per_update']:>9.2f} "
-              f"{100 * r['share_sim']:>5.1f}% {100 * r['share_policy']:>9.1f}% {100 * r['share_update']:>6.1f}%")
+        print(
+            f"{r['preset']:<7} {r['threads']:>7} {r['env_steps_per_s']:>12.0f} {r['seconds_per_update']:>9.2f} "
+            f"{100 * r['share_sim']:>5.1f}% {100 * r['share_policy']:>9.1f}% {100 * r['share_update']:>6.1f}%"
+        )
     base = {p: min((r for r in rows if r["preset"] == p), key=lambda r: r["threads"]) for p in args.presets}
     for r in rows:
         b = base[r["preset"]]
         if r is not b:
-            print(f"{r['preset']}: {r['threads']} threads / {b['threads']} thread: "
-                  f"{r['env_steps_per_s'] / b['env_steps_per_s']:.2f}x env steps/s")
+            print(
+                f"{r['preset']}: {r['threads']} threads / {b['threads']} thread: "
+                f"{r['env_steps_per_s'] / b['env_steps_per_s']:.2f}x env steps/s"
+            )
     return 0

@@ -58,8 +58,10 @@ def load(path: str, map_location="cpu") -> dict:
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - corrupted, truncated or not a torch file
-        raise CheckpointError(f"cannot read checkpoint {path}: it is corrupted, truncated or not a "
-                              f"taichi-swarm checkpoint ({type(exc).__name__})") from None
+        raise CheckpointError(
+            f"cannot read checkpoint {path}: it is corrupted, truncated or not a "
+            f"taichi-swarm checkpoint ({type(exc).__name__})"
+        ) from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a taichi-swarm checkpoint")
     if payload.get("version") != VERSION:
@@ -101,10 +103,15 @@ def load_weights(policy: SwarmPolicy, state_dict: dict) -> None:
         if unexpected:
             parts.append(f"unexpected {unexpected[:4]}")
         if wrong:
-            parts.append("shape mismatch " + ", ".join(
-                f"{k}: {tuple(state_dict[k].shape)} vs {tuple(own[k].shape)}" for k in wrong[:4]))
-        raise CheckpointError("checkpoint weights do not fit this network (" + "; ".join(parts) +
-                              "): was it trained with another --model configuration?")
+            parts.append(
+                "shape mismatch "
+                + ", ".join(f"{k}: {tuple(state_dict[k].shape)} vs {tuple(own[k].shape)}" for k in wrong[:4])
+            )
+        raise CheckpointError(
+            "checkpoint weights do not fit this network ("
+            + "; ".join(parts)
+            + "): was it trained with another --model configuration?"
+        )
     policy.load_state_dict(state_dict)
 
 

@@ -54,8 +54,10 @@ def train_main(argv: list[str]) -> int:
     except USER_ERRORS as exc:
         return _fail("train", exc)
     ev = summary["last_eval"]
-    msg = f"run {summary['run_dir']}: {summary['update']} updates, {summary['env_steps']} env steps, " \
-          f"{summary['wall_time'] / 60:.1f} min"
+    msg = (
+        f"run {summary['run_dir']}: {summary['update']} updates, {summary['env_steps']} env steps, "
+        f"{summary['wall_time'] / 60:.1f} min"
+    )
     if ev:
         msg += f"; eval S% {100 * ev['success_rate']:.1f}, T {ev['mean_length']:.2f}"
     print(msg)
@@ -86,8 +88,11 @@ def _eval_settings(args, payload: dict) -> dict:
     task = args.task or trained.get("task")
     if task is None:
         raise ValueError("this checkpoint does not say its task: pass --task")
-    return {"task": task, "comm": args.comm or trained.get("comm", "uc"),
-            "comm_radius": args.comm_radius if args.comm_radius is not None else trained.get("comm_radius", 1.0)}
+    return {
+        "task": task,
+        "comm": args.comm or trained.get("comm", "uc"),
+        "comm_radius": args.comm_radius if args.comm_radius is not None else trained.get("comm_radius", 1.0),
+    }
 
 
 def eval_main(argv: list[str]) -> int:
@@ -111,8 +116,17 @@ def eval_main(argv: list[str]) -> int:
             from deploy.recording import RolloutRecorder
 
             recorder = RolloutRecorder(args.record, s["task"], args.episodes, agents, max_envs_drawn=8)
-        result = evaluate(policy, s["task"], agents, s["comm"], s["comm_radius"], args.episodes, args.seed,
-                          arch=args.arch, recorder=recorder)
+        result = evaluate(
+            policy,
+            s["task"],
+            agents,
+            s["comm"],
+            s["comm_radius"],
+            args.episodes,
+            args.seed,
+            arch=args.arch,
+            recorder=recorder,
+        )
         if recorder is not None:
             recorder.close()
     except USER_ERRORS as exc:
@@ -137,17 +151,23 @@ def zero_shot_main(argv: list[str]) -> int:
         s = _eval_settings(args, payload)
         rows = []
         for M in sizes:
-            rows.append(evaluate(policy, s["task"], M, s["comm"], s["comm_radius"], args.episodes,
-                                 args.seed, arch=args.arch))
+            rows.append(
+                evaluate(policy, s["task"], M, s["comm"], s["comm_radius"], args.episodes, args.seed, arch=args.arch)
+            )
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return _fail("zero-shot", exc)
     print()
     print(format_table(rows))
     if args.json:
-        atomic_write_json(args.json, {"checkpoint": args.checkpoint,
-                                      "trained_agents": payload.get("task", {}).get("agents"),
-                                      "results": [{k: v for k, v in r.items() if k != "per_episode"} for r in rows]})
+        atomic_write_json(
+            args.json,
+            {
+                "checkpoint": args.checkpoint,
+                "trained_agents": payload.get("task", {}).get("agents"),
+                "results": [{k: v for k, v in r.items() if k != "per_episode"} for r in rows],
+            },
+        )
     return 0
 
 
@@ -161,8 +181,7 @@ def curriculum_main(argv: list[str]) -> int:
     pre.add_argument("--max-updates-per-stage", type=int, default=4000)
     known, rest = pre.parse_known_args(argv)
     if "-h" in rest or "--help" in rest:
-        print("swarm curriculum [--sizes 3 5 7 10] [--threshold 0.85] [--max-updates-per-stage N] "
-              "[train options]\n")
+        print("swarm curriculum [--sizes 3 5 7 10] [--threshold 0.85] [--max-updates-per-stage N] [train options]\n")
     try:
         sizes = parse_sizes(known.sizes)
         if known.max_updates_per_stage < 1:

@@ -72,8 +72,9 @@ PRESETS: dict[str, PPOConfig] = {
     # Measured on coverage, formation and line M=3 UC (docs/RESULTS.md): bigger steps on
     # fewer, bigger minibatches; short rollouts from many envs; bootstrap at the time
     # limit; a lower learning rate late in the run for the last few percent of success.
-    "fast": PPOConfig(num_envs=64, num_steps=32, lr=7e-4, lr_end=1e-4, epochs=4, minibatches=4,
-                      bootstrap_time_limit=True),
+    "fast": PPOConfig(
+        num_envs=64, num_steps=32, lr=7e-4, lr_end=1e-4, epochs=4, minibatches=4, bootstrap_time_limit=True
+    ),
 }
 
 

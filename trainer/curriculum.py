@@ -16,8 +16,9 @@ from trainer.config import TrainConfig
 from trainer.train import train
 
 
-def run_curriculum(base: TrainConfig, sizes: list[int], threshold: float, max_updates_per_stage: int,
-                   run_dir: str) -> list[dict]:
+def run_curriculum(
+    base: TrainConfig, sizes: list[int], threshold: float, max_updates_per_stage: int, run_dir: str
+) -> list[dict]:
     if not sizes:
         raise ValueError("--sizes must name at least one team size")
     if not 0 < threshold <= 1:
@@ -36,22 +37,36 @@ def run_curriculum(base: TrainConfig, sizes: list[int], threshold: float, max_up
             summary = train(resume=stage_dir)
         else:
             cfg = dataclasses.replace(
-                base, agents=M, run_dir=stage_dir, init_from=previous_ckpt, updates=max_updates_per_stage,
+                base,
+                agents=M,
+                run_dir=stage_dir,
+                init_from=previous_ckpt,
+                updates=max_updates_per_stage,
                 target_success=threshold,
             )
             summary = train(cfg)
         last = summary["last_eval"] or {}
-        stage = {"agents": M, "success_rate": last.get("success_rate"), "mean_length": last.get("mean_length"),
-                 "dist": last.get("dist"), "updates": summary["update"], "env_steps": summary["env_steps"],
-                 "wall_time": summary["wall_time"], "reached_threshold": summary["reached_target"],
-                 "run_dir": stage_dir}
+        stage = {
+            "agents": M,
+            "success_rate": last.get("success_rate"),
+            "mean_length": last.get("mean_length"),
+            "dist": last.get("dist"),
+            "updates": summary["update"],
+            "env_steps": summary["env_steps"],
+            "wall_time": summary["wall_time"],
+            "reached_threshold": summary["reached_target"],
+            "run_dir": stage_dir,
+        }
         stages.append(stage)
-        checkpoint.atomic_write_json(results_path, {"task": base.task, "comm": base.comm, "threshold": threshold,
-                                                    "stages": stages})
+        checkpoint.atomic_write_json(
+            results_path, {"task": base.task, "comm": base.comm, "threshold": threshold, "stages": stages}
+        )
         previous_ckpt = os.path.join(stage_dir, "checkpoint.pt")
         if not summary["reached_target"]:
-            print(f"stage M={M} stopped at {summary['update']} updates below the threshold; "
-                  "later stages start from its weights anyway")
+            print(
+                f"stage M={M} stopped at {summary['update']} updates below the threshold; "
+                "later stages start from its weights anyway"
+            )
     return stages
 
 
@@ -60,6 +75,8 @@ def format_stages(stages: list[dict]) -> str:
     lines = [head, "-" * len(head)]
     for s in stages:
         sr = "-" if s["success_rate"] is None else f"{100 * s['success_rate']:.1f}"
-        lines.append(f"{s['agents']:>3} {sr:>6} {s['updates']:>12} {s['env_steps']:>10} "
-                     f"{s['wall_time'] / 60:>8.1f}  {'yes' if s['reached_threshold'] else 'no'}")
+        lines.append(
+            f"{s['agents']:>3} {sr:>6} {s['updates']:>12} {s['env_steps']:>10} "
+            f"{s['wall_time'] / 60:>8.1f}  {'yes' if s['reached_threshold'] else 'no'}"
+        )
     return "\n".join(lines)

@@ -9,9 +9,18 @@ from taichi_swarm.metrics import FirstEpisodes, format_results
 
 
 @torch.no_grad()
-def evaluate(policy, task: str, agents: int, comm: str = "uc", comm_radius: float = 1.0,
-             episodes: int = 100, seed: int = 12345, arch: str = "cpu", device="cpu",
-             recorder=None) -> dict:
+def evaluate(
+    policy,
+    task: str,
+    agents: int,
+    comm: str = "uc",
+    comm_radius: float = 1.0,
+    episodes: int = 100,
+    seed: int = 12345,
+    arch: str = "cpu",
+    device="cpu",
+    recorder=None,
+) -> dict:
     """Run ``episodes`` episodes in parallel, one per environment, with argmax actions.
 
     Each agent's action depends only on its own observation and the messages of the
@@ -42,8 +51,15 @@ def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, dev
         new = tally.add(done, info["episode"])
         if recorder is not None and new.any():
             recorder.log_episode_ends(step, new, info["episode"])
-    return {"task": task, "agents": agents, "comm": comm, "comm_radius": comm_radius, "episodes": episodes,
-            "seed": seed, **tally.summary(task)}
+    return {
+        "task": task,
+        "agents": agents,
+        "comm": comm,
+        "comm_radius": comm_radius,
+        "episodes": episodes,
+        "seed": seed,
+        **tally.summary(task),
+    }
 
 
 def format_table(rows: list[dict]) -> str:

@@ -29,8 +29,9 @@ def plot_run(run_dir: str, out: str | None = None) -> str:
     ev = [r for r in rows if r.get("eval_success_rate") is not None]
     axes[1].plot([r["env_steps"] / 1e6 for r in ev], [100 * r["eval_success_rate"] for r in ev], "o-", label="eval")
     tr = [r for r in rows if r.get("train_success") is not None]
-    axes[1].plot([r["env_steps"] / 1e6 for r in tr], [100 * r["train_success"] for r in tr], alpha=0.5,
-                 label="train (sampling)")
+    axes[1].plot(
+        [r["env_steps"] / 1e6 for r in tr], [100 * r["train_success"] for r in tr], alpha=0.5, label="train (sampling)"
+    )
     axes[1].set(title="success S%", xlabel="env steps (M)", ylim=(-2, 102))
     axes[1].legend()
     axes[2].plot([r["env_steps"] / 1e6 for r in ev], [r["eval_mean_length"] for r in ev], "o-")

@@ -129,8 +129,18 @@ class LossInfo:
     clipfrac: torch.Tensor
 
 
-def ppo_loss(logits, values, actions, old_logprobs, old_values, advantages, returns,
-             clip: float, value_coef: float, entropy_coef: float):
+def ppo_loss(
+    logits,
+    values,
+    actions,
+    old_logprobs,
+    old_values,
+    advantages,
+    returns,
+    clip: float,
+    value_coef: float,
+    entropy_coef: float,
+):
     """The clipped PPO objective (to minimise) and its parts; every tensor [..., M]
     except logits [..., M, 5]. Value loss: 0.5 * max((v - R)^2, (v_clip - R)^2)."""
     dist = torch.distributions.Categorical(logits=logits)

@@ -77,8 +77,9 @@ def model_config_for(cfg: TrainConfig) -> ModelConfig:
     return m
 
 
-def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=None,
-          updates: int | None = None) -> dict:
+def train(
+    cfg: TrainConfig | None = None, resume: str | None = None, on_update=None, updates: int | None = None
+) -> dict:
     """Train from ``cfg``, or continue the run in directory ``resume`` (``updates``
     then raises its total update budget).
 
@@ -165,8 +166,13 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
     if cfg.progress:
         from tqdm import tqdm
 
-        progress = tqdm(total=cfg.updates, initial=counters["update"], desc=f"{cfg.task} M={M} {cfg.comm}",
-                        unit="upd", dynamic_ncols=True)
+        progress = tqdm(
+            total=cfg.updates,
+            initial=counters["update"],
+            desc=f"{cfg.task} M={M} {cfg.comm}",
+            unit="upd",
+            dynamic_ncols=True,
+        )
     last_eval = evals[-1] if evals else None
     start_wall = time.perf_counter() - counters["wall_time"]
     try:
@@ -204,11 +210,12 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
                         ep_success.append(ep["success"][done].cpu())
                         ep_length.append(ep["length"][done].cpu())
                         if p.bootstrap_time_limit:
-                            cut = (done & ep["truncated"].to(device))
+                            cut = done & ep["truncated"].to(device)
                             if bool(cut.any()):
                                 term = info["terminal_obs"]
-                                _, v_term = policy(term["self"].to(device), term["entities"].to(device),
-                                                   term["adj"].to(device))
+                                _, v_term = policy(
+                                    term["self"].to(device), term["entities"].to(device), term["adj"].to(device)
+                                )
                                 scaled = scaled + p.gamma * v_term.mean(-1) * cut.float()
                     buf.rewards[t] = scaled
                     buf.dones[t] = done
@@ -228,33 +235,69 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
                 perm = torch.randperm(n, device=device)
                 for idx in perm.chunk(p.minibatches):
                     logits, values = policy(b_self[idx], b_ent[idx], b_adj[idx])
-                    loss, info_loss = ppo_loss(logits, values, b_act[idx], b_logp[idx], b_val[idx], b_adv[idx],
-                                               b_ret[idx], p.clip, p.value_coef, p.entropy_coef)
+                    loss, info_loss = ppo_loss(
+                        logits,
+                        values,
+                        b_act[idx],
+                        b_logp[idx],
+                        b_val[idx],
+                        b_adv[idx],
+                        b_ret[idx],
+                        p.clip,
+                        p.value_coef,
+                        p.entropy_coef,
+                    )
                     optimizer.zero_grad(set_to_none=True)
                     loss.backward()
                     torch.nn.utils.clip_grad_norm_(policy.parameters(), p.max_grad_norm)
                     optimizer.step()
-                    stats.append(torch.stack([info_loss.policy, info_loss.value, info_loss.entropy,
-                                              info_loss.approx_kl, info_loss.clipfrac]))
+                    stats.append(
+                        torch.stack(
+                            [
+                                info_loss.policy,
+                                info_loss.value,
+                                info_loss.entropy,
+                                info_loss.approx_kl,
+                                info_loss.clipfrac,
+                            ]
+                        )
+                    )
             t_update = time.perf_counter() - tc
             counters["update"] += 1
             counters["env_steps"] += n
             dt = time.perf_counter() - t0
             s = torch.stack(stats).mean(0).tolist()
             record = {
-                "update": counters["update"], "env_steps": counters["env_steps"],
-                "sps": n / dt, "reward": raw_reward / T,
+                "update": counters["update"],
+                "env_steps": counters["env_steps"],
+                "sps": n / dt,
+                "reward": raw_reward / T,
                 "train_success": float(torch.cat(ep_success).float().mean()) if ep_success else None,
                 "train_length": float(torch.cat(ep_length).float().mean()) if ep_length else None,
-                "loss_policy": s[0], "loss_value": s[1], "entropy": s[2], "approx_kl": s[3], "clipfrac": s[4],
-                "time_sim": t_sim, "time_policy": t_policy, "time_update": t_update,
+                "loss_policy": s[0],
+                "loss_value": s[1],
+                "entropy": s[2],
+                "approx_kl": s[3],
+                "clipfrac": s[4],
+                "time_sim": t_sim,
+                "time_policy": t_policy,
+                "time_update": t_update,
                 "lr": optimizer.param_groups[0]["lr"],
             }
             done_training = counters["update"] >= cfg.updates
             if counters["update"] % cfg.eval_every == 0 or done_training:
                 policy.eval()
-                result = evaluate(policy, cfg.task, M, cfg.comm, cfg.comm_radius, cfg.eval_episodes,
-                                  seed=10_000_019 + counters["update"], arch=cfg.arch, device=device)
+                result = evaluate(
+                    policy,
+                    cfg.task,
+                    M,
+                    cfg.comm,
+                    cfg.comm_radius,
+                    cfg.eval_episodes,
+                    seed=10_000_019 + counters["update"],
+                    arch=cfg.arch,
+                    device=device,
+                )
                 last_eval = {k: result[k] for k in ("success_rate", "mean_length", "dist")}
                 last_eval["update"] = counters["update"]
                 evals.append(last_eval)
@@ -282,8 +325,10 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
         save_checkpoint()
         if progress is not None:
             progress.close()
-        print(f"\ninterrupted: checkpoint saved at update {counters['update']}; "
-              f"continue with: swarm train --resume {run.path}")
+        print(
+            f"\ninterrupted: checkpoint saved at update {counters['update']}; "
+            f"continue with: swarm train --resume {run.path}"
+        )
         raise
     if progress is not None:
         progress.close()
@@ -294,9 +339,15 @@ def train(cfg: TrainConfig | None = None, resume: str | None = None, on_update=N
         plot_run(run.path)
     except Exception as exc:  # noqa: BLE001 - a missing plot never loses a run
         print(f"(could not draw curves: {exc})")
-    summary = {"run_dir": run.path, **counters, "last_eval": last_eval, "evals": evals,
-               "reached_target": bool(cfg.target_success > 0 and last_eval
-                                      and last_eval["success_rate"] >= cfg.target_success)}
+    summary = {
+        "run_dir": run.path,
+        **counters,
+        "last_eval": last_eval,
+        "evals": evals,
+        "reached_target": bool(
+            cfg.target_success > 0 and last_eval and last_eval["success_rate"] >= cfg.target_success
+        ),
+    }
     checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)
     return summary
 
