@@ -30,6 +30,7 @@ import warnings
 import torch
 from torch import nn
 
+from taichi_swarm.physics import ACTION_MEANINGS
 from trainer.checkpoint import CheckpointError, atomic_write_bytes, atomic_write_json, load_policy
 from trainer.model import NUM_ACTIONS, PADDED_SLOTS, SELF_DIM, SwarmPolicy
 
@@ -37,7 +38,6 @@ MANIFEST = "manifest.json"
 FORMAT = "taichi-swarm-onnx"
 VERSION = 1
 OPSET = 18
-ACTION_MEANINGS = ("noop", "-x", "+x", "-y", "+y")
 
 
 class EncodePiece(nn.Module):
