@@ -21,15 +21,6 @@ INF = 1e30
 
 
 @ti.func
-def agent_target_cost(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, j: ti.i32) -> ti.f32:
-    """Distance from agent i to target j of environment b (both 0-based)."""
-    M = ib[H_M]
-    p = ti.math.vec2(f[ib[O_POS] + (b * M + i) * 2], f[ib[O_POS] + (b * M + i) * 2 + 1])
-    t = ti.math.vec2(f[ib[O_TGT] + (b * M + j) * 2], f[ib[O_TGT] + (b * M + j) * 2 + 1])
-    return (p - t).norm()
-
-
-@ti.func
 def solve(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32):
     """Writes ib[assignment][b, i] = target of agent i, minimising total distance.
 

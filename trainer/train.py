@@ -48,7 +48,6 @@ class Run:
         self.metrics = os.path.join(path, "metrics.jsonl")
         self.checkpoint = os.path.join(path, "checkpoint.pt")
         self.policy = os.path.join(path, "policy.pt")
-        self.curves = os.path.join(path, "curves.png")
 
     def log(self, record: dict) -> None:
         with open(self.metrics, "a") as f:
