@@ -131,7 +131,7 @@ class Agent:
         final = "round_heads" if self.rounds >= 1 else "heads"
         self._final = ort.InferenceSession(model.models[final], opts, providers=providers)
         self._encode_out = ["h", "message"]
-        self._round_out = ["h_out", "message", "weights"]
+        self._round_out = ["h_out", "message"]  # fetch only what is used: each output costs a copy
         self.h: np.ndarray | None = None  # [H]
         self.message: np.ndarray | None = None  # [2, H]: key, value
 
@@ -142,7 +142,7 @@ class Agent:
 
     def round(self, heard: np.ndarray) -> np.ndarray:
         """A round that is not the last: heard [n, 2, H] (from others) -> the next message [2, H]."""
-        self.h, self.message, _ = self._round.run(self._round_out, {"h": self.h, "heard": heard})
+        self.h, self.message = self._round.run(self._round_out, {"h": self.h, "heard": heard})
         return self.message
 
     def decide(self, heard: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -150,7 +150,7 @@ class Agent:
         if self.rounds == 0:
             logits, _ = self._final.run(None, {"h": self.h})
             return logits, np.ones(1, np.float32)
-        logits, _, weights, self.h = self._final.run(None, {"h": self.h, "heard": heard})
+        logits, weights = self._final.run(["logits", "weights"], {"h": self.h, "heard": heard})
         return logits, weights
 
 
