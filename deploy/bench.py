@@ -25,15 +25,20 @@ TARGET_MS = 0.3
 TARGET_SPEEDUP = 3.0
 
 
-def _median_ms(fn, repeats: int, warmup: int) -> float:
-    for _ in range(warmup):
-        fn()
-    times = np.empty(repeats)
-    for k in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times[k] = time.perf_counter() - t0
-    return float(np.median(times) * 1e3)
+def _interleaved_median_ms(fns, repeats: int, warmup: int, block: int = 100) -> list[float]:
+    """Median ms per call of each function, timed in alternating blocks of ``block``
+    calls, so that a slow spell of a shared machine hits every backend alike."""
+    for fn in fns:
+        for _ in range(warmup):
+            fn()
+    times = [[] for _ in fns]
+    for _ in range(max(1, repeats // block)):
+        for fn, out in zip(fns, times, strict=True):
+            for _ in range(block):
+                t0 = time.perf_counter()
+                fn()
+                out.append(time.perf_counter() - t0)
+    return [float(np.median(t) * 1e3) for t in times]
 
 
 def run(
@@ -109,8 +114,7 @@ def run(
         return policy.heads(h)[0]
 
     np.testing.assert_allclose(onnx_step(), torch_step().numpy(), atol=1e-4)  # same computation
-    onnx_ms = _median_ms(onnx_step, repeats, warmup)
-    torch_ms = _median_ms(torch_step, repeats, warmup)
+    onnx_ms, torch_ms = _interleaved_median_ms([onnx_step, torch_step], repeats, warmup)
     speedup = torch_ms / onnx_ms
     return {
         "source": source,
