@@ -7,21 +7,16 @@ from ``trainer.bench`` and ``deploy.bench`` and get the remaining arguments.
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 
-SUBCOMMANDS = {
-    "sim": "simulator throughput: taichi_swarm vs VMAS vs NumPy (agent-steps/s)",
-    "train": "training throughput (trainer.bench)",
-    "deploy": "decentralised ONNX execution latency (deploy.bench)",
+# name -> (module:function, one-line help); train and deploy import torch, so lazily
+BENCHMARKS = {
+    "sim": ("taichi_swarm.bench_cli:sim_main", "simulator throughput: taichi_swarm vs VMAS vs NumPy (agent-steps/s)"),
+    "train": ("trainer.bench:main", "training throughput (trainer.bench)"),
+    "deploy": ("deploy.bench:main", "decentralised ONNX execution latency (deploy.bench)"),
 }
 QUICK_SECONDS = 0.25
-
-
-def _usage() -> str:
-    lines = ["usage: swarm bench <sim|train|deploy> [options]   (swarm bench <name> --help)", "", "benchmarks:"]
-    return "\n".join(lines + [f"  {name:<7} {help_}" for name, help_ in SUBCOMMANDS.items()])
 
 
 def _positive_int(text: str) -> int:
@@ -118,33 +113,11 @@ def sim_main(argv: list[str]) -> int:
     return 0
 
 
-def _delegate(name: str, module_name: str, argv: list[str]) -> int:
-    """Run ``module_name.main(argv)``, or explain why it cannot be imported."""
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as exc:
-        print(f"swarm bench {name}: cannot import {module_name} ({exc})", file=sys.stderr)
-        return 2
-    func = getattr(module, "main", None)
-    if func is None:
-        print(f"swarm bench {name}: {module_name} has no main(argv)", file=sys.stderr)
-        return 2
-    return int(func(argv) or 0)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``swarm bench``; returns the exit code."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help", "help"):
-        print(_usage())
-        return 0
-    name, rest = argv[0], argv[1:]
-    if name == "sim":
-        return sim_main(rest)
-    if name in ("train", "deploy"):
-        return _delegate(name, "trainer.bench" if name == "train" else "deploy.bench", rest)
-    print(f"swarm bench: unknown benchmark {name!r}\n\n{_usage()}", file=sys.stderr)
-    return 2
+    from .cli import dispatch
+
+    return dispatch("swarm bench", BENCHMARKS, list(sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

@@ -22,28 +22,30 @@ COMMANDS = {
 }
 
 
-def _usage() -> str:
-    lines = ["usage: swarm <command> [options]   (swarm <command> --help for its options)", "", "commands:"]
-    lines += [f"  {name:<11} {help_}" for name, (_, help_) in COMMANDS.items()]
-    return "\n".join(lines)
+def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
+    """Run ``commands[argv[0]]`` ("module:function", imported only then) on the rest of argv."""
+    usage = [f"usage: {prog} <command> [options]   ({prog} <command> --help for its options)", "", "commands:"]
+    usage += [f"  {name:<11} {help_}" for name, (_, help_) in commands.items()]
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print("\n".join(usage))
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in commands:
+        print(f"{prog}: unknown command {name!r}\n\n" + "\n".join(usage), file=sys.stderr)
+        return 2
+    module_name, func_name = commands[name][0].split(":")
+    import importlib
+
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        print(f"{prog} {name}: cannot import {module_name} ({exc})", file=sys.stderr)
+        return 2
+    return int(getattr(module, func_name)(rest) or 0)
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv or argv[0] in ("-h", "--help", "help"):
-        print(_usage())
-        return 0
-    name, rest = argv[0], argv[1:]
-    if name not in COMMANDS:
-        print(f"swarm: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
-        return 2
-    target, _ = COMMANDS[name]
-    module_name, func_name = target.split(":")
-    import importlib
-
-    func = getattr(importlib.import_module(module_name), func_name)
-    result = func(rest)
-    return int(result or 0)
+    return dispatch("swarm", COMMANDS, list(sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

@@ -59,7 +59,9 @@ def test_cli_runs_and_rejects_bad_arguments(capsys):
             bench_cli.main(bad)
         assert exc.value.code == 2
     assert bench_cli.main(["nope"]) == 2
-    assert bench_cli._delegate("train", "trainer.no_such_bench_module", []) == 2
+    from taichi_swarm.cli import dispatch  # the lazy import shared by `swarm` and `swarm bench`
+
+    assert dispatch("swarm bench", {"train": ("trainer.no_such_bench_module:main", "")}, ["train"]) == 2
     assert "cannot import trainer.no_such_bench_module" in capsys.readouterr().err
 
 

@@ -181,7 +181,8 @@ def train(
                 frac = counters["update"] / max(cfg.updates - 1, 1)
                 optimizer.param_groups[0]["lr"] = p.lr + (p.lr_end - p.lr) * min(frac, 1.0)
             # ---------------------------------------------------------------- rollout
-            ep_success, ep_length, raw_reward = [], [], 0.0
+            ep_success, ep_length = [], []
+            raw_reward = torch.zeros((), device=device)  # summed on device: no host sync per step
             t_sim = t_policy = 0.0
             policy.eval()
             torch.set_num_threads(1)
@@ -202,7 +203,7 @@ def train(
                     t_sim += time.perf_counter() - tb
                     t_policy += tb - ta
                     reward, done = reward.to(device), done.to(device)
-                    raw_reward += float(reward.mean())
+                    raw_reward += reward.mean()
                     scaled = scaler(reward, done)
                     if bool(done.any()):
                         ep = info["episode"]
@@ -270,7 +271,7 @@ def train(
                 "update": counters["update"],
                 "env_steps": counters["env_steps"],
                 "sps": n / dt,
-                "reward": raw_reward / T,
+                "reward": float(raw_reward) / T,
                 "train_success": float(torch.cat(ep_success).float().mean()) if ep_success else None,
                 "train_length": float(torch.cat(ep_length).float().mean()) if ep_length else None,
                 "loss_policy": s[0],
