@@ -8,10 +8,12 @@ Implementations (coverage / simple_spread, random discrete actions pre-generated
   numpy       numpy_step.NumpyCoverage, the full step including the exact assignment
               (scipy, a Python loop over the B environments)
   numpy-phys  the same without the assignment (physics, graph, observations, resets)
-Each cell: warm-up steps (Taichi compiles its kernels on the first call), then REPEATS
-chunks of ~``seconds / REPEATS``, each timed with ``time.perf_counter``; the median chunk
-is reported (the machine may be shared). agent-steps/s = B * M * steps / seconds of that
-chunk; ms/step is one step of the whole batch.
+Each cell: every implementation is built and warmed up (Taichi compiles its kernels on
+the first call), then REPEATS rounds in which each implementation in turn runs one chunk
+of ~``seconds / REPEATS``, timed with ``time.perf_counter``. Taking turns means a slow
+spell of a shared machine hits every implementation alike. The median chunk is reported;
+the taichi / vmas ratio is the median of the per-round ratios. agent-steps/s =
+B * M * steps / seconds of that chunk; ms/step is one step of the whole batch.
 """
 
 from __future__ import annotations
@@ -98,11 +100,8 @@ def _make(impl: str, B: int, M: int, comm: str) -> Step:
     return _numpy(B, M, comm, assign=impl == "numpy")
 
 
-def measure(step: Step, agents: int, seconds: float, steps: int | None = None) -> dict:
-    """Warm up, then time REPEATS chunks of ``seconds / REPEATS`` each (or ``steps // REPEATS`` steps).
-
-    Reports the median chunk (robust to a busy machine) and the best and worst chunk.
-    """
+def warm_up(step: Step) -> None:
+    """The first step (Taichi compiles its kernels there), then WARMUP_STEPS - 1 more."""
     t0 = time.perf_counter()
     step(0)
     first = time.perf_counter() - t0
@@ -110,26 +109,69 @@ def measure(step: Step, agents: int, seconds: float, steps: int | None = None) -
         raise Skip(f"first step took {first:.1f} s > {MAX_FIRST_STEP_S:.0f} s cap")
     for k in range(1, WARMUP_STEPS):
         step(k)
-    per_step, k, total = [], 0, 0.0  # seconds per step of each chunk
-    for _ in range(REPEATS):
-        n, start = 0, time.perf_counter()
-        while True:  # at least one step per chunk
-            step(k)
-            k, n = k + 1, n + 1
-            elapsed = time.perf_counter() - start
-            if (n >= max(1, steps // REPEATS)) if steps else elapsed >= seconds / REPEATS:
-                break
-        per_step.append(elapsed / n)
-        total += elapsed
+
+
+def time_chunk(step: Step, k: int, seconds: float, steps: int | None) -> tuple[int, float]:
+    """Run ``step`` for ~``seconds`` (or exactly ``steps`` steps, at least one) from action set
+    ``k``; returns (steps run, elapsed seconds)."""
+    n, start = 0, time.perf_counter()
+    while True:
+        step(k + n)
+        n += 1
+        elapsed = time.perf_counter() - start
+        if (n >= max(1, steps)) if steps else elapsed >= seconds:
+            return n, elapsed
+
+
+def summarise(chunks: list[tuple[int, float]], agents: int) -> dict:
+    """The median chunk (robust to a busy machine), the best and the worst."""
+    per_step = [elapsed / n for n, elapsed in chunks]
     median = statistics.median(per_step)
     return {
-        "steps": k,
-        "seconds": total,
+        "steps": sum(n for n, _ in chunks),  # timed steps (warm-up not counted)
+        "seconds": sum(elapsed for _, elapsed in chunks),
         "ms_per_step": 1e3 * median,
         "agent_steps_per_s": agents / median,
         "ms_per_step_best": 1e3 * min(per_step),
         "ms_per_step_worst": 1e3 * max(per_step),
     }
+
+
+def measure(step: Step, agents: int, seconds: float, steps: int | None = None) -> dict:
+    """One implementation alone: warm up, then REPEATS chunks of ``seconds / REPEATS``
+    (or ``steps // REPEATS`` steps) each; see ``summarise``."""
+    warm_up(step)
+    chunk_steps = max(1, steps // REPEATS) if steps else None
+    chunks = [time_chunk(step, WARMUP_STEPS + r, seconds / REPEATS, chunk_steps) for r in range(REPEATS)]
+    return summarise(chunks, agents)
+
+
+def measure_interleaved(
+    steps_by_impl: dict[str, Step], agents: int, seconds: float, steps: int | None = None
+) -> dict[str, dict]:
+    """Every implementation of one cell, timed in alternation.
+
+    REPEATS rounds; in each, every implementation runs one chunk (the order reversed
+    every other round), so a slow spell of a shared machine hits all of them alike.
+    Each result is ``summarise``d, plus ``chunk_ms``: its per-step time in every round,
+    so that ratios can be taken round by round (``paired_ratio``). Call ``warm_up`` first.
+    """
+    chunk_steps = max(1, steps // REPEATS) if steps else None
+    chunks: dict[str, list[tuple[int, float]]] = {impl: [] for impl in steps_by_impl}
+    order = list(steps_by_impl)
+    for r in range(REPEATS):
+        for impl in order if r % 2 == 0 else order[::-1]:
+            chunks[impl].append(time_chunk(steps_by_impl[impl], WARMUP_STEPS + r, seconds / REPEATS, chunk_steps))
+    out = {}
+    for impl, cs in chunks.items():
+        out[impl] = summarise(cs, agents)
+        out[impl]["chunk_ms"] = [1e3 * elapsed / n for n, elapsed in cs]
+    return out
+
+
+def paired_ratio(fast: dict, slow: dict) -> float:
+    """Median over rounds of (slow's ms/step / fast's ms/step) in the same round."""
+    return statistics.median(s / f for f, s in zip(fast["chunk_ms"], slow["chunk_ms"], strict=True))
 
 
 def _set_torch_threads(n: int) -> int | None:
@@ -171,27 +213,7 @@ def run(
     try:
         for B in batch_sizes:
             for M in team_sizes:
-                for impl in IMPLS:
-                    row = {
-                        "impl": impl,
-                        "B": B,
-                        "M": M,
-                        "steps": None,
-                        "seconds": None,
-                        "ms_per_step": None,
-                        "agent_steps_per_s": None,
-                        "ms_per_step_best": None,
-                        "ms_per_step_worst": None,
-                        "skipped": disabled.get(impl),
-                    }
-                    if row["skipped"] is None:
-                        try:
-                            row.update(measure(_make(impl, B, M, comm), B * M, seconds, steps))
-                        except Skip as exc:
-                            row["skipped"] = str(exc)
-                    rows.append(row)
-                    if verbose:
-                        print(_progress(row), file=sys.stderr, flush=True)
+                rows += _measure_cell(B, M, comm, seconds, steps, disabled, verbose)
     finally:
         if previous is not None:
             _set_torch_threads(previous)
@@ -202,6 +224,43 @@ def run(
     if out_json:
         write_json(out_json, {"meta": meta, "rows": rows, "checks": checks})
     return rows
+
+
+def _measure_cell(B, M, comm, seconds, steps, disabled, verbose) -> list[dict]:
+    """One (B, M): build every implementation, time them interleaved, one row each."""
+    rows, live = {}, {}
+    for impl in IMPLS:
+        rows[impl] = {
+            "impl": impl,
+            "B": B,
+            "M": M,
+            "steps": None,
+            "seconds": None,
+            "ms_per_step": None,
+            "agent_steps_per_s": None,
+            "ms_per_step_best": None,
+            "ms_per_step_worst": None,
+            "chunk_ms": None,
+            "vs_vmas": None,
+            "skipped": disabled.get(impl),
+        }
+        if rows[impl]["skipped"] is None:
+            try:
+                live[impl] = _make(impl, B, M, comm)
+                warm_up(live[impl])  # a too-slow first step skips this impl only
+            except Skip as exc:
+                rows[impl]["skipped"] = str(exc)
+                live.pop(impl, None)
+    for impl, result in measure_interleaved(live, B * M, seconds, steps).items():
+        rows[impl].update(result)
+    if "vmas" in live:
+        for impl in ("taichi", "taichi-np"):
+            if impl in live:
+                rows[impl]["vs_vmas"] = paired_ratio(rows[impl], rows["vmas"])
+    if verbose:
+        for row in rows.values():
+            print(_progress(row), file=sys.stderr, flush=True)
+    return list(rows.values())
 
 
 def _progress(row: dict) -> str:
@@ -244,13 +303,15 @@ def target_checks(rows: list[dict]) -> list[dict]:
                 why = c["taichi"]["skipped"] if t is None else c.get("vmas", {}).get("skipped", "not run")
                 out.append(_check(f"taichi >= {TARGET_VS_VMAS:.0f}x vmas", B, M, None, f"not measured: {why}"))
             else:
+                ratio = _vs_vmas(c)
                 out.append(
                     _check(
                         f"taichi >= {TARGET_VS_VMAS:.0f}x vmas",
                         B,
                         M,
-                        t >= TARGET_VS_VMAS * v,
-                        f"taichi {_rate(t)} / vmas {_rate(v)} = {t / v:.2f}x",
+                        ratio >= TARGET_VS_VMAS,
+                        f"{ratio:.2f}x (median of per-round ratios; medians: taichi {_rate(t)} / vmas {_rate(v)} "
+                        f"= {t / v:.2f}x)",
                     )
                 )
             out.append(
@@ -276,6 +337,14 @@ def target_checks(rows: list[dict]) -> list[dict]:
     return out
 
 
+def _vs_vmas(cell: dict[str, dict]) -> float | None:
+    """taichi / vmas: paired round by round when measured interleaved, else of the medians."""
+    t, v = cell["taichi"]["agent_steps_per_s"], cell.get("vmas", {}).get("agent_steps_per_s")
+    if t is None or v is None:
+        return None
+    return cell["taichi"].get("vs_vmas") or t / v
+
+
 def _check(name: str, B: int, M: int, ok: bool | None, detail: str) -> dict:
     status = "N/A" if ok is None else "PASS" if ok else "FAIL"
     return {"check": name, "B": B, "M": M, "status": status, "detail": detail}
@@ -291,7 +360,8 @@ def format_report(rows: list[dict], checks: list[dict], meta: dict) -> str:
         f"Simulator benchmark: coverage (VMAS: simple_spread), comm={meta['comm']}, {meta['cpu_count']} CPU cores, "
         f"torch threads={meta['torch_threads']}, taichi threads={meta['taichi_threads']}",
         f"agent-steps/s (M = million, k = thousand); ms/step = one step of the whole batch of B envs; "
-        f"median of {REPEATS} timed chunks per cell",
+        f"median of {REPEATS} timed chunks per cell, the implementations taking turns chunk by chunk; "
+        "t/vmas = median of the per-round ratios",
         head,
         "-" * len(head),
     ]
@@ -307,13 +377,17 @@ def format_report(rows: list[dict], checks: list[dict], meta: dict) -> str:
             f"{B:>6} {M:>3} | {_rate(t):>8} {_ms(ms['taichi']):>8} | {_rate(rate['taichi-np']):>9} | "
             f"{_rate(rate['vmas']):>8} {_ms(ms['vmas']):>8} | "
             f"{_rate(rate['numpy']):>8} {_rate(rate['numpy-phys']):>10} | "
-            f"{_ratio(t, rate['vmas']):>7} {_ratio(t, rate['numpy']):>7} {_ratio(t, rate['numpy-phys']):>9}"
+            f"{_x(_vs_vmas(c)):>7} {_ratio(t, rate['numpy']):>7} {_ratio(t, rate['numpy-phys']):>9}"
         )
     for reason, where in skipped.items():
         lines.append(f"skipped {reason} ({', '.join(where)})")
     lines += ["", "Target checks:"]
     lines += [f"  [{c['status']:>4}] B={c['B']:<5} M={c['M']:<3} {c['check']}: {c['detail']}" for c in checks]
     return "\n".join(lines)
+
+
+def _x(ratio: float | None) -> str:
+    return "-" if ratio is None else f"{ratio:.1f}x"
 
 
 def _ms(x: float | None) -> str:

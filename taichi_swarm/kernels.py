@@ -20,7 +20,6 @@ from .layout import (
     H_MAX_STEPS,
     O_ACTIONS,
     O_ADJ,
-    O_ASSIGN,
     O_DONE,
     O_EP_DIST,
     O_EP_LEN,
@@ -28,7 +27,6 @@ from .layout import (
     O_EP_RETURN,
     O_EP_SUCCESS,
     O_EP_TRUNC,
-    O_HU_COST,
     O_LMK,
     O_MATCHED,
     O_OBS_ENT,
@@ -61,49 +59,8 @@ def _pos(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32) -> ti.math.v
 @ti.func
 def match(task: ti.template(), cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Targets, optimal assignment and matched distances d*_i of env b."""
-    M = ib[H_M]
     tasks.place_targets(task, f, ib, b)
     assignment.solve(f, ib, cap, b)
-    for i in range(M):
-        j = ib[ib[O_ASSIGN] + b * M + i]
-        f[ib[O_MATCHED] + b * M + i] = f[ib[O_HU_COST] + (b * M + i) * M + j]
-
-
-@ti.func
-def write_obs(
-    f: ti.template(),
-    ib: ti.template(),
-    u8: ti.template(),
-    b: ti.i32,
-    i: ti.i32,
-    self_off: ti.i32,
-    ent_off: ti.i32,
-    adj_off: ti.i32,
-):
-    """Agent i's observation: self [4] = (vel, pos), entities [L, 2] = landmark - pos,
-    adjacency row [M] = who i hears (itself always; "rc": within comm radius)."""
-    M, L = ib[H_M], ib[H_L]
-    k = b * M + i
-    p = _pos(f, ib, b, i)
-    vb = ib[O_VEL] + k * 2
-    f[self_off + k * 4 + 0] = f[vb]
-    f[self_off + k * 4 + 1] = f[vb + 1]
-    f[self_off + k * 4 + 2] = p[0]
-    f[self_off + k * 4 + 3] = p[1]
-    lmk = ib[O_LMK] + b * L * 2
-    for l in range(L):
-        f[ent_off + (k * L + l) * 2] = f[lmk + 2 * l] - p[0]
-        f[ent_off + (k * L + l) * 2 + 1] = f[lmk + 2 * l + 1] - p[1]
-    restricted = ib[H_COMM_RC] != 0
-    radius = f[P_COMM_RADIUS]
-    r2 = radius * radius
-    P0 = ib[O_POS] + b * M * 2
-    for j in range(M):
-        hears = True
-        if restricted and j != i:
-            d = ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]) - p
-            hears = d.dot(d) <= r2
-        u8[adj_off + k * M + j] = ti.cast(hears, ti.u8)
 
 
 @ti.func
@@ -116,8 +73,28 @@ def write_team_obs(
     ent_off: ti.i32,
     adj_off: ti.i32,
 ):
-    for i in range(ib[H_M]):
-        write_obs(f, ib, u8, b, i, self_off, ent_off, adj_off)
+    """Every agent's observation, into the blocks starting at the given offsets:
+    self [M, 4] = (vel, pos), entities [M, L, 2] = landmark - pos, adjacency
+    [M, M] = who agent i hears (itself always; "rc": those within comm radius)."""
+    M, L = ib[H_M], ib[H_L]
+    P0, V0, LM = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_LMK] + b * L * 2
+    S, E, A = self_off + b * M * 4, ent_off + b * M * L * 2, adj_off + b * M * M
+    restricted = ib[H_COMM_RC] != 0
+    radius = f[P_COMM_RADIUS]
+    r2 = radius * radius
+    for i in range(M):
+        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+        f[S + 4 * i + 0] = f[V0 + 2 * i]
+        f[S + 4 * i + 1] = f[V0 + 2 * i + 1]
+        f[S + 4 * i + 2] = px
+        f[S + 4 * i + 3] = py
+        for l in range(L):
+            f[E + (i * L + l) * 2] = f[LM + 2 * l] - px
+            f[E + (i * L + l) * 2 + 1] = f[LM + 2 * l + 1] - py
+        for j in range(M):
+            dx, dy = f[P0 + 2 * j] - px, f[P0 + 2 * j + 1] - py
+            hears = (not restricted) or j == i or dx * dx + dy * dy <= r2
+            u8[A + i * M + j] = ti.cast(hears, ti.u8)
 
 
 @ti.func

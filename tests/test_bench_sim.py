@@ -26,6 +26,8 @@ def test_tiny_run_gives_sane_rows_and_json(tmp_path, capsys):
             "agent_steps_per_s",
             "ms_per_step_best",
             "ms_per_step_worst",
+            "chunk_ms",
+            "vs_vmas",
             "skipped",
         }
         assert (r["B"], r["M"]) == (4, 3)
@@ -33,6 +35,7 @@ def test_tiny_run_gives_sane_rows_and_json(tmp_path, capsys):
         assert r["skipped"] is None and r["steps"] == 5 and r["seconds"] > 0
         assert 0 < r["ms_per_step_best"] <= r["ms_per_step"] <= r["ms_per_step_worst"]
         assert r["agent_steps_per_s"] == pytest.approx(4 * 3 * 1e3 / r["ms_per_step"])
+        assert len(r["chunk_ms"]) == bench_sim.REPEATS and r["vs_vmas"] is None
     vmas = next(r for r in rows if r["impl"] == "vmas")
     assert "--no-vmas" in vmas["skipped"] and vmas["agent_steps_per_s"] is None
     printed = capsys.readouterr().out
@@ -49,6 +52,29 @@ def test_target_checks_say_na_when_vmas_is_skipped():
     ]
     status = {c["check"]: c["status"] for c in bench_sim.target_checks(rows)}
     assert status == {"taichi >= 10x vmas": "N/A", "taichi >= 5M agent-steps/s": "PASS"}
+
+
+def test_ratio_to_vmas_is_paired_round_by_round():
+    # taichi's slow round coincides with vmas's slow round: the paired ratio stays 10x,
+    # while the ratio of the two medians would say 5x
+    taichi = {"chunk_ms": [1.0, 1.0, 2.0, 1.0, 2.0]}
+    vmas = {"chunk_ms": [10.0, 10.0, 20.0, 5.0, 20.0]}
+    assert bench_sim.paired_ratio(taichi, vmas) == pytest.approx(10.0)
+    rows = [
+        {
+            "impl": "taichi",
+            "B": 8192,
+            "M": 3,
+            "agent_steps_per_s": 9e6,
+            "ms_per_step": 2.7,
+            "vs_vmas": 10.0,
+            "skipped": None,
+        },
+        {"impl": "vmas", "B": 8192, "M": 3, "agent_steps_per_s": 1e6, "ms_per_step": 24.6, "skipped": None},
+    ]
+    checks = {c["check"]: c for c in bench_sim.target_checks(rows)}
+    assert checks["taichi >= 10x vmas"]["status"] == "PASS"
+    assert checks["taichi >= 10x vmas"]["detail"].startswith("10.00x")
 
 
 def test_cli_runs_and_rejects_bad_arguments(capsys):
