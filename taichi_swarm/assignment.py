@@ -4,14 +4,15 @@ cost[i, j] = |p_i - t_j| (agent i, target j). Two exact methods:
   - M <= SMALL_M: every one of the M! permutations is scored with the costs
     held in registers (unrolled at compile time); at M = 3 that is 6 sums of
     3, far cheaper than any augmenting-path bookkeeping.
-  - larger M: the O(n^3) Hungarian method with potentials (Kuhn 1955;
-    Jonker-Volgenant shortest augmenting paths, in the compact form of e-maxx
-    "Hungarian algorithm"), after an exact shortcut (every agent's nearest
-    target distinct -> that is the optimum) and a column-reduction start.
+  - larger M: shortest augmenting paths (Jonker & Volgenant 1987, "LAPJV", a
+    Dijkstra search per unassigned agent), O(n^3) worst case, warm-started from
+    the column prices of the environment's previous solve: agents move little
+    per step, so usually every agent's cheapest reduced-cost target is distinct
+    and that is already the optimum.
 
 Each environment solves its own M x M problem serially inside the parallel
-loop over environments: the Hungarian cost matrix is cached in the packed
-buffers, its work arrays live on the thread's stack. ``solve`` writes the
+loop over environments: the large-M cost matrix is cached in the packed
+buffers, the solver's work arrays live on the thread's stack. ``solve`` writes the
 assignment and the matched distances d*_i = cost[i, assignment[i]].
 """
 
@@ -25,6 +26,7 @@ from .layout import (
     O_HU_COST,
     O_MATCHED,
     O_POS,
+    O_PRICES,
     O_TGT,
 )
 
@@ -86,12 +88,31 @@ def _enumerate(n: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32)
 
 @ti.func
 def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32):
+    """Shortest augmenting paths (Jonker & Volgenant 1987, dense LAPJV), warm-started.
+
+    Column prices v, kept per environment between calls; a row's dual is implicit
+    (min_j cost[i, j] - v[j]). Start: every agent takes the column of its smallest
+    reduced cost if that column is still free, so each assigned row sits at a
+    minimum of its reduced costs (LAPJV's invariant, true for *any* prices). If all
+    rows got one, that is optimal (complementary slackness) and we are done; with
+    last step's prices this is the common case, as agents move little per step.
+    Otherwise each free row finds the shortest augmenting path by Dijkstra over
+    the columns, scanning whole levels of equal distance at once, and only the
+    settled columns' prices move. Exact for any starting prices.
+    """
     M = ib[H_M]
     C = ib[O_HU_COST] + b * M * M  # cost[i, j] = |p_i - t_j|, row-major, 0-based
-    P0, T0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2
-    distinct_row_minima = True  # then "each agent takes its closest target" is optimal
-    taken = ti.Vector.zero(ti.i32, cap)
-    best_col = ti.Vector.zero(ti.i32, cap)
+    P0, T0, V0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
+    v = ti.Vector.zero(ti.f32, cap)  # column prices
+    d = ti.Vector.zero(ti.f32, cap)  # path lengths to each column
+    x = ti.Vector.zero(ti.i32, cap)  # x[i]: column of row i (-1: free)
+    y = ti.Vector.zero(ti.i32, cap)  # y[j]: row of column j (-1: free)
+    cols = ti.Vector.zero(ti.i32, cap)  # [0, lo) settled, [lo, hi) to scan, [hi, M) to do
+    pred = ti.Vector.zero(ti.i32, cap)  # the row before column j on the path
+    for j in range(M):
+        v[j] = f[V0 + j]
+        y[j] = -1
+    num_free = 0
     for i in range(M):
         px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
         best, arg = INF, 0
@@ -99,92 +120,80 @@ def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
             dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
             c = ti.sqrt(dx * dx + dy * dy)
             f[C + i * M + j] = c
-            if c < best:
-                best, arg = c, j
-        best_col[i] = arg
-        if taken[arg] != 0:
-            distinct_row_minima = False
-        taken[arg] = 1
-    A = ib[O_ASSIGN] + b * M
-    if distinct_row_minima:
-        for i in range(M):
-            ib[A + i] = best_col[i]
-    else:
-        _hungarian(f, ib, cap, b, C)
-    D = ib[O_MATCHED] + b * M
+            if c - v[j] < best:
+                best, arg = c - v[j], j
+        x[i] = -1
+        if y[arg] < 0:
+            x[i] = arg
+            y[arg] = i
+        else:
+            num_free += 1
+    if num_free > 0:
+        for free_row in range(M):
+            if x[free_row] >= 0:
+                continue
+            row = C + free_row * M
+            for k in range(M):
+                cols[k] = k
+                pred[k] = free_row
+                d[k] = f[row + k] - v[k]
+            lo, hi, num_settled, final_j = 0, 0, 0, -1
+            mind = 0.0
+            while final_j < 0:
+                if lo == hi:  # next level: the to-do columns of smallest d move to [lo, hi)
+                    num_settled = lo
+                    hi = lo + 1
+                    mind = d[cols[lo]]
+                    for k in range(lo + 1, M):
+                        j = cols[k]
+                        if d[j] <= mind:
+                            if d[j] < mind:
+                                hi = lo
+                                mind = d[j]
+                            cols[k] = cols[hi]
+                            cols[hi] = j
+                            hi += 1
+                    for k in range(lo, hi):
+                        if y[cols[k]] < 0:
+                            final_j = cols[k]
+                while final_j < 0 and lo != hi:  # scan the level: relax through each column's row
+                    j = cols[lo]
+                    lo += 1
+                    i = y[j]
+                    row_i = C + i * M
+                    h = f[row_i + j] - v[j] - mind
+                    for k in range(hi, M):
+                        jj = cols[k]
+                        reduced = f[row_i + jj] - v[jj] - h
+                        if reduced < d[jj]:
+                            d[jj] = reduced
+                            pred[jj] = i
+                            if reduced == mind:
+                                if y[jj] < 0:
+                                    final_j = jj
+                                    break
+                                cols[k] = cols[hi]
+                                cols[hi] = jj
+                                hi += 1
+            for k in range(num_settled):  # prices of the columns settled before the last level
+                j = cols[k]
+                v[j] += d[j] - mind
+            i, j = -1, final_j
+            while i != free_row:  # flip the path
+                i = pred[j]
+                y[j] = i
+                x[i], j = j, x[i]
+        # Prices only ever fall: shift them so that the largest is 0 (a common shift
+        # changes no row's order of reduced costs) to keep float32 precision over time.
+        top = -INF
+        for j in range(M):
+            top = ti.max(top, v[j])
+        for j in range(M):
+            f[V0 + j] = v[j] - top
+    A, D = ib[O_ASSIGN] + b * M, ib[O_MATCHED] + b * M
     for i in range(M):
-        f[D + i] = f[C + i * M + ib[A + i]]
-
-
-@ti.func
-def _hungarian(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32, C: ti.i32):
-    M = ib[H_M]
-    # 1-based work arrays; index 0 is the algorithm's virtual row/column
-    u = ti.Vector.zero(ti.f32, cap)
-    v = ti.Vector.zero(ti.f32, cap)
-    minv = ti.Vector.zero(ti.f32, cap)
-    p = ti.Vector.zero(ti.i32, cap)
-    way = ti.Vector.zero(ti.i32, cap)
-    used = ti.Vector.zero(ti.i32, cap)
-    # Column reduction (Jonker & Volgenant 1987): v[j] = min_i cost[i, j] keeps the duals
-    # feasible (u = 0) and makes each column's cheapest edge tight, so every column can take
-    # its cheapest row if that row is still free; only the rows left over need augmenting.
-    row_taken = ti.Vector.zero(ti.i32, cap)
-    for j in range(1, M + 1):
-        best, arg = INF, 1
-        for i in range(1, M + 1):
-            c = f[C + (i - 1) * M + j - 1]
-            if c < best:
-                best, arg = c, i
-        v[j] = best
-        if row_taken[arg] == 0:
-            p[j] = arg
-            row_taken[arg] = 1
-    for i in range(1, M + 1):
-        if row_taken[i] != 0:
-            continue
-        p[0] = i
-        j0 = 0
-        for j in range(M + 1):
-            minv[j] = INF
-            used[j] = 0
-        while True:
-            used[j0] = 1
-            i0 = p[j0]
-            u_i0 = u[i0]
-            row = C + (i0 - 1) * M - 1  # f[row + j] = cost[i0 - 1, j - 1]
-            delta = INF
-            j1 = 0
-            first_unused = 0
-            for j in range(1, M + 1):
-                if used[j] == 0:
-                    if first_unused == 0:
-                        first_unused = j
-                    cur = f[row + j] - u_i0 - v[j]
-                    if cur < minv[j]:
-                        minv[j] = cur
-                        way[j] = j0
-                    if minv[j] < delta:
-                        delta = minv[j]
-                        j1 = j
-            if j1 == 0:  # only non-finite costs left (NaN positions): still terminate
-                j1 = first_unused
-                delta = 0.0
-            for j in range(M + 1):
-                if used[j] != 0:
-                    u[p[j]] += delta
-                    v[j] -= delta
-                else:
-                    minv[j] -= delta
-            j0 = j1
-            if p[j0] == 0:
-                break
-        while j0 != 0:  # unwind the augmenting path
-            j1 = way[j0]
-            p[j0] = p[j1]
-            j0 = j1
-    for j in range(1, M + 1):
-        ib[ib[O_ASSIGN] + b * M + p[j] - 1] = j - 1
+        ib[A + i] = x[i]
+        f[D + i] = f[C + i * M + x[i]]
 
 
 def capacity(num_agents: int) -> int:

@@ -37,6 +37,7 @@ H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
     O_TERM_SELF,
     O_TERM_ENT,
     O_HU_COST,
+    O_PRICES,
     # int32 blocks
     O_STEP,
     O_RNG,
@@ -49,8 +50,8 @@ H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
     O_EP_SUCCESS,
     O_EP_TRUNC,
     O_TERM_ADJ,
-) = range(5, 5 + 25)
-INT_HEADER = 5 + 25
+) = range(5, 5 + 26)
+INT_HEADER = 5 + 26
 # --- float32 header: physical and task parameters ------------------------------------
 P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM = range(4)
 FLOAT_HEADER = 4
@@ -73,7 +74,8 @@ def _blocks(M: int, L: int):
         (O_RET_ACC, "return_acc", ()),
         (O_TERM_SELF, "term_self", (M, 4)),
         (O_TERM_ENT, "term_entities", (M, L, 2)),
-        (O_HU_COST, "hu_cost", (M, M)),
+        (O_HU_COST, "hu_cost", (M, M)),  # assignment cost matrix (M > SMALL_M)
+        (O_PRICES, "prices", (M,)),  # assignment column prices, the next solve's warm start
     ]
     i32 = [
         (O_STEP, "step", ()),
