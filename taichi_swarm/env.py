@@ -220,23 +220,17 @@ class SwarmEnv:
         """
         if not self._seeded:
             raise RuntimeError("call reset() before step()")
-        self._check_actions(actions)
-        if isinstance(actions, np.ndarray):
-            np.copyto(self._actions_host, actions, casting="unsafe")  # int64 -> int32
+        host = self._check_actions(actions)
+        if host is not None:  # numpy, or a CPU tensor seen through numpy (no torch dispatch)
+            np.copyto(self._actions_host, host, casting="unsafe")  # int64 -> int32
         else:
-            self._actions_tensor().copy_(actions)
+            self._actions_in.copy_(actions)  # CUDA
         kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._parallel)
         return self.obs, self.reward, self.done, self.info
 
-    def _actions_tensor(self):
-        """The actions block as a torch tensor (made once, also for numpy envs)."""
-        if not hasattr(self, "_actions_t"):
-            import torch
-
-            self._actions_t = self._actions_in if self._host is None else torch.from_numpy(self._actions_host)
-        return self._actions_t
-
-    def _check_actions(self, actions) -> None:
+    def _check_actions(self, actions) -> np.ndarray | None:
+        """Raise ValueError unless ``actions`` fit this env; returns them as a numpy
+        array (a zero-copy view for a CPU tensor), or None for a CUDA tensor."""
         shape = (self.num_envs, self.num_agents)
         if isinstance(actions, np.ndarray):
             if self.arch == "cuda":
@@ -247,7 +241,7 @@ class SwarmEnv:
                 raise ValueError(f"actions must have shape {shape} (num_envs, num_agents), got {actions.shape}")
             if not actions.flags.c_contiguous:
                 raise ValueError("actions must be C-contiguous (use np.ascontiguousarray)")
-            lo, hi = (int(actions.min()), int(actions.max()))
+            host = actions
         else:
             import torch
 
@@ -261,10 +255,17 @@ class SwarmEnv:
                 raise ValueError(f"actions must be on device {self.device!r}, got {actions.device}")
             if not actions.is_contiguous():
                 raise ValueError("actions must be contiguous (call .contiguous())")
-            lo, hi = torch.aminmax(actions)
-            lo, hi = int(lo), int(hi)
-        if lo < 0 or hi >= NUM_ACTIONS:
+            if actions.device.type == "cuda":
+                lo, hi = (int(x) for x in torch.aminmax(actions))
+                if lo < 0 or hi >= NUM_ACTIONS:
+                    raise ValueError(f"actions must be in 0..{NUM_ACTIONS - 1}, got values in [{lo}, {hi}]")
+                return None
+            host = actions.detach().numpy()
+        # one pass: seen as unsigned, a negative value is huge, so max < 5 <=> all in 0..4
+        if host.size and host.view(np.uint64).max() >= NUM_ACTIONS:
+            lo, hi = int(host.min()), int(host.max())
             raise ValueError(f"actions must be in 0..{NUM_ACTIONS - 1}, got values in [{lo}, {hi}]")
+        return host
 
     def get_state(self) -> dict:
         """Copies of pos [B, M, 2], vel [B, M, 2], landmarks [B, L, 2], step [B]."""

@@ -91,10 +91,14 @@ def write_team_obs(
         for l in range(L):
             f[E + (i * L + l) * 2] = f[LM + 2 * l] - px
             f[E + (i * L + l) * 2 + 1] = f[LM + 2 * l + 1] - py
-        for j in range(M):
+    for i in range(M):  # the graph is symmetric: each pair once
+        u8[A + i * M + i] = ti.u8(1)
+        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+        for j in range(i + 1, M):
             dx, dy = f[P0 + 2 * j] - px, f[P0 + 2 * j + 1] - py
-            hears = (not restricted) or j == i or dx * dx + dy * dy <= r2
-            u8[A + i * M + j] = ti.cast(hears, ti.u8)
+            hears = ti.cast((not restricted) or dx * dx + dy * dy <= r2, ti.u8)
+            u8[A + i * M + j] = hears
+            u8[A + j * M + i] = hears
 
 
 @ti.func
@@ -140,22 +144,35 @@ def refresh_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.templat
 
 
 @ti.func
-def physics_step(f: ti.template(), ib: ti.template(), b: ti.i32):
+def physics_step(cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Action and contact forces -> velocities, then positions, for env b."""
     M = ib[H_M]
     dist_min = 2.0 * f[P_AGENT_RADIUS]
     P0, V0, A0 = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_ACTIONS] + b * M
-    for i in range(M):  # velocities first: contact forces use the old positions
+    force = ti.Vector.zero(ti.f32, 2 * cap)  # [M, 2], on the thread's stack
+    for i in range(M):
+        a = physics.action_force(ib[A0 + i])
+        force[2 * i] = a[0]
+        force[2 * i + 1] = a[1]
+    for i in range(M):  # contact forces from the old positions, each pair once (equal and
+        # opposite; every agent still sums its contacts in increasing j, as MPE does)
         p = ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1])
-        force = physics.action_force(ib[A0 + i])
-        for j in range(M):
-            if j != i:
-                force += physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
-        v = physics.integrate_velocity(ti.math.vec2(f[V0 + 2 * i], f[V0 + 2 * i + 1]), force)
+        for j in range(i + 1, M):
+            fc = physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
+            force[2 * i] += fc[0]
+            force[2 * i + 1] += fc[1]
+            force[2 * j] -= fc[0]
+            force[2 * j + 1] -= fc[1]
+    for i in range(M):
+        v = physics.integrate_velocity(
+            ti.math.vec2(f[V0 + 2 * i], f[V0 + 2 * i + 1]), ti.math.vec2(force[2 * i], force[2 * i + 1])
+        )
         f[V0 + 2 * i] = v[0]
         f[V0 + 2 * i + 1] = v[1]
-    for c in range(M * 2):
-        f[P0 + c] += f[V0 + c] * physics.DT
+        # plain read-modify-write: ``+=`` on an ndarray element compiles to an atomic add
+        # (a lock cmpxchg loop), needless here as each env belongs to one thread
+        f[P0 + 2 * i] = f[P0 + 2 * i] + v[0] * physics.DT
+        f[P0 + 2 * i + 1] = f[P0 + 2 * i + 1] + v[1] * physics.DT
 
 
 @ti.kernel
@@ -164,7 +181,7 @@ def step_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template()
     M = ib[H_M]
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        physics_step(f, ib, b)
+        physics_step(cap, f, ib, b)
         t = ib[ib[O_STEP] + b] + 1
         ib[ib[O_STEP] + b] = t
         match(task, cap, f, ib, b)
