@@ -36,26 +36,16 @@ PERMUTATIONS = {n: tuple(itertools.permutations(range(n))) for n in range(1, SMA
 
 
 @ti.func
-def solve(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32):
+def solve(cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Writes assignment[b, i] = the target of agent i, minimising the total distance,
     and matched_dist[b, i] = its distance.
 
-    ``cap`` (compile-time, >= M + 1: see ``capacity``) sizes the per-thread work
-    arrays and selects which team sizes are solved by enumeration.
+    ``sm`` (compile-time) is M when the kernels are specialised for it (then M <=
+    SMALL_M: enumeration), else 0; ``cap`` (>= M + 1: see ``capacity``) sizes the
+    large-M solver's per-thread work arrays.
     """
-    M = ib[H_M]
-    if ti.static(cap == 4):  # M in 1..3
-        if M == 3:
-            _enumerate(3, f, ib, b)
-        elif M == 2:
-            _enumerate(2, f, ib, b)
-        else:
-            _enumerate(1, f, ib, b)
-    elif ti.static(cap == 8 and SMALL_M >= 4):  # M in 4..7
-        if M == 4:
-            _enumerate(4, f, ib, b)
-        else:
-            _solve_large(f, ib, cap, b)
+    if ti.static(0 < sm <= SMALL_M):
+        _enumerate(sm, f, ib, b)
     else:
         _solve_large(f, ib, cap, b)
 
@@ -88,7 +78,8 @@ def _enumerate(n: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32)
 
 @ti.func
 def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32):
-    """Shortest augmenting paths (Jonker & Volgenant 1987, dense LAPJV), warm-started.
+    """Shortest augmenting paths (Jonker & Volgenant 1987, dense LAPJV), warm-started;
+    any M >= 1 (M from the header).
 
     Column prices v, kept per environment between calls; a row's dual is implicit
     (min_j cost[i, j] - v[j]). Start: every agent takes the column of its smallest

@@ -25,6 +25,7 @@ from .layout import (
     P_SUCCESS,
     P_TASK_PARAM,
     Layout,
+    static_team_size,
 )
 from .physics import NUM_ACTIONS
 from .tasks import COMMON_PARAMS, TASK_SPECS, TASKS
@@ -97,6 +98,7 @@ class SwarmEnv:
         self.num_actions = NUM_ACTIONS
         self._task_id = spec.task_id
         self._cap = assignment.capacity(self.num_agents)
+        self._sm = static_team_size(self.num_agents)  # compile-time M for small teams, else 0
 
         self.arch = runtime.init(arch)
         if self.arch == "cuda" and array == "numpy":
@@ -206,7 +208,7 @@ class SwarmEnv:
             states = rng.seed_states(seed if seed is not None else self._seed, self.num_envs)
             self._put(self._i, self.layout.blocks["rng"].offset, states)
             self._seeded = True
-        kernels.reset_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._parallel)
+        kernels.reset_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
         return self.obs
 
     def step(self, actions):
@@ -225,7 +227,7 @@ class SwarmEnv:
             np.copyto(self._actions_host, host, casting="unsafe")  # int64 -> int32
         else:
             self._actions_in.copy_(actions)  # CUDA
-        kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._parallel)
+        kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
         return self.obs, self.reward, self.done, self.info
 
     def _check_actions(self, actions) -> np.ndarray | None:
@@ -295,7 +297,7 @@ class SwarmEnv:
                     raise ValueError(f"{name} must be finite")
                 arr = arr.astype(np.float32)
             self._put(self._bufs[blk.buffer], blk.offset, arr)
-        kernels.refresh_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._parallel)
+        kernels.refresh_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
         return self.obs
 
     def __repr__(self) -> str:

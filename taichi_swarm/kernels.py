@@ -15,8 +15,6 @@ from . import assignment, physics, tasks
 from .layout import (
     H_B,
     H_COMM_RC,
-    H_L,
-    H_M,
     H_MAX_STEPS,
     O_ACTIONS,
     O_ADJ,
@@ -43,6 +41,7 @@ from .layout import (
     P_AGENT_RADIUS,
     P_COMM_RADIUS,
     P_SUCCESS,
+    team_size,
 )
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -51,20 +50,16 @@ U8 = ti.types.ndarray(dtype=ti.u8, ndim=1)
 
 
 @ti.func
-def _pos(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32) -> ti.math.vec2:
-    base = ib[O_POS] + (b * ib[H_M] + i) * 2
-    return ti.math.vec2(f[base], f[base + 1])
-
-
-@ti.func
-def match(task: ti.template(), cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def match(task: ti.template(), cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Targets, optimal assignment and matched distances d*_i of env b."""
-    tasks.place_targets(task, f, ib, b)
-    assignment.solve(f, ib, cap, b)
+    tasks.place_targets(task, sm, f, ib, b)
+    assignment.solve(cap, sm, f, ib, b)
 
 
 @ti.func
 def write_team_obs(
+    task: ti.template(),
+    sm: ti.template(),
     f: ti.template(),
     ib: ti.template(),
     u8: ti.template(),
@@ -76,7 +71,7 @@ def write_team_obs(
     """Every agent's observation, into the blocks starting at the given offsets:
     self [M, 4] = (vel, pos), entities [M, L, 2] = landmark - pos, adjacency
     [M, M] = who agent i hears (itself always; "rc": those within comm radius)."""
-    M, L = ib[H_M], ib[H_L]
+    M, L = team_size(sm, ib), tasks.landmark_count(task, sm, ib)
     P0, V0, LM = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_LMK] + b * L * 2
     S, E, A = self_off + b * M * 4, ent_off + b * M * L * 2, adj_off + b * M * M
     restricted = ib[H_COMM_RC] != 0
@@ -102,51 +97,57 @@ def write_team_obs(
 
 
 @ti.func
-def target_dist(f: ti.template(), ib: ti.template(), b: ti.i32) -> ti.f32:
+def target_dist(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32) -> ti.f32:
     """DIST: mean over targets of the distance to the closest agent."""
-    M = ib[H_M]
+    M = team_size(sm, ib)
+    P0, T0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2
     total = 0.0
     for t in range(M):
-        tb = ib[O_TGT] + (b * M + t) * 2
-        tp = ti.math.vec2(f[tb], f[tb + 1])
+        tp = ti.math.vec2(f[T0 + 2 * t], f[T0 + 2 * t + 1])
         best = 1e30
         for i in range(M):
-            best = ti.min(best, (_pos(f, ib, b, i) - tp).norm())
+            best = ti.min(best, (ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1]) - tp).norm())
         total += best
     return total / M
 
 
 @ti.func
-def start_episode(task: ti.template(), cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
-    tasks.spawn(task, f, ib, b)
+def start_episode(
+    task: ti.template(), cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
+):
+    tasks.spawn(task, sm, f, ib, b)
     ib[ib[O_STEP] + b] = 0
     f[ib[O_RET_ACC] + b] = 0.0
-    match(task, cap, f, ib, b)
+    match(task, cap, sm, f, ib, b)
 
 
 @ti.kernel
-def reset_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), parallel: ti.template()):
+def reset_kernel(
+    f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), sm: ti.template(), parallel: ti.template()
+):
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        start_episode(task, cap, f, ib, b)
+        start_episode(task, cap, sm, f, ib, b)
         f[ib[O_REWARD] + b] = 0.0
         u8[ib[O_DONE] + b] = ti.u8(0)
-        write_team_obs(f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+        write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
 
 
 @ti.kernel
-def refresh_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), parallel: ti.template()):
+def refresh_kernel(
+    f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), sm: ti.template(), parallel: ti.template()
+):
     """Recompute targets, assignment and observations after ``set_state``."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
-        match(task, cap, f, ib, b)
-        write_team_obs(f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+        match(task, cap, sm, f, ib, b)
+        write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
 
 
 @ti.func
-def physics_step(cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def physics_step(cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Action and contact forces -> velocities, then positions, for env b."""
-    M = ib[H_M]
+    M = team_size(sm, ib)
     dist_min = 2.0 * f[P_AGENT_RADIUS]
     P0, V0, A0 = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_ACTIONS] + b * M
     force = ti.Vector.zero(ti.f32, 2 * cap)  # [M, 2], on the thread's stack
@@ -176,15 +177,17 @@ def physics_step(cap: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
 
 
 @ti.kernel
-def step_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), parallel: ti.template()):
+def step_kernel(
+    f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), sm: ti.template(), parallel: ti.template()
+):
     """One step of every environment, with the actions already in ib[O_ACTIONS]."""
-    M = ib[H_M]
+    M = team_size(sm, ib)
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        physics_step(cap, f, ib, b)
+        physics_step(cap, sm, f, ib, b)
         t = ib[ib[O_STEP] + b] + 1
         ib[ib[O_STEP] + b] = t
-        match(task, cap, f, ib, b)
+        match(task, cap, sm, f, ib, b)
         sum_d, sum_clipped, success = 0.0, 0.0, True
         for i in range(M):
             d = f[ib[O_MATCHED] + b * M + i]
@@ -202,9 +205,9 @@ def step_kernel(f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template()
             u8[ib[O_EP_TRUNC] + b] = ti.cast(not success, ti.u8)
             ib[ib[O_EP_LEN] + b] = t
             f[ib[O_EP_RETURN] + b] = ret
-            f[ib[O_EP_DIST] + b] = target_dist(f, ib, b)
+            f[ib[O_EP_DIST] + b] = target_dist(sm, f, ib, b)
             for i in range(M):
                 f[ib[O_EP_MATCHED] + b * M + i] = f[ib[O_MATCHED] + b * M + i]
-            write_team_obs(f, ib, u8, b, ib[O_TERM_SELF], ib[O_TERM_ENT], ib[O_TERM_ADJ])
-            start_episode(task, cap, f, ib, b)
-        write_team_obs(f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+            write_team_obs(task, sm, f, ib, u8, b, ib[O_TERM_SELF], ib[O_TERM_ENT], ib[O_TERM_ADJ])
+            start_episode(task, cap, sm, f, ib, b)
+        write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])

@@ -11,11 +11,10 @@ buffer (and the float parameters at the start of the float32 buffer), so the
 kernels read ``ib[O_POS]`` instead of being recompiled for each (B, M, L).
 """
 
-from __future__ import annotations
-
 from dataclasses import dataclass
 
 import numpy as np
+import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
 H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
@@ -55,6 +54,27 @@ INT_HEADER = 5 + 26
 # --- float32 header: physical and task parameters ------------------------------------
 P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM = range(4)
 FLOAT_HEADER = 4
+
+
+# Teams up to this size get kernels compiled for their exact M: every loop over agents
+# then has a constant trip count, unrolls, and keeps its values in registers.
+STATIC_M_MAX = 4
+
+
+def static_team_size(num_agents: int) -> int:
+    """The kernels' compile-time ``sm`` argument: M itself if M <= STATIC_M_MAX, else 0."""
+    return num_agents if num_agents <= STATIC_M_MAX else 0
+
+
+@ti.func
+def team_size(sm: ti.template(), ib: ti.template()) -> ti.i32:
+    """M: the compile-time ``sm`` when the kernels are specialised (> 0), else the header's."""
+    m = 0
+    if ti.static(sm > 0):
+        m = sm
+    else:
+        m = ib[H_M]
+    return m
 
 
 def _blocks(M: int, L: int):

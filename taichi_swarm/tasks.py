@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import taichi as ti
 
 from . import rng
-from .layout import H_L, H_M, O_LMK, O_POS, O_TGT, O_VEL, P_TASK_PARAM
+from .layout import O_LMK, O_POS, O_TGT, O_VEL, P_TASK_PARAM, team_size
 
 COVERAGE, FORMATION, LINE = 0, 1, 2
 
@@ -70,6 +70,19 @@ LINE_TURN = 5.0 * math.pi / 180.0  # turn the heading by 5 degrees until l1 fits
 
 
 @ti.func
+def landmark_count(task: ti.template(), sm: ti.template(), ib: ti.template()) -> ti.i32:
+    """L (``TaskSpec.num_landmarks``): M for coverage, else a compile-time constant."""
+    n = 0
+    if ti.static(task == COVERAGE):
+        n = team_size(sm, ib)
+    elif ti.static(task == FORMATION):
+        n = 1
+    else:
+        n = 2
+    return n
+
+
+@ti.func
 def _get2(f: ti.template(), base: ti.i32) -> ti.math.vec2:
     return ti.math.vec2(f[base], f[base + 1])
 
@@ -81,9 +94,9 @@ def _set2(f: ti.template(), base: ti.i32, v: ti.math.vec2):
 
 
 @ti.func
-def spawn(task: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def spawn(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Fresh episode for env b: agents U[-1,1]^2 at rest, landmarks per task."""
-    M, L = ib[H_M], ib[H_L]
+    M, L = team_size(sm, ib), landmark_count(task, sm, ib)
     for i in range(M):
         _set2(f, ib[O_POS] + (b * M + i) * 2, rng.uniform2(ib, b, -1.0, 1.0))
         _set2(f, ib[O_VEL] + (b * M + i) * 2, ti.math.vec2(0.0, 0.0))
@@ -108,9 +121,9 @@ def spawn(task: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
 
 
 @ti.func
-def place_targets(task: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def place_targets(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Write the M targets of env b from its current landmarks and agents."""
-    M, L = ib[H_M], ib[H_L]
+    M, L = team_size(sm, ib), landmark_count(task, sm, ib)
     lmk = ib[O_LMK] + b * L * 2
     tgt = ib[O_TGT] + b * M * 2
     if ti.static(task == COVERAGE):  # targets are the landmarks themselves
