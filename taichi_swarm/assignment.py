@@ -66,10 +66,11 @@ def _enumerate(n: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32)
     for k in ti.static(range(len(perms))):
         d = ti.Vector([c[i, perms[k][i]] for i in range(n)], dt=ti.f32)
         total = d.sum()
-        if total < best:  # strict: ties keep the first permutation
-            best = total
-            chosen = ti.Vector(perms[k], dt=ti.i32)
-            chosen_d = d
+        better = total < best  # strict: ties keep the first permutation
+        # selects, not branches: which permutation wins is unpredictable
+        best = ti.select(better, total, best)
+        chosen = ti.select(better, ti.Vector(perms[k], dt=ti.i32), chosen)
+        chosen_d = ti.select(better, d, chosen_d)
     A, D = ib[O_ASSIGN] + b * n, ib[O_MATCHED] + b * n
     for i in ti.static(range(n)):
         ib[A + i] = chosen[i]
