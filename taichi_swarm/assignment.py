@@ -7,8 +7,9 @@ cost[i, j] = |p_i - t_j| (agent i, target j). Two exact methods:
   - larger M: shortest augmenting paths (Jonker & Volgenant 1987, "LAPJV", a
     Dijkstra search per unassigned agent), O(n^3) worst case, warm-started from
     the column prices of the environment's previous solve: agents move little
-    per step, so usually every agent's cheapest reduced-cost target is distinct
-    and that is already the optimum.
+    per step, so most agents' cheapest reduced-cost targets are still distinct
+    and only the few left over need a search (2.4 of 10 on average under random
+    actions, against about 4 from scratch).
 
 Each environment solves its own M x M problem serially inside the parallel
 loop over environments: the large-M cost matrix is cached in the packed
@@ -23,7 +24,7 @@ import taichi as ti
 from .layout import (
     H_M,
     O_ASSIGN,
-    O_HU_COST,
+    O_COST,
     O_MATCHED,
     O_POS,
     O_PRICES,
@@ -86,14 +87,14 @@ def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
     (min_j cost[i, j] - v[j]). Start: every agent takes the column of its smallest
     reduced cost if that column is still free, so each assigned row sits at a
     minimum of its reduced costs (LAPJV's invariant, true for *any* prices). If all
-    rows got one, that is optimal (complementary slackness) and we are done; with
-    last step's prices this is the common case, as agents move little per step.
-    Otherwise each free row finds the shortest augmenting path by Dijkstra over
+    rows got one, that is optimal (complementary slackness) and we are done. With
+    last step's prices few rows are left free (agents move little per step);
+    each free row finds the shortest augmenting path by Dijkstra over
     the columns, scanning whole levels of equal distance at once, and only the
     settled columns' prices move. Exact for any starting prices.
     """
     M = ib[H_M]
-    C = ib[O_HU_COST] + b * M * M  # cost[i, j] = |p_i - t_j|, row-major, 0-based
+    C = ib[O_COST] + b * M * M  # cost[i, j] = |p_i - t_j|, row-major, 0-based
     P0, T0, V0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
     v = ti.Vector.zero(ti.f32, cap)  # column prices
     d = ti.Vector.zero(ti.f32, cap)  # path lengths to each column

@@ -35,7 +35,7 @@ H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
     O_RET_ACC,
     O_TERM_SELF,
     O_TERM_ENT,
-    O_HU_COST,
+    O_COST,
     O_PRICES,
     # int32 blocks
     O_STEP,
@@ -94,7 +94,7 @@ def _blocks(M: int, L: int):
         (O_RET_ACC, "return_acc", ()),
         (O_TERM_SELF, "term_self", (M, 4)),
         (O_TERM_ENT, "term_entities", (M, L, 2)),
-        (O_HU_COST, "hu_cost", (M, M)),  # assignment cost matrix (M > SMALL_M)
+        (O_COST, "assign_cost", (M, M)),  # assignment cost matrix (M > SMALL_M)
         (O_PRICES, "prices", (M,)),  # assignment column prices, the next solve's warm start
     ]
     i32 = [
