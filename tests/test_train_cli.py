@@ -3,6 +3,7 @@ trainer command."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -88,6 +89,13 @@ def test_bad_checkpoints_give_clear_errors(tmp_path):
         checkpoint.load_weights(SwarmPolicy(ModelConfig(hidden=32)), checkpoint.load(good)["model"])
     with pytest.raises(checkpoint.CheckpointError, match="has model"):
         train(tiny(tmp_path, run_dir=str(tmp_path / "r2"), init_from=good, model=ModelConfig(hidden=32)))
+    # a directory: its checkpoint.pt, else its policy.pt (a results/ folder), else a clear error
+    published = tmp_path / "published"
+    published.mkdir()
+    with pytest.raises(checkpoint.CheckpointError, match="without checkpoint.pt or policy.pt"):
+        checkpoint.load(str(published))
+    shutil.copy(os.path.join(cfg.run_dir, "policy.pt"), published / "policy.pt")
+    assert checkpoint.load(str(published))["counters"] == checkpoint.load(good)["counters"]
 
 
 def test_config_validation_names_the_option(tmp_path):
