@@ -1,12 +1,18 @@
 """The fused kernels: one launch per ``reset`` and one per ``step``.
 
 Every kernel takes the three packed buffers (see layout.py) and, for the
-step, nothing else (the actions are copied into the int32 buffer first). Each kernel has exactly one parallel loop, over
-environments (only the outermost loop is parallel, and every extra pass costs
-a thread-pool dispatch, which dominated at small B). Per environment, a step
-is: forces -> velocities -> positions, targets, optimal assignment, reward,
-success and done, episode statistics, terminal observation and auto-reset,
-then the observations and communication graph.
+step, nothing else (the actions are copied into the int32 buffer first). Each
+kernel has exactly one parallel loop, over environments (only the outermost
+loop is parallel, and every extra pass costs a thread-pool dispatch, which
+dominated at small B). Per environment, a step is: forces -> velocities ->
+positions, targets, optimal assignment, reward, success and done, episode
+statistics, terminal observation and auto-reset, then the observations and
+communication graph.
+
+Compile-time arguments: ``task`` (tasks.py), ``cap`` (work-array size of the
+large-M assignment), ``sm`` (M itself for M <= layout.STATIC_M_MAX, so the
+loops over agents unroll; else 0 and M is read from the header) and
+``parallel`` (serial env loop for small batches, see env.py).
 """
 
 import taichi as ti
