@@ -113,8 +113,9 @@ def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
             dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
             c = ti.sqrt(dx * dx + dy * dy)
             f[C + i * M + j] = c
-            if c - v[j] < best:
-                best, arg = c - v[j], j
+            reduced = c - v[j]
+            if reduced < best:
+                best, arg = reduced, j
         x[i] = -1
         if y[arg] < 0:
             x[i] = arg

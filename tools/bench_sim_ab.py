@@ -22,7 +22,8 @@ import shutil
 import statistics
 import sys
 import tempfile
-import time
+
+from taichi_swarm.bench_sim import paired_ratio, time_chunk
 
 
 def _cell(text: str) -> tuple[int, int]:
@@ -73,18 +74,17 @@ def main(argv: list[str] | None = None) -> int:
                 for k in range(3):  # compile and warm up
                     env.step(actions[k])
                 runs.append(env)
-            times: list[list[float]] = [[], []]
+            steps = [lambda k, env=env, acts=actions: env.step(acts[k % len(acts)]) for env in runs]
+            chunk_ms: list[list[float]] = [[], []]
             for r in range(args.rounds):
                 for v in (0, 1) if r % 2 == 0 else (1, 0):
-                    n, t0 = 0, time.perf_counter()
-                    while time.perf_counter() - t0 < args.chunk_seconds:
-                        runs[v].step(actions[n % len(actions)])
-                        n += 1
-                    times[v].append((time.perf_counter() - t0) / n)
-            ratios = [a / b for a, b in zip(times[0], times[1], strict=True)]
+                    n, elapsed = time_chunk(steps[v], 0, args.chunk_seconds, None)
+                    chunk_ms[v].append(1e3 * elapsed / n)
+            a, b = ({"chunk_ms": ms} for ms in chunk_ms)
+            ratios = [x / y for x, y in zip(*chunk_ms, strict=True)]
             print(
-                f"B={B:<6} M={M:<3} A {1e3 * statistics.median(times[0]):8.3f} ms  "
-                f"B {1e3 * statistics.median(times[1]):8.3f} ms  A/B {statistics.median(ratios):.3f} "
+                f"B={B:<6} M={M:<3} A {statistics.median(chunk_ms[0]):8.3f} ms  "
+                f"B {statistics.median(chunk_ms[1]):8.3f} ms  A/B {paired_ratio(b, a):.3f} "
                 f"(rounds {min(ratios):.3f}..{max(ratios):.3f})",
                 flush=True,
             )

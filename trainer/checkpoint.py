@@ -49,7 +49,7 @@ def save(path: str, payload: dict) -> None:
 def load(path: str, map_location="cpu") -> dict:
     """Load and sanity-check a checkpoint; raises CheckpointError with the reason."""
     if os.path.isdir(path):  # a run directory: its full checkpoint, else its final weights
-        found = [os.path.join(path, n) for n in ("checkpoint.pt", "policy.pt") if os.path.exists(os.path.join(path, n))]
+        found = [p for p in (os.path.join(path, n) for n in ("checkpoint.pt", "policy.pt")) if os.path.exists(p)]
         if not found:
             raise CheckpointError(f"{path} is a directory without checkpoint.pt or policy.pt")
         path = found[0]
