@@ -81,11 +81,18 @@ def test_same_weights_any_team_size(policy, M):
     assert torch.isfinite(logits).all()
 
 
-def test_parameter_count_is_independent_of_team_size():
+def test_parameter_count_is_the_papers_and_independent_of_team_size():
+    H = 128
+    heads = 2 * (H * H + H) + (H * 5 + 5) + (H + 1)
+    attention = 4 * H * H
+    comm = attention + (2 * H * H + H)
+    expected = {
+        "emp": (4 * H + H) + (2 * H + H) + attention + (2 * H * H + H) + comm + heads,
+        "padded": (24 * H + H) + comm + heads,
+        "concat": (8 * H + H) + comm + heads,
+    }
     for mode, kw in [("emp", {}), ("padded", {}), ("concat", {"num_landmarks": 2})]:
-        p = SwarmPolicy(ModelConfig(entity_mode=mode, **kw))
-        n = p.num_parameters()
-        assert n == SwarmPolicy(ModelConfig(entity_mode=mode, **kw)).num_parameters()
+        assert SwarmPolicy(ModelConfig(entity_mode=mode, **kw)).num_parameters() == expected[mode], mode
     p = SwarmPolicy(ModelConfig(entity_mode="padded"))
     for M in (2, 7):
         s, e, a, _, _ = team(1, M, M)
@@ -108,3 +115,30 @@ def test_paper_initialisation():
     assert p.comm_attention.w_q.bias is None
     # K rounds share weights: the parameter count does not grow with K
     assert SwarmPolicy(ModelConfig(rounds=1)).num_parameters() == SwarmPolicy(ModelConfig(rounds=5)).num_parameters()
+
+
+@pytest.mark.parametrize("mode,L", [("emp", 4), ("concat", 2), ("padded", 3)])
+@pytest.mark.parametrize("radius", [None, 0.8])
+def test_fast_forward_is_the_reference_network(mode, L, radius):
+    """forward() rearranges the algebra (W_q W_k^T, W_v W_out folded into the update);
+    it must compute the network as written, outputs and gradients, to float rounding."""
+    torch.manual_seed(1)
+    p = SwarmPolicy(ModelConfig(entity_mode=mode, num_landmarks=L if mode == "concat" else 0))
+    M = 5
+    s, e, a, _, _ = team(16, M, L, seed=2, radius=radius)
+    fast = p(s, e, a, return_attention=True)
+    ref = p.forward_reference(s, e, a, return_attention=True)
+    for x, y in zip(fast[:2], ref[:2]):
+        torch.testing.assert_close(x, y, atol=1e-5, rtol=1e-5)
+    for x, y in zip(fast[2], ref[2]):
+        torch.testing.assert_close(x, y, atol=1e-6, rtol=1e-5)
+    grads = []
+    for fn in (p.forward, p.forward_reference):
+        p.zero_grad()
+        logits, value = fn(s, e, a)
+        (logits.square().sum() + value.sum()).backward()
+        grads.append({n: q.grad.clone() for n, q in p.named_parameters()})
+    for name in grads[0]:
+        torch.testing.assert_close(grads[0][name], grads[1][name], atol=2e-5, rtol=1e-4, msg=name)
+    cached = p(s, e, a, fused=p.fused_weights())
+    torch.testing.assert_close(cached[0], fast[0])

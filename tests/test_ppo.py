@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from trainer.ppo import RewardScaler, gae, normalize_per_agent, ppo_loss
+from trainer.ppo import RewardScaler, gae, normalize_per_agent, ppo_loss, sample_actions
 
 
 def test_gae_by_hand():
@@ -72,3 +72,42 @@ def test_reward_scaler_divides_by_return_std_and_clips():
     s(torch.tensor([1e-3]), torch.tensor([False]))
     assert s(torch.tensor([1e3]), torch.tensor([True])).item() == 2.0
     assert s.ret.item() == 0.0  # reset at the episode end
+
+
+def test_reward_scaler_without_reset_keeps_the_return_like_the_published_code():
+    s = RewardScaler(num_envs=1, gamma=0.5, clip=10.0, reset_at_done=False)
+    s(torch.tensor([1.0]), torch.tensor([True]))
+    s(torch.tensor([1.0]), torch.tensor([True]))
+    assert s.ret.item() == pytest.approx(1.5)  # 0.5 * 1 + 1: never reset
+
+
+def test_loss_matches_categorical_reference():
+    """The loss without torch.distributions is the same function (fixed batch, fixed seed)."""
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(64, 3, 5, generator=g, requires_grad=True)
+    values = torch.randn(64, 3, generator=g, requires_grad=True)
+    actions = torch.randint(0, 5, (64, 3), generator=g)
+    old_lp, old_v, adv, ret = (torch.randn(64, 3, generator=g) for _ in range(4))
+    old_lp = old_lp.clamp(max=-0.1)
+    loss, info = ppo_loss(logits, values, actions, old_lp, old_v, adv, ret, 0.2, 0.5, 0.01)
+    dist = torch.distributions.Categorical(logits=logits)
+    ratio = (dist.log_prob(actions) - old_lp).exp()
+    pg = torch.max(-adv * ratio, -adv * ratio.clamp(0.8, 1.2)).mean()
+    vc = old_v + (values - old_v).clamp(-0.2, 0.2)
+    vl = 0.5 * torch.max((values - ret) ** 2, (vc - ret) ** 2).mean()
+    want = pg + 0.5 * vl - 0.01 * dist.entropy().mean()
+    torch.testing.assert_close(loss, want, atol=1e-6, rtol=1e-6)
+    g1 = torch.autograd.grad(loss, [logits, values])
+    g2 = torch.autograd.grad(want, [logits, values])
+    for a, b in zip(g1, g2):
+        torch.testing.assert_close(a, b, atol=1e-7, rtol=1e-5)
+
+
+def test_sampled_actions_and_log_probs():
+    torch.manual_seed(0)
+    logits = torch.tensor([[0.0, 0.0, 5.0, -5.0, 0.0]]).expand(20000, 5)
+    actions, logp = sample_actions(logits)
+    freq = torch.bincount(actions.view(-1), minlength=5).float() / actions.numel()
+    probs = logits[0].softmax(-1)
+    torch.testing.assert_close(freq, probs, atol=0.01, rtol=0)
+    torch.testing.assert_close(logp, probs.log()[actions], atol=1e-6, rtol=0)

@@ -210,3 +210,29 @@ def plot_main(argv: list[str]) -> int:
     except (FileNotFoundError, ValueError, json.JSONDecodeError) as exc:
         return _fail("plot", exc)
     return 0
+
+
+def import_main(argv: list[str]) -> int:
+    from trainer.published import import_to
+
+    ap = argparse.ArgumentParser(
+        prog="swarm import",
+        description="Convert a checkpoint in the paper authors' published format (marl_transfer "
+        "models/naM_uc.pt) into this project's policy format, for eval, zero-shot, export, "
+        "execute and --init-from.",
+    )
+    ap.add_argument("published", help="the published .pt file")
+    ap.add_argument("--out", required=True, help="where to write the converted policy (.pt)")
+    ap.add_argument("--task", default=None, help="coverage | formation | line (default: from the input width)")
+    ap.add_argument("--comm", default="uc", choices=("uc", "rc"), help="communication it is to run with")
+    ap.add_argument("--comm-radius", type=float, default=1.0)
+    args = ap.parse_args(argv)
+    try:
+        payload = import_to(args.published, args.out, task=args.task, comm=args.comm, comm_radius=args.comm_radius)
+    except USER_ERRORS as exc:
+        return _fail("import", exc)
+    except OSError as exc:
+        return _fail("import", ValueError(f"cannot write {args.out}: {exc.strerror}"))
+    t = payload["task"]
+    print(f"{args.out}: {t['task']} policy for M={t['agents']}, {payload['model_config']['entity_mode']} entities")
+    return 0

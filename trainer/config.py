@@ -47,6 +47,10 @@ class PPOConfig:
     """Divide rewards by a running std of the discounted return, then clip to +-reward_clip."""
     reward_clip: float = 10.0
     """Clip of the scaled reward."""
+    reset_return: bool = False
+    """Reset the running discounted return of the reward scaler at episode ends. False
+    (the paper's published code): never reset, so it tends to r / (1 - gamma) and the
+    scaled rewards are smaller against the fixed entropy bonus. True: the usual VecNormalize."""
     bootstrap_time_limit: bool = False
     """False (the paper): the 50-step limit is terminal, no bootstrap. True: bootstrap
     V(terminal observation) on time-limit ends (partial-episode bootstrapping)."""
@@ -73,7 +77,14 @@ PRESETS: dict[str, PPOConfig] = {
     # fewer, bigger minibatches; short rollouts from many envs; bootstrap at the time
     # limit; a lower learning rate late in the run for the last few percent of success.
     "fast": PPOConfig(
-        num_envs=64, num_steps=32, lr=7e-4, lr_end=1e-4, epochs=4, minibatches=4, bootstrap_time_limit=True
+        num_envs=64,
+        num_steps=32,
+        lr=7e-4,
+        lr_end=1e-4,
+        epochs=4,
+        minibatches=4,
+        bootstrap_time_limit=True,
+        reset_return=True,
     ),
 }
 
@@ -115,6 +126,9 @@ class TrainConfig:
     torch_threads: int = 2
     """torch threads for the PPO update (rollouts use 1: small batches stall with more;
     `swarm bench train` measures both)."""
+    compile: bool = True
+    """Compile the policy forward and PPO loss of the update with torch.compile (needs a
+    C++ compiler; ~30 s once per team size, then faster updates: docs/BENCHMARKS.md)."""
     progress: bool = True
     """Show a progress bar."""
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -151,6 +165,9 @@ def to_dict(cfg) -> dict:
 def train_config_from_dict(d: dict) -> TrainConfig:
     """Inverse of ``to_dict`` (for resuming); unknown keys are an error."""
     d = dict(d)
+    d.setdefault("compile", False)  # runs from before the option existed ran eagerly
     model = ModelConfig(**d.pop("model"))
-    ppo = PPOConfig(**d.pop("ppo"))
+    ppo_dict = dict(d.pop("ppo"))
+    ppo_dict.setdefault("reset_return", True)  # runs from before the option existed reset it
+    ppo = PPOConfig(**ppo_dict)
     return TrainConfig(**d, model=model, ppo=ppo)

@@ -40,9 +40,10 @@ def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, dev
     env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed)
     obs = env.reset()
     tally = FirstEpisodes(episodes)
+    fused = policy.fused_weights()  # computed once: the weights do not change here
     step = 0
     while not tally.all_done():
-        logits, _ = policy(obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device))
+        logits, _ = policy(obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device), fused=fused)
         actions = logits.argmax(-1).to(env.device)
         if recorder is not None:
             recorder.log_step(step, env, actions)

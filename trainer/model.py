@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -93,6 +94,14 @@ class Attention(nn.Module):
         return self.w_out(weights @ v), weights
 
 
+class FusedWeights(NamedTuple):
+    """Weight products of ``SwarmPolicy.forward`` (see ``SwarmPolicy.fused_weights``)."""
+
+    entity: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None  # EMP: own [H, 2H], own_bias [2H], heard [H, H]
+    comm: tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # the communication round, same layout
+    heads: tuple[torch.Tensor, torch.Tensor]  # first layers of both heads: [H, 2H], [2H]
+
+
 class SwarmPolicy(nn.Module):
     """Shared actor-critic: ``forward(self_obs, entities, adj) -> (logits, value)``.
 
@@ -166,8 +175,84 @@ class SwarmPolicy(nn.Module):
         """h [..., H] -> logits [..., 5], value [...]."""
         return self.policy_head(h), self.value_head(h).squeeze(-1)
 
-    # --- the whole team at once (training) -------------------------------------------------
-    def forward(self, self_obs: torch.Tensor, entities: torch.Tensor, adj: torch.Tensor, return_attention=False):
+    # --- the whole team at once (training, rollouts, evaluation) --------------------------
+    def fused_weights(self) -> FusedWeights:
+        """The products of weight matrices the fast forward uses (differentiable)."""
+        H = self.config.hidden
+        scale = 1.0 / math.sqrt(H)
+
+        def fuse(att: Attention, upd: nn.Linear) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            # scores_ij = (h_i W_q^T)(x_j W_k^T)^T / sqrt(H) = (h_i [W_q^T W_k / sqrt(H)]) . x_j
+            # update   = W_u [h_i ; (sum_j w_ij x_j) W_v^T W_out^T] + b
+            #          = h_i W_u1^T + (sum_j w_ij x_j) [W_v^T W_out^T W_u2^T] + b
+            qk = (att.w_q.weight.t() @ att.w_k.weight) * scale  # [H, H]
+            own = torch.cat([qk, upd.weight[:, :H].t()], dim=1)  # [H, 2H]: h -> (query, own part)
+            own_bias = torch.cat([upd.bias.new_zeros(H), upd.bias])  # [2H]
+            heard = att.w_v.weight.t() @ (att.w_out.weight.t() @ upd.weight[:, H:].t())  # [H, H]
+            return own, own_bias, heard
+
+        entity = fuse(self.entity_attention, self.entity_update) if self.config.entity_mode == "emp" else None
+        comm = fuse(self.comm_attention, self.comm_update)
+        p0, v0 = self.policy_head[0], self.value_head[0]
+        heads = (torch.cat([p0.weight, v0.weight]).t(), torch.cat([p0.bias, v0.bias]))  # [H, 2H], [2H]
+        return FusedWeights(entity, comm, heads)
+
+    def forward(
+        self,
+        self_obs: torch.Tensor,
+        entities: torch.Tensor,
+        adj: torch.Tensor,
+        return_attention: bool = False,
+        fused: FusedWeights | None = None,
+    ):
+        """self_obs [N, M, 4], entities [N, M, L, 2], adj [N, M, M] -> logits [N, M, 5], value [N, M]
+        (and the K attention matrices [N, M, M] with ``return_attention``).
+
+        The same function as ``forward_reference`` (to float rounding), rearranged so that
+        nothing is projected per landmark or per neighbour: the attention scores use
+        W_q W_k^T on the query side and the weighted sum of embeddings is projected once,
+        through W_v W_out folded into the update layer (docs/BENCHMARKS.md, training).
+        ``fused``: ``fused_weights()`` computed once and reused while the weights do not
+        change (rollouts, evaluation); recomputed per call otherwise (training).
+        """
+        fw = self.fused_weights() if fused is None else fused
+        H = self.config.hidden
+        N, M = self_obs.shape[0], self_obs.shape[1]
+        if self.config.entity_mode == "emp":
+            h = torch.relu(self.agent_encoder(self_obs)).reshape(N * M, H)  # [NM, H]
+            e = torch.relu(self.entity_encoder(entities)).reshape(N * M, -1, H)  # [NM, L, H]
+            own, own_bias, heard = fw.entity
+            q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
+            # NOTE: broadcast-multiply-sum, not bmm: batched GEMMs of these tiny matrices
+            # ran 3x slower forward+backward on the CPU (docs/BENCHMARKS.md, training)
+            scores = (e * q_own[:, None, :H]).sum(-1)  # [NM, L]
+            weights = torch.softmax(scores, dim=-1)
+            pooled = (weights.unsqueeze(-1) * e).sum(1)  # [NM, H]
+            h = torch.relu(torch.addmm(q_own[:, H:], pooled, heard))
+        else:
+            h = self.encode(self_obs, entities).reshape(N * M, H)
+        own, own_bias, heard = fw.comm
+        blocked = ~adj  # [N, M, M]
+        heard_mask = adj.to(h.dtype)
+        attention = []
+        for _ in range(self.config.rounds):
+            q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
+            h3 = h.view(N, 1, M, H)
+            scores = (q_own[:, :H].reshape(N, M, 1, H) * h3).sum(-1)  # [N, M, M]
+            weights = torch.softmax(scores.masked_fill(blocked, MASK_FILL), dim=-1) * heard_mask
+            pooled = (weights.unsqueeze(-1) * h3).sum(2).view(N * M, H)
+            h = torch.relu(torch.addmm(q_own[:, H:], pooled, heard))
+            attention.append(weights)
+        w_heads, b_heads = fw.heads
+        z = torch.relu(torch.addmm(b_heads, h, w_heads))  # [NM, 2H]
+        logits = self.policy_head[2](z[:, :H]).view(N, M, -1)
+        value = self.value_head[2](z[:, H:]).view(N, M)
+        if return_attention:
+            return logits, value, attention  # K x [N, M, M]
+        return logits, value
+
+    def forward_reference(self, self_obs, entities, adj, return_attention=False):
+        """The network written as the paper states it (the per-agent pieces deploy exports)."""
         h = self.encode(self_obs, entities)  # [N, M, H]
         attention = []
         for _ in range(self.config.rounds):

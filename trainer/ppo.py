@@ -40,10 +40,15 @@ class RewardScaler:
     """r / std(discounted return), clipped (pytorch-a2c-ppo's VecNormalize(ob=False)).
 
     The team reward is the same for every agent, so one return per environment.
+    ``reset_at_done=False`` is what the paper's published code did: the running return
+    is never reset at episode ends, so it grows towards r / (1 - gamma) and the scaled
+    rewards are smaller (the usual VecNormalize resets it).
     """
 
-    def __init__(self, num_envs: int, gamma: float, clip: float, enabled: bool = True, device="cpu"):
-        self.gamma, self.clip, self.enabled = gamma, clip, enabled
+    def __init__(
+        self, num_envs: int, gamma: float, clip: float, enabled: bool = True, reset_at_done: bool = True, device="cpu"
+    ):
+        self.gamma, self.clip, self.enabled, self.reset_at_done = gamma, clip, enabled, reset_at_done
         self.ret = torch.zeros(num_envs, dtype=torch.float64, device=device)
         self.rms = RunningMeanStd(device=device)
 
@@ -54,7 +59,8 @@ class RewardScaler:
         self.ret = self.ret * self.gamma + reward.double()
         self.rms.update(self.ret)
         scaled = torch.clamp(reward.double() / torch.sqrt(self.rms.var + 1e-8), -self.clip, self.clip)
-        self.ret = self.ret * (~done).double()
+        if self.reset_at_done:
+            self.ret = self.ret * (~done).double()
         return scaled.float()
 
     def state_dict(self) -> dict:
@@ -129,6 +135,23 @@ class LossInfo:
     clipfrac: torch.Tensor
 
 
+def log_probs_and_entropy(logits: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """logits [..., A], actions [...] -> (log pi(a) [...], entropy [...]); what
+    ``torch.distributions.Categorical`` computes, without building the object."""
+    logp = torch.log_softmax(logits, dim=-1)
+    chosen = logp.gather(-1, actions.unsqueeze(-1)).squeeze(-1)
+    entropy = -(logp.exp() * logp).sum(-1)
+    return chosen, entropy
+
+
+def sample_actions(logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """logits [..., A] -> (sampled actions [...] int64, their log-probabilities [...])."""
+    logp = torch.log_softmax(logits, dim=-1)
+    flat = logp.reshape(-1, logp.shape[-1])
+    actions = torch.multinomial(flat.exp(), 1, True)  # [n, 1], as Categorical.sample draws
+    return actions.view(logp.shape[:-1]), flat.gather(-1, actions).view(logp.shape[:-1])
+
+
 def ppo_loss(
     logits,
     values,
@@ -143,14 +166,13 @@ def ppo_loss(
 ):
     """The clipped PPO objective (to minimise) and its parts; every tensor [..., M]
     except logits [..., M, 5]. Value loss: 0.5 * max((v - R)^2, (v_clip - R)^2)."""
-    dist = torch.distributions.Categorical(logits=logits)
-    logprobs = dist.log_prob(actions)
+    logprobs, entropy = log_probs_and_entropy(logits, actions)
     log_ratio = logprobs - old_logprobs
     ratio = log_ratio.exp()
     pg = torch.max(-advantages * ratio, -advantages * torch.clamp(ratio, 1 - clip, 1 + clip)).mean()
     v_clipped = old_values + torch.clamp(values - old_values, -clip, clip)
     v_loss = 0.5 * torch.max((values - returns) ** 2, (v_clipped - returns) ** 2).mean()
-    entropy = dist.entropy().mean()
+    entropy = entropy.mean()
     total = pg + value_coef * v_loss - entropy_coef * entropy
     with torch.no_grad():
         approx_kl = ((ratio - 1) - log_ratio).mean()
