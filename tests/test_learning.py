@@ -20,6 +20,7 @@ def test_single_agent_coverage_learns(tmp_path):
         progress=False,
         torch_threads=1,
         checkpoint_every=40,
+        compile=False,
         model=ModelConfig(hidden=32, rounds=1),
         ppo=PPOConfig(num_envs=32, num_steps=32, lr=3e-3, epochs=4, minibatches=2),
     )

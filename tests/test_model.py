@@ -128,9 +128,9 @@ def test_fast_forward_is_the_reference_network(mode, L, radius):
     s, e, a, _, _ = team(16, M, L, seed=2, radius=radius)
     fast = p(s, e, a, return_attention=True)
     ref = p.forward_reference(s, e, a, return_attention=True)
-    for x, y in zip(fast[:2], ref[:2]):
+    for x, y in zip(fast[:2], ref[:2], strict=False):
         torch.testing.assert_close(x, y, atol=1e-5, rtol=1e-5)
-    for x, y in zip(fast[2], ref[2]):
+    for x, y in zip(fast[2], ref[2], strict=False):
         torch.testing.assert_close(x, y, atol=1e-6, rtol=1e-5)
     grads = []
     for fn in (p.forward, p.forward_reference):

@@ -99,7 +99,7 @@ def test_loss_matches_categorical_reference():
     torch.testing.assert_close(loss, want, atol=1e-6, rtol=1e-6)
     g1 = torch.autograd.grad(loss, [logits, values])
     g2 = torch.autograd.grad(want, [logits, values])
-    for a, b in zip(g1, g2):
+    for a, b in zip(g1, g2, strict=False):
         torch.testing.assert_close(a, b, atol=1e-7, rtol=1e-5)
 
 

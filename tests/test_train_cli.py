@@ -32,6 +32,7 @@ def tiny(tmp_path, **kw):
         torch_threads=1,
         model=TINY_MODEL,
         ppo=TINY_PPO,
+        compile=False,
     )
     return TrainConfig(**(base | kw))
 
@@ -137,6 +138,7 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
         "1",
         "--torch-threads",
         "1",
+        "--no-compile",
     ]
     r = swarm(
         "train", "--task", "formation", "--agents", "3", "--comm", "rc", "--run-dir", "run", *common, cwd=tmp_path
@@ -183,3 +185,64 @@ def test_learning_rate_decays_linearly_to_lr_end(tmp_path):
     lrs = []
     train(tiny(tmp_path, updates=4, ppo=ppo), on_update=lambda r: lrs.append(r["lr"]))
     assert lrs == pytest.approx([1e-3, 7e-4, 4e-4, 1e-4])
+
+
+def test_transfer_sizes_are_evaluated_and_logged(tmp_path):
+    cfg = tiny(tmp_path, agents=3, updates=2, transfer_offsets=(-2, -1, 1))
+    summary = train(cfg)
+    assert set(summary["last_eval"]["transfer"]) == {"1", "2", "4"}
+    lines = [json.loads(x) for x in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
+    assert set(lines[-1]["eval_transfer"]) == {"1", "2", "4"}
+    line = tiny(tmp_path, task="line", agents=3, transfer_offsets=(-2, -1, 1), run_dir=str(tmp_path / "l"))
+    from trainer.train import transfer_sizes
+
+    assert transfer_sizes(line) == [2, 4]  # line needs M >= 2
+
+
+def test_non_finite_loss_never_reaches_the_weights(tmp_path):
+    from trainer.model import SwarmPolicy
+    from trainer.ppo import Rollout
+    from trainer.train import ppo_update
+
+    torch.manual_seed(0)
+    policy = SwarmPolicy(TINY_MODEL)
+    before = {k: v.clone() for k, v in policy.state_dict().items()}
+    opt = torch.optim.Adam(policy.parameters(), lr=1e-3)
+    buf = Rollout.allocate(4, 2, 3, 3)
+    zeros = torch.zeros(4, 2, 3)
+
+    def nan_loss(*batch):
+        logits, _ = policy(*batch[:3])
+        return logits.sum() * float("nan"), torch.zeros(5)
+
+    stats, skipped = ppo_update(policy, opt, buf, zeros, zeros, TINY_PPO, nan_loss)
+    assert skipped == TINY_PPO.epochs * TINY_PPO.minibatches
+    for k, v in policy.state_dict().items():
+        assert torch.equal(v, before[k]), k
+
+
+@pytest.mark.parametrize(
+    "flag,value", [("--ppo.clip", "nan"), ("--ppo.lr", "inf"), ("--ppo.entropy-coef", "nan"), ("--torch-threads", "0")]
+)
+def test_non_finite_hyperparameters_are_refused(tmp_path, capsys, flag, value):
+    from taichi_swarm.cli import main as swarm
+
+    assert swarm(["train", "--run-dir", str(tmp_path / "r"), flag, value, "--updates", "1"]) == 2
+    err = capsys.readouterr().err
+    assert flag.lstrip("-").replace("-", "_").split(".")[-1] in err.replace("-", "_")
+
+
+def test_nan_weights_are_refused_on_load(tmp_path):
+    cfg = tiny(tmp_path, updates=1)
+    train(cfg)
+    payload = checkpoint.load(cfg.run_dir)
+    payload["model"]["comm_update.bias"][0] = float("nan")
+    checkpoint.save(str(tmp_path / "nan.pt"), payload)
+    with pytest.raises(checkpoint.CheckpointError, match="NaN"):
+        checkpoint.load_policy(str(tmp_path / "nan.pt"))
+
+
+@pytest.mark.slow
+def test_compiled_update_trains(tmp_path):
+    summary = train(tiny(tmp_path, updates=2, compile=True))
+    assert summary["update"] == 2

@@ -112,6 +112,9 @@ def load_weights(policy: SwarmPolicy, state_dict: dict) -> None:
             + "; ".join(parts)
             + "): was it trained with another --model configuration?"
         )
+    bad = sorted(k for k, v in state_dict.items() if v.is_floating_point() and not torch.isfinite(v).all())
+    if bad:
+        raise CheckpointError(f"checkpoint weights hold NaN or inf ({', '.join(bad[:4])}): refusing to use them")
     policy.load_state_dict(state_dict)
 
 

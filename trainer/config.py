@@ -8,6 +8,7 @@ less wall-clock on a 2-core CPU (docs/RESULTS.md records how it was found).
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 from taichi_swarm import COMMS, TASKS
@@ -56,6 +57,15 @@ class PPOConfig:
     V(terminal observation) on time-limit ends (partial-episode bootstrapping)."""
 
     def validate(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(f"ppo.{f.name} must be a finite number, got {value}")
+        for name in ("entropy_coef", "value_coef"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)}")
+        if self.lr > 1.0:
+            raise ValueError(f"ppo.lr must be <= 1, got {self.lr}")
         for name in ("num_envs", "num_steps", "epochs", "minibatches"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ppo.{name} must be >= 1, got {getattr(self, name)}")
@@ -111,6 +121,10 @@ class TrainConfig:
     """Evaluate (greedy, decentralised, fresh seeds) every this many updates."""
     eval_episodes: int = 100
     """Episodes per evaluation."""
+    transfer_offsets: tuple[int, ...] = (-1, 1, 2)
+    """Every evaluation also measures S% at these team sizes relative to ``agents``
+    (zero-shot transfer: metrics.jsonl ``eval_transfer``, the progress bar, the plot);
+    () for none."""
     checkpoint_every: int = 25
     """Write the checkpoint every this many updates (and at the end, and on Ctrl-C)."""
     seed: int = 0
@@ -148,6 +162,14 @@ class TrainConfig:
         for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.torch_threads < 1:
+            raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if any(abs(d) > 1000 for d in self.transfer_offsets):
+            raise ValueError(f"transfer_offsets must be small team-size offsets, got {self.transfer_offsets}")
+        if not math.isfinite(self.comm_radius):
+            raise ValueError(f"comm_radius must be finite, got {self.comm_radius}")
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
         if self.comm_radius < 0:
@@ -166,6 +188,9 @@ def train_config_from_dict(d: dict) -> TrainConfig:
     """Inverse of ``to_dict`` (for resuming); unknown keys are an error."""
     d = dict(d)
     d.setdefault("compile", False)  # runs from before the option existed ran eagerly
+    d.setdefault("transfer_offsets", ())
+    if isinstance(d["transfer_offsets"], list):
+        d["transfer_offsets"] = tuple(d["transfer_offsets"])
     model = ModelConfig(**d.pop("model"))
     ppo_dict = dict(d.pop("ppo"))
     ppo_dict.setdefault("reset_return", True)  # runs from before the option existed reset it

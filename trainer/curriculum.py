@@ -15,6 +15,8 @@ from trainer import checkpoint
 from trainer.config import TrainConfig
 from trainer.train import train
 
+MIN_STAGE_EVAL_EPISODES = 200
+
 
 def run_curriculum(
     base: TrainConfig, sizes: list[int], threshold: float, max_updates_per_stage: int, run_dir: str
@@ -43,6 +45,9 @@ def run_curriculum(
                 init_from=previous_ckpt,
                 updates=max_updates_per_stage,
                 target_success=threshold,
+                # a stage advances on an evaluation of at least 200 episodes: 100 overstated
+                # stages by up to 10 points (docs/RESULTS.md)
+                eval_episodes=max(base.eval_episodes, MIN_STAGE_EVAL_EPISODES),
             )
             summary = train(cfg)
         last = summary["last_eval"] or {}

@@ -32,6 +32,14 @@ def plot_run(run_dir: str, out: str | None = None) -> str:
     axes[1].plot(
         [r["env_steps"] / 1e6 for r in tr], [100 * r["train_success"] for r in tr], alpha=0.5, label="train (sampling)"
     )
+    sizes = sorted({int(k) for r in ev for k in (r.get("eval_transfer") or {})})
+    for size in sizes:
+        pts = [
+            (r["env_steps"] / 1e6, 100 * r["eval_transfer"][str(size)])
+            for r in ev
+            if str(size) in (r.get("eval_transfer") or {})
+        ]
+        axes[1].plot(*zip(*pts, strict=True), "x--", alpha=0.7, label=f"eval at M={size} (zero-shot)")
     axes[1].set(title="success S%", xlabel="env steps (M)", ylim=(-2, 102))
     axes[1].legend()
     axes[2].plot([r["env_steps"] / 1e6 for r in ev], [r["eval_mean_length"] for r in ev], "o-")

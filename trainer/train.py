@@ -147,6 +147,38 @@ def collect_rollout(policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, 
     )
 
 
+MAX_BAD_UPDATES = 3  # consecutive updates with no finite minibatch before training stops
+
+
+class NonFiniteTraining(ValueError):
+    """The loss or gradients stayed NaN/inf: training stopped, the weights untouched."""
+
+
+EVAL_SEED_BASE = 10_000_019  # evaluation streams: seed + update, never a training seed
+
+
+def transfer_sizes(cfg: TrainConfig) -> list[int]:
+    """The neighbouring team sizes evaluated beside the training size."""
+    smallest = 2 if cfg.task in ("formation", "line") else 1
+    return [cfg.agents + d for d in cfg.transfer_offsets if d != 0 and cfg.agents + d >= smallest]
+
+
+def evaluate_during_training(policy, cfg: TrainConfig, update: int, device) -> dict:
+    """Greedy S%, T, DIST at the training size; S% at the transfer sizes (``transfer``)."""
+    policy.eval()
+    seed = EVAL_SEED_BASE + update
+    common = dict(comm=cfg.comm, comm_radius=cfg.comm_radius, seed=seed, arch=cfg.arch, device=device)
+    result = evaluate(policy, cfg.task, cfg.agents, episodes=cfg.eval_episodes, **common)
+    out = {k: result[k] for k in ("success_rate", "mean_length", "dist")}
+    out["update"] = update
+    sizes = transfer_sizes(cfg)
+    if sizes:
+        out["transfer"] = {
+            str(M): evaluate(policy, cfg.task, M, episodes=cfg.eval_episodes, **common)["success_rate"] for M in sizes
+        }
+    return out
+
+
 def make_loss_fn(policy, p, compile: bool = False):
     """``loss_fn(batch) -> (loss, stats [5])``: the policy's forward and the clipped PPO
     loss on one minibatch of whole teams; with ``compile``, through torch.compile (fused
@@ -180,7 +212,7 @@ def make_loss_fn(policy, p, compile: bool = False):
         except Exception as exc:  # noqa: BLE001 - e.g. no C++ compiler on this machine
             if state["fn"] is loss_fn:
                 raise
-            warnings.warn(f"torch.compile failed ({type(exc).__name__}: {exc}); training continues eagerly")
+            warnings.warn(f"torch.compile failed ({type(exc).__name__}: {exc}); training continues eagerly", stacklevel=2)
             state["fn"] = loss_fn
             return loss_fn(*batch)
 
@@ -189,12 +221,13 @@ def make_loss_fn(policy, p, compile: bool = False):
 
 def ppo_update(policy, optimizer, buf: Rollout, advantages, returns, p, loss_fn) -> torch.Tensor:
     """``p.epochs`` x ``p.minibatches`` clipped-PPO steps over the rollout; a minibatch is
-    a set of whole teams (t, env). Returns the mean of the loss statistics [5]."""
+    a set of whole teams (t, env). Returns (the mean of the loss statistics [5], the
+    number of minibatches skipped because their loss or gradient was not finite)."""
     policy.train()
     T, E = buf.actions.shape[:2]
     batch = [teams(x) for x in (buf.self_obs, buf.entities, buf.adj, buf.actions, buf.logprobs, buf.values)]
     batch += [teams(advantages), teams(returns)]
-    stats, steps = torch.zeros(5, device=advantages.device), 0
+    stats, steps, skipped = torch.zeros(5, device=advantages.device), 0, 0
     for _ in range(p.epochs):
         perm = torch.randperm(T * E, device=advantages.device)
         shuffled = [x[perm] for x in batch]  # one gather per epoch; minibatches are contiguous slices
@@ -205,11 +238,16 @@ def ppo_update(policy, optimizer, buf: Rollout, advantages, returns, p, loss_fn)
             start += size
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(policy.parameters(), p.max_grad_norm)
+            norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), p.max_grad_norm)
+            if not torch.isfinite(norm):  # a NaN/inf loss or gradient never reaches the weights
+                skipped += 1
+                continue
             optimizer.step()
             stats += s.detach()
             steps += 1
-    return stats / steps
+    if steps == 0:
+        return torch.full((5,), float("nan")), skipped
+    return stats / steps, skipped
 
 
 def train(
@@ -311,6 +349,7 @@ def train(
             dynamic_ncols=True,
         )
     last_eval = evals[-1] if evals else None
+    bad_updates = 0
     start_wall = time.perf_counter() - counters["wall_time"]
     try:
         while counters["update"] < cfg.updates:
@@ -322,7 +361,15 @@ def train(
             obs = rollout.next_obs
             tc = time.perf_counter()
             torch.set_num_threads(cfg.torch_threads)
-            stats = ppo_update(policy, optimizer, buf, rollout.advantages, rollout.returns, p, loss_fn)
+            stats, skipped = ppo_update(policy, optimizer, buf, rollout.advantages, rollout.returns, p, loss_fn)
+            counters["skipped_minibatches"] = counters.get("skipped_minibatches", 0) + skipped
+            bad_updates = bad_updates + 1 if skipped == p.epochs * p.minibatches else 0
+            if bad_updates >= MAX_BAD_UPDATES:
+                raise NonFiniteTraining(
+                    f"every minibatch of the last {bad_updates} updates had a NaN/inf loss or gradient; "
+                    f"stopped before any reached the weights (last good checkpoint: {run.checkpoint}). "
+                    "Lower --ppo.lr or check the configuration."
+                )
             t_update = time.perf_counter() - tc
             counters["update"] += 1
             counters["env_steps"] += T * E
@@ -344,24 +391,12 @@ def train(
                 "time_sim": rollout.time_sim,
                 "time_policy": rollout.time_policy,
                 "time_update": t_update,
+                "skipped_minibatches": skipped,
                 "lr": optimizer.param_groups[0]["lr"],
             }
             done_training = counters["update"] >= cfg.updates
             if counters["update"] % cfg.eval_every == 0 or done_training:
-                policy.eval()
-                result = evaluate(
-                    policy,
-                    cfg.task,
-                    M,
-                    cfg.comm,
-                    cfg.comm_radius,
-                    cfg.eval_episodes,
-                    seed=10_000_019 + counters["update"],
-                    arch=cfg.arch,
-                    device=device,
-                )
-                last_eval = {k: result[k] for k in ("success_rate", "mean_length", "dist")}
-                last_eval["update"] = counters["update"]
+                last_eval = evaluate_during_training(policy, cfg, counters["update"], device)
                 evals.append(last_eval)
                 record.update({f"eval_{k}": v for k, v in last_eval.items() if k != "update"})
                 if cfg.target_success > 0 and last_eval["success_rate"] >= cfg.target_success:
@@ -374,6 +409,8 @@ def train(
                 if last_eval:
                     post["S%"] = f"{100 * last_eval['success_rate']:.0f}"
                     post["T"] = f"{last_eval['mean_length']:.1f}"
+                    for size, rate in last_eval.get("transfer", {}).items():
+                        post[f"S%@{size}"] = f"{100 * rate:.0f}"
                 progress.set_postfix(post)
                 progress.update(1)
             if on_update is not None:
