@@ -9,23 +9,74 @@ the effect of the torch thread count on the update.
 from __future__ import annotations
 
 import argparse
-import copy
+import dataclasses
 import os
 import shutil
+import sys
 import tempfile
 
 from trainer.config import PRESETS, TrainConfig
 from trainer.train import train
 
 
-def measure(preset: str, task: str, agents: int, updates: int, threads: int) -> dict:
+def forward_flops(hidden: int, rounds: int, agents: int, landmarks: int, teams: int, emp: bool = True) -> float:
+    """FLOPs (2 per multiply-add) of one ``SwarmPolicy.forward`` over ``teams`` teams, as
+    the fused algebra computes it: per agent the encoder, EMP (entity encoder, query and
+    update projections, L-long scores and weighted sum), K rounds (query and own-update
+    projection [H, 2H], M-long scores and weighted sum, the heard projection [H, H]) and the
+    heads; per call the weight products (3 H^3 per attention block). Elementwise ops not
+    counted. A training step (forward + backward) is counted as 3x the forward."""
+    H, M, L = hidden, agents, landmarks
+    per_agent = 4 * H + 2 * H * H + 5 * H + H  # agent encoder, heads
+    if emp:
+        per_agent += L * 2 * H + 3 * H * H + 2 * L * H
+    per_agent += rounds * (3 * H * H + 2 * M * H)
+    per_call = (6 if emp else 3) * H**3
+    return 2.0 * (teams * M * per_agent + per_call)
+
+
+def sgemm_peak(threads: int = 1, size: int = 1024, seconds: float = 1.0) -> float:
+    """Measured fp32 GEMM GFLOP/s of this machine (``size``^3 matmuls, ``threads`` threads)."""
+    import time
+
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        a, b = torch.randn(size, size), torch.randn(size, size)
+        for _ in range(3):
+            a @ b
+        n, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            a @ b
+            n += 1
+        return 2 * size**3 * n / (time.perf_counter() - start) / 1e9
+    finally:
+        torch.set_num_threads(previous)
+
+
+def measure(
+    preset: str,
+    task: str,
+    agents: int,
+    updates: int,
+    threads: int,
+    device: str = "cpu",
+    arch: str = "cpu",
+    num_envs: int | None = None,
+    compile: bool = True,
+) -> dict:
     tmp = tempfile.mkdtemp(prefix="swarm-bench-")
     try:
         cfg = TrainConfig(
             task=task,
             agents=agents,
             preset=preset,
-            ppo=copy.deepcopy(PRESETS[preset]),
+            ppo=dataclasses.replace(PRESETS[preset], **({"num_envs": num_envs} if num_envs else {})),
+            device=device,
+            arch=arch,
+            compile=compile,
             updates=updates + 1,
             eval_every=10**6,
             eval_episodes=1,
@@ -43,7 +94,18 @@ def measure(preset: str, task: str, agents: int, updates: int, threads: int) -> 
     steps = per_update * len(rows)
     wall = sum(per_update / r["sps"] for r in rows)
     sim, pol, upd = (sum(r[k] for r in rows) for k in ("time_sim", "time_policy", "time_update"))
+    import taichi_swarm
+
+    p = cfg.ppo
+    L = taichi_swarm.TASK_SPECS[task].num_landmarks(agents)
+    teams_per_minibatch = p.num_envs * p.num_steps // p.minibatches
+    step_flops = 3 * forward_flops(
+        cfg.model.hidden, cfg.model.rounds, agents, L, teams_per_minibatch, cfg.model.entity_mode == "emp"
+    )
+    samples = p.epochs * p.num_envs * p.num_steps * agents * len(rows)  # agent-samples through fwd+bwd
     return {
+        "agent_samples_per_s": samples / upd,
+        "gflops": step_flops * p.epochs * p.minibatches * len(rows) / upd / 1e9,
         "preset": preset,
         "threads": threads,
         "env_steps_per_s": steps / wall,
@@ -62,22 +124,47 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--updates", type=int, default=3, help="timed updates per row (after one warm-up)")
     ap.add_argument("--presets", nargs="+", default=list(PRESETS))
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="torch threads of the update")
+    ap.add_argument("--device", default="cpu", help="where the network runs: cpu | cuda | auto")
+    ap.add_argument("--arch", default="cpu", help="where the simulator runs: cpu | cuda | auto")
+    ap.add_argument("--num-envs", type=int, default=None, help="override the preset's environments per rollout")
+    ap.add_argument("--no-compile", action="store_true", help="eager update (no torch.compile)")
     args = ap.parse_args(argv)
-    bad = [p for p in args.presets if p not in PRESETS]
-    if bad or args.updates < 1 or min(args.threads) < 1:
-        print(f"swarm bench train: error: presets must be in {tuple(PRESETS)}, updates and threads >= 1", flush=True)
+    import taichi_swarm
+
+    problems = []
+    if [p for p in args.presets if p not in PRESETS]:
+        problems.append(f"--presets must be in {tuple(PRESETS)}")
+    if args.task not in taichi_swarm.TASKS:
+        problems.append(f"--task must be one of {taichi_swarm.TASKS}, got {args.task!r}")
+    if args.agents < 1 or args.updates < 1 or min(args.threads) < 1 or (args.num_envs or 1) < 1:
+        problems.append("--agents, --updates, --threads and --num-envs must be >= 1")
+    if problems:
+        print("swarm bench train: error: " + "; ".join(problems), file=sys.stderr, flush=True)
         return 2
-    rows = [measure(p, args.task, args.agents, args.updates, t) for p in args.presets for t in args.threads]
+    rows = [
+        measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, not args.no_compile)
+        for p in args.presets
+        for t in args.threads
+    ]
+    peak = {t: sgemm_peak(t) for t in sorted(set(args.threads))}
     print(f"\nPPO cycle, {args.task} M={args.agents}, {args.updates} timed updates per row")
     head = (
         f"{'preset':<7} {'threads':>7} {'env steps/s':>12} {'s/update':>9} {'sim':>6} {'policy fwd':>10} {'update':>7}"
+        f" {'agent-samples/s':>15} {'GFLOP/s':>8} {'of sgemm':>8}"
     )
     print(head + "\n" + "-" * len(head))
     for r in rows:
         print(
             f"{r['preset']:<7} {r['threads']:>7} {r['env_steps_per_s']:>12.0f} {r['seconds_per_update']:>9.2f} "
             f"{100 * r['share_sim']:>5.1f}% {100 * r['share_policy']:>9.1f}% {100 * r['share_update']:>6.1f}%"
+            f" {r['agent_samples_per_s']:>15.0f} {r['gflops']:>8.1f} {100 * r['gflops'] / peak[r['threads']]:>7.0f}%"
         )
+    print(
+        "agent-samples/s: agent samples through forward+backward in the update; GFLOP/s: the GEMM and "
+        "attention FLOPs of the fused network (trainer.bench.forward_flops, backward = 2x forward) per "
+        "second of update; sgemm peak measured here (1024^3): "
+        + ", ".join(f"{t} thread(s) {g:.0f} GFLOP/s" for t, g in peak.items())
+    )
     base = {p: min((r for r in rows if r["preset"] == p), key=lambda r: r["threads"]) for p in args.presets}
     for r in rows:
         b = base[r["preset"]]

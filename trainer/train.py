@@ -212,7 +212,8 @@ def make_loss_fn(policy, p, compile: bool = False):
         except Exception as exc:  # noqa: BLE001 - e.g. no C++ compiler on this machine
             if state["fn"] is loss_fn:
                 raise
-            warnings.warn(f"torch.compile failed ({type(exc).__name__}: {exc}); training continues eagerly", stacklevel=2)
+            msg = f"torch.compile failed ({type(exc).__name__}: {exc}); training continues eagerly"
+            warnings.warn(msg, stacklevel=2)
             state["fn"] = loss_fn
             return loss_fn(*batch)
 
