@@ -27,7 +27,10 @@ def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
     """Run ``commands[argv[0]]`` ("module:function", imported only then) on the rest of argv."""
     usage = [f"usage: {prog} <command> [options]   ({prog} <command> --help for its options)", "", "commands:"]
     usage += [f"  {name:<11} {help_}" for name, (_, help_) in commands.items()]
-    if not argv or argv[0] in ("-h", "--help", "help"):
+    if not argv:
+        print("\n".join(usage), file=sys.stderr)
+        return 2
+    if argv[0] in ("-h", "--help", "help"):
         print("\n".join(usage))
         return 0
     name, rest = argv[0], argv[1:]

@@ -246,3 +246,37 @@ def test_nan_weights_are_refused_on_load(tmp_path):
 def test_compiled_update_trains(tmp_path):
     summary = train(tiny(tmp_path, updates=2, compile=True))
     assert summary["update"] == 2
+
+
+def test_second_process_on_a_run_dir_is_refused_and_a_dead_holder_is_taken_over(tmp_path):
+    import textwrap
+
+    from trainer.lock import RunDirLock, RunDirLocked
+
+    run = str(tmp_path / "run")
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(f"""
+            import sys, time
+            from trainer.lock import RunDirLock
+            RunDirLock({run!r}).acquire()
+            print("locked", flush=True)
+            time.sleep(60)
+            """),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=os.path.join(os.path.dirname(__file__), ".."),
+    )
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(RunDirLocked, match=f"pid {holder.pid}"):
+            train(tiny(tmp_path, run_dir=run))
+    finally:
+        holder.kill()  # like kill -9: the kernel drops the lock
+        holder.wait()
+    with RunDirLock(run):  # the stale lock is taken over
+        pass
+    assert train(tiny(tmp_path, run_dir=run, updates=1))["update"] == 1

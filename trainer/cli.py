@@ -108,9 +108,11 @@ def eval_main(argv: list[str]) -> int:
         torch.set_num_threads(1)
         policy, payload = load_policy(args.checkpoint)
         s = _eval_settings(args, payload)
-        agents = args.agents or payload.get("task", {}).get("agents")
+        agents = args.agents if args.agents is not None else payload.get("task", {}).get("agents")
         if agents is None:
-            raise ValueError("pass --agents")
+            raise ValueError("this checkpoint does not say its team size: pass --agents")
+        if agents < 1:
+            raise ValueError(f"--agents must be >= 1, got {agents}")
         recorder = None
         if args.record:
             from deploy.recording import RolloutRecorder
@@ -145,6 +147,8 @@ def zero_shot_main(argv: list[str]) -> int:
 
     args = _eval_parser("swarm zero-shot", sizes=True).parse_args(argv)
     try:
+        if args.episodes < 1:
+            raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
         sizes = parse_sizes(args.sizes)
         torch.set_num_threads(1)
         policy, payload = load_policy(args.checkpoint)

@@ -150,9 +150,11 @@ class TrainConfig:
     """Where the simulator runs: cpu | cuda | auto."""
     device: str = "cpu"
     """Where the network runs: cpu | cuda | auto."""
-    torch_threads: int = 2
-    """torch threads for the PPO update (rollouts use 1: small batches stall with more;
-    `swarm bench train` measures both)."""
+    torch_threads: int = 1
+    """torch threads for the PPO update (rollouts always use 1). 1 by default: on this 2-core
+    machine 2 threads were 1.3x faster only while the other core was idle, and 8x slower
+    (0.13x) when another process used it; two 1-thread runs side by side use both cores
+    better (docs/BENCHMARKS.md, training)."""
     compile: bool = True
     """Compile the policy forward and PPO loss of the update with torch.compile (needs a
     C++ compiler; ~30 s once per team size, then faster updates: docs/BENCHMARKS.md)."""

@@ -26,6 +26,7 @@ import taichi_swarm
 from trainer import checkpoint
 from trainer.config import TrainConfig, to_dict, train_config_from_dict
 from trainer.evaluate import evaluate
+from trainer.lock import RunDirLock
 from trainer.model import ModelConfig, SwarmPolicy
 from trainer.ppo import RewardScaler, Rollout, gae, normalize_per_agent, ppo_loss, sample_actions
 
@@ -259,7 +260,21 @@ def train(
 
     ``on_update(record)`` is called after every update (tests, curriculum).
     Returns a summary: run_dir, updates done, env steps, wall time, last eval.
+    The run directory is locked for the whole call: a second process is refused.
     """
+    if resume is not None:
+        if not os.path.isdir(resume):
+            raise FileNotFoundError(f"run directory {resume} does not exist")
+        run_dir = resume
+    elif cfg is None:
+        raise ValueError("train() needs a config or a run directory to resume")
+    else:
+        run_dir = cfg.default_run_dir()
+    with RunDirLock(run_dir):
+        return _train_locked(cfg, resume, on_update, updates)
+
+
+def _train_locked(cfg, resume, on_update, updates) -> dict:
     if resume is not None:
         run = Run(resume)
         if not os.path.isdir(resume):
