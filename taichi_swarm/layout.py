@@ -1,7 +1,7 @@
 """Packed state: every per-step array lives in one of three flat buffers.
 
 A Taichi launch costs ~30 us plus ~20-45 us per torch-tensor argument
-(../shared/spec/stack-notes.md), so the step kernel takes exactly three
+(docs/PAPER.md s.8), so the step kernel takes exactly three
 buffers (float32, int32, uint8) plus the actions. Each named array is a
 contiguous block ``[B, ...]`` inside its buffer; the public arrays
 (``obs["self"]``, ``reward``, ...) are zero-copy views of those blocks.

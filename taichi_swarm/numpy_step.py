@@ -1,6 +1,6 @@
 """The coverage step in plain NumPy, batched over environments: the baseline of ``swarm bench sim``.
 
-The same step as the fused Taichi kernel (kernels.py; ../shared/spec/paper-system.md
+The same step as the fused Taichi kernel (kernels.py; docs/PAPER.md
 sections 1-3) for the coverage task, written as whole-batch array expressions:
 action forces, MPE contact forces, semi-implicit Euler, the communication graph,
 the observations, the team reward from an exact optimal assignment, success,

@@ -1,6 +1,6 @@
 """MPE world physics (Lowe et al. 2017, multiagent/core.py), per agent.
 
-See ../shared/spec/paper-system.md section 1. One step: action force,
+See docs/PAPER.md section 1. One step: action force,
 pairwise contact forces between agents, then semi-implicit Euler
     v <- v (1 - damping);  v <- v + F/m dt;  p <- p + v dt.
 """

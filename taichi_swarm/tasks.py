@@ -1,4 +1,4 @@
-"""The three tasks of Agarwal et al. 2019 (../shared/spec/paper-system.md s.2).
+"""The three tasks of Agarwal et al. 2019 (docs/PAPER.md s.2).
 
 Each task is a small contract, written as Taichi functions called from the
 fused kernels with the task id as a compile-time constant:

@@ -1,6 +1,6 @@
 """Typed configuration: one dataclass per concern, a docstring per option.
 
-``PRESETS["paper"]`` is s.5 of ../shared/spec/paper-system.md exactly;
+``PRESETS["paper"]`` is s.5 of docs/PAPER.md exactly;
 ``PRESETS["fast"]`` is what we measured to learn in far fewer env steps and
 less wall-clock on a 2-core CPU (docs/RESULTS.md records how it was found).
 """

@@ -1,5 +1,5 @@
 """The agent-entity graph network of Agarwal, Kumar, Sycara 2019 (s.4 of
-../shared/spec/paper-system.md), one set of weights shared by every agent.
+docs/PAPER.md), one set of weights shared by every agent.
 
 Per agent i (all agents of a team batched, N teams, M agents, L landmarks):
     h_i = ReLU(f_a(X_i))                                   agent encoder, X_i = (vel, pos)
@@ -68,7 +68,7 @@ class Attention(nn.Module):
 
     Written out (matmul, masked fill, softmax) rather than with
     F.scaled_dot_product_attention: that exports differently on fully masked rows
-    and fails on zero keys (../shared/spec/stack-notes.md).
+    and fails on zero keys (docs/PAPER.md s.8).
     """
 
     def __init__(self, dim: int):
