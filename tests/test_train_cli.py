@@ -215,7 +215,7 @@ def test_non_finite_loss_never_reaches_the_weights(tmp_path):
         logits, _ = policy(*batch[:3])
         return logits.sum() * float("nan"), torch.zeros(5)
 
-    stats, skipped = ppo_update(policy, opt, buf, zeros, zeros, TINY_PPO, nan_loss)
+    stats, skipped = ppo_update(policy, opt, [(buf, zeros, zeros)], TINY_PPO, nan_loss)
     assert skipped == TINY_PPO.epochs * TINY_PPO.minibatches
     for k, v in policy.state_dict().items():
         assert torch.equal(v, before[k]), k
@@ -280,3 +280,24 @@ def test_second_process_on_a_run_dir_is_refused_and_a_dead_holder_is_taken_over(
     with RunDirLock(run):  # the stale lock is taken over
         pass
     assert train(tiny(tmp_path, run_dir=run, updates=1))["update"] == 1
+
+
+def test_several_team_sizes_in_one_run(tmp_path):
+    seen = []
+    cfg = tiny(
+        tmp_path,
+        agents=3,
+        team_sizes=(2, 3),
+        updates=2,
+        transfer_offsets=(1,),
+        ppo=PPOConfig(num_envs=4, num_steps=8, epochs=1, minibatches=2),
+    )
+    summary = train(cfg, on_update=seen.append)
+    assert summary["update"] == 2 and summary["env_steps"] == 2 * 4 * 8
+    payload = checkpoint.load(cfg.run_dir)
+    assert len(payload["reward_scalers"]) == 2
+    assert train(resume=cfg.run_dir, updates=3)["update"] == 3
+    with pytest.raises(ValueError, match="multiple of the number of team_sizes"):
+        train(tiny(tmp_path, team_sizes=(2, 3, 4), run_dir=str(tmp_path / "x")))
+    with pytest.raises(ValueError, match="team_sizes must be >= 2"):
+        train(tiny(tmp_path, task="line", team_sizes=(1, 2), run_dir=str(tmp_path / "y")))

@@ -134,6 +134,11 @@ class TrainConfig:
     """Evaluate (greedy, decentralised, fresh seeds) every this many updates."""
     eval_episodes: int = 100
     """Episodes per evaluation."""
+    team_sizes: tuple[int, ...] = ()
+    """Train on several team sizes at once (e.g. 3 4 5 6): every rollout has one group of
+    num_envs / len(team_sizes) environments per size and every epoch minibatches of each
+    size in random order; the network is size-invariant. () trains on ``agents`` alone;
+    ``agents`` stays the size evaluated and recorded."""
     transfer_offsets: tuple[int, ...] = (-1, 1, 2)
     """Every evaluation also measures S% at these team sizes relative to ``agents``
     (zero-shot transfer: metrics.jsonl ``eval_transfer``, the progress bar, the plot);
@@ -177,6 +182,20 @@ class TrainConfig:
         for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        smallest = 2 if self.task in ("formation", "line") else 1
+        if any(m < smallest for m in self.team_sizes):
+            raise ValueError(f"team_sizes must be >= {smallest} for {self.task}, got {self.team_sizes}")
+        if len(set(self.team_sizes)) != len(self.team_sizes):
+            raise ValueError(f"team_sizes must not repeat a size, got {self.team_sizes}")
+        if self.team_sizes and self.ppo.num_envs % len(self.team_sizes):
+            raise ValueError(
+                f"ppo.num_envs ({self.ppo.num_envs}) must be a multiple of the number of team_sizes "
+                f"({len(self.team_sizes)}): each size gets the same number of environments"
+            )
+        if self.team_sizes and self.ppo.minibatches < len(self.team_sizes):
+            raise ValueError("ppo.minibatches must be >= the number of team_sizes")
+        if self.team_sizes and self.model.entity_mode == "concat" and self.task == "coverage":
+            raise ValueError("entity_mode='concat' has a fixed number of landmarks: coverage's L changes with M")
         if self.torch_threads < 1:
             raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
         if self.seed < 0:
@@ -191,6 +210,10 @@ class TrainConfig:
             raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
         self.ppo.validate()
 
+    def training_sizes(self) -> list[int]:
+        """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""
+        return list(self.team_sizes) or [self.agents]
+
     def default_run_dir(self) -> str:
         return self.run_dir or f"runs/{self.task}-m{self.agents}-{self.comm}-s{self.seed}"
 
@@ -203,9 +226,8 @@ def train_config_from_dict(d: dict) -> TrainConfig:
     """Inverse of ``to_dict`` (for resuming); unknown keys are an error."""
     d = dict(d)
     d.setdefault("compile", False)  # runs from before the option existed ran eagerly
-    d.setdefault("transfer_offsets", ())
-    if isinstance(d["transfer_offsets"], list):
-        d["transfer_offsets"] = tuple(d["transfer_offsets"])
+    for key in ("transfer_offsets", "team_sizes"):
+        d[key] = tuple(d.get(key, ()))
     model = ModelConfig(**d.pop("model"))
     ppo_dict = dict(d.pop("ppo"))
     ppo_dict.setdefault("reset_return", True)  # runs from before the option existed reset it

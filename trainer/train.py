@@ -88,6 +88,7 @@ class RolloutResult:
     mean_reward: float  # raw team reward per env step
     train_success: float | None  # success rate of the episodes that ended (sampled actions)
     train_length: float | None
+    train_episodes: int  # how many episodes ended
     time_sim: float  # seconds in env.step
     time_policy: float  # seconds in the policy forward and sampling
 
@@ -143,6 +144,7 @@ def collect_rollout(policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, 
         mean_reward=float(raw_reward) / T,
         train_success=float(torch.cat(ep_success).float().mean()) if ep_success else None,
         train_length=float(torch.cat(ep_length).float().mean()) if ep_length else None,
+        train_episodes=sum(len(x) for x in ep_success),
         time_sim=t_sim,
         time_policy=t_policy,
     )
@@ -178,6 +180,20 @@ def evaluate_during_training(policy, cfg: TrainConfig, update: int, device) -> d
             str(M): evaluate(policy, cfg.task, M, episodes=cfg.eval_episodes, **common)["success_rate"] for M in sizes
         }
     return out
+
+
+def rollout_stats(rollouts: list[RolloutResult]) -> dict:
+    """Reward, sampled success and length over the team-size groups of one update."""
+    n = sum(r.train_episodes for r in rollouts)
+
+    def mean(key):
+        return sum(getattr(r, key) * r.train_episodes for r in rollouts if r.train_episodes) / n if n else None
+
+    return {
+        "reward": sum(r.mean_reward for r in rollouts) / len(rollouts),
+        "train_success": mean("train_success"),
+        "train_length": mean("train_length"),
+    }
 
 
 def make_loss_fn(policy, p, compile: bool = False):
@@ -221,23 +237,35 @@ def make_loss_fn(policy, p, compile: bool = False):
     return guarded
 
 
-def ppo_update(policy, optimizer, buf: Rollout, advantages, returns, p, loss_fn) -> torch.Tensor:
+def ppo_update(policy, optimizer, groups: list[tuple[Rollout, torch.Tensor, torch.Tensor]], p, loss_fn):
     """``p.epochs`` x ``p.minibatches`` clipped-PPO steps over the rollout; a minibatch is
-    a set of whole teams (t, env). Returns (the mean of the loss statistics [5], the
-    number of minibatches skipped because their loss or gradient was not finite)."""
+    a set of whole teams (t, env) of one team size. ``groups``: (buffer [T, E, M, ...],
+    advantages, returns [T, E, M]) per team size; with several sizes each gets
+    ``minibatches / len(groups)`` minibatches per epoch, taken in random order.
+    Returns (the mean of the loss statistics [5], the number of minibatches skipped
+    because their loss or gradient was not finite)."""
     policy.train()
-    T, E = buf.actions.shape[:2]
-    batch = [teams(x) for x in (buf.self_obs, buf.entities, buf.adj, buf.actions, buf.logprobs, buf.values)]
-    batch += [teams(advantages), teams(returns)]
-    stats, steps, skipped = torch.zeros(5, device=advantages.device), 0, 0
+    data = []
+    for buf, advantages, returns in groups:
+        batch = [teams(x) for x in (buf.self_obs, buf.entities, buf.adj, buf.actions, buf.logprobs, buf.values)]
+        data.append(batch + [teams(advantages), teams(returns)])
+    device = groups[0][1].device
+    per_group = max(1, p.minibatches // len(groups))
+    stats, steps, skipped = torch.zeros(5, device=device), 0, 0
     for _ in range(p.epochs):
-        perm = torch.randperm(T * E, device=advantages.device)
-        shuffled = [x[perm] for x in batch]  # one gather per epoch; minibatches are contiguous slices
-        sizes = [len(c) for c in perm.chunk(p.minibatches)]
-        start = 0
-        for size in sizes:
+        minibatches = []  # (shuffled group data, start, size)
+        for batch in data:
+            n = batch[0].shape[0]
+            perm = torch.randperm(n, device=device)
+            shuffled = [x[perm] for x in batch]  # one gather per epoch; minibatches are contiguous slices
+            start = 0
+            for size in (len(c) for c in perm.chunk(per_group)):
+                minibatches.append((shuffled, start, size))
+                start += size
+        if len(data) > 1:  # sizes interleaved (one size keeps the RNG stream of a plain run)
+            minibatches = [minibatches[i] for i in torch.randperm(len(minibatches)).tolist()]
+        for shuffled, start, size in minibatches:
             loss, s = loss_fn(*(x[start : start + size] for x in shuffled))
-            start += size
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             norm = torch.nn.utils.clip_grad_norm_(policy.parameters(), p.max_grad_norm)
@@ -250,6 +278,17 @@ def ppo_update(policy, optimizer, buf: Rollout, advantages, returns, p, loss_fn)
     if steps == 0:
         return torch.full((5,), float("nan")), skipped
     return stats / steps, skipped
+
+
+@dataclasses.dataclass
+class TeamGroup:
+    """The environments of one team size, with their rollout buffer and reward scaler."""
+
+    agents: int
+    env: object
+    obs: dict
+    buf: Rollout
+    scaler: RewardScaler
 
 
 def train(
@@ -314,23 +353,31 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
     # fused: one kernel for every parameter (the per-tensor loop cost ~1.4 ms per minibatch)
     optimizer = torch.optim.Adam(policy.parameters(), lr=p.lr, eps=1e-5, fused=True)
     loss_fn = make_loss_fn(policy, p, compile=cfg.compile)
-    scaler = RewardScaler(E, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
+    sizes = cfg.training_sizes()
+    E_group = E // len(sizes)  # validate() checks that the sizes share num_envs evenly
+    groups = []
+    for k, size in enumerate(sizes):
+        env = taichi_swarm.make(cfg.task, E_group, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch)
+        scaler = RewardScaler(E_group, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
+        buf = Rollout.allocate(T, E_group, size, env.num_landmarks, device)
+        groups.append(TeamGroup(size, env, {}, buf, scaler))
     counters = {"update": 0, "env_steps": 0, "wall_time": 0.0}
     evals: list[dict] = []
     if payload is not None:
         checkpoint.load_weights(policy, payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
-        scaler.load_state_dict(payload["reward_scaler"])
+        scaler_states = payload.get("reward_scalers", [payload["reward_scaler"]])
+        if len(scaler_states) != len(groups):
+            raise checkpoint.CheckpointError(f"{run.checkpoint} holds {len(scaler_states)} reward scalers")
+        for g, state in zip(groups, scaler_states, strict=True):
+            g.scaler.load_state_dict(state)
         torch.set_rng_state(payload["torch_rng"])
         counters = dict(payload["counters"])
         evals = list(payload.get("evals", []))
-
-    env = taichi_swarm.make(cfg.task, E, M, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch)
-    L = env.num_landmarks
     # NOTE: on resume the environments restart fresh episodes from a stream derived from
     # (seed, update): runs continue exactly at update boundaries but not bit-for-bit.
-    obs = env.reset(seed=cfg.seed * 1_000_003 + counters["update"])
-    buf = Rollout.allocate(T, E, M, L, device)
+    for k, g in enumerate(groups):
+        g.obs = g.env.reset(seed=cfg.seed * 1_000_003 + counters["update"] + 7_919 * k)
 
     def policy_payload() -> dict:
         return {
@@ -345,7 +392,8 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         payload = {
             **policy_payload(),
             "optimizer": optimizer.state_dict(),
-            "reward_scaler": scaler.state_dict(),
+            "reward_scaler": groups[0].scaler.state_dict(),
+            "reward_scalers": [g.scaler.state_dict() for g in groups],
             "torch_rng": torch.get_rng_state(),
             "train_config": to_dict(cfg),
         }
@@ -360,7 +408,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         progress = tqdm(
             total=cfg.updates,
             initial=counters["update"],
-            desc=f"{cfg.task} M={M} {cfg.comm}",
+            desc=f"{cfg.task} M={','.join(map(str, sizes))} {cfg.comm}",
             unit="upd",
             dynamic_ncols=True,
         )
@@ -373,11 +421,15 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
             if p.lr_end is not None:
                 frac = counters["update"] / max(cfg.updates - 1, 1)
                 optimizer.param_groups[0]["lr"] = p.lr + (p.lr_end - p.lr) * min(frac, 1.0)
-            rollout = collect_rollout(policy, env, obs, buf, scaler, p, device)
-            obs = rollout.next_obs
+            rollouts = []
+            for g in groups:
+                rollouts.append(collect_rollout(policy, g.env, g.obs, g.buf, g.scaler, p, device))
+                g.obs = rollouts[-1].next_obs
             tc = time.perf_counter()
             torch.set_num_threads(cfg.torch_threads)
-            stats, skipped = ppo_update(policy, optimizer, buf, rollout.advantages, rollout.returns, p, loss_fn)
+            stats, skipped = ppo_update(
+                policy, optimizer, [(g.buf, r.advantages, r.returns) for g, r in zip(groups, rollouts)], p, loss_fn
+            )
             counters["skipped_minibatches"] = counters.get("skipped_minibatches", 0) + skipped
             bad_updates = bad_updates + 1 if skipped == p.epochs * p.minibatches else 0
             if bad_updates >= MAX_BAD_UPDATES:
@@ -396,16 +448,14 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
                 "update": counters["update"],
                 "env_steps": counters["env_steps"],
                 "sps": n / dt,
-                "reward": rollout.mean_reward,
-                "train_success": rollout.train_success,
-                "train_length": rollout.train_length,
+                **rollout_stats(rollouts),
                 "loss_policy": s[0],
                 "loss_value": s[1],
                 "entropy": s[2],
                 "approx_kl": s[3],
                 "clipfrac": s[4],
-                "time_sim": rollout.time_sim,
-                "time_policy": rollout.time_policy,
+                "time_sim": sum(r.time_sim for r in rollouts),
+                "time_policy": sum(r.time_policy for r in rollouts),
                 "time_update": t_update,
                 "skipped_minibatches": skipped,
                 "lr": optimizer.param_groups[0]["lr"],
