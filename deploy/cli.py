@@ -91,6 +91,10 @@ def execute_main(argv: list[str]) -> int:
     )
     ap.add_argument("--delay", type=int, default=0, metavar="K", help="deliver messages K steps late (default 0)")
     ap.add_argument("--record", default=None, metavar="FILE.rrd", help="write a Rerun recording (first drop rate)")
+    ap.add_argument(
+        "--video", default=None, help="render the first drop rate's episodes to a .gif / .mp4 (or PNG frames directory)"
+    )
+    ap.add_argument("--record-envs", type=int, default=4, help="environments drawn by --record / --video (default 4)")
     ap.add_argument("--seed", type=int, default=12345, help="seed of the episodes and of the drops")
     ap.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per session (default 1)")
     ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -108,6 +112,12 @@ def execute_main(argv: list[str]) -> int:
             raise DeployError(f"--delay must be >= 0, got {args.delay}")
         if args.threads < 1:
             raise DeployError(f"--threads must be >= 1, got {args.threads}")
+        if args.record_envs < 1:
+            raise DeployError(f"--record-envs must be >= 1, got {args.record_envs}")
+        if args.video:
+            from .video import check_video_path
+
+            check_video_path(args.video)  # before any episode runs
         bad = [p for p in args.drop if not 0.0 <= p <= 1.0]
         if bad:
             raise DeployError(f"--drop values must be probabilities in [0, 1], got {bad}")
@@ -128,10 +138,17 @@ def execute_main(argv: list[str]) -> int:
                 seed=args.seed,
             )
             recorder = None
-            if args.record and k == 0:
+            if (args.record or args.video) and k == 0:
                 from .recording import RolloutRecorder
+                from .video import FrameRecorder, Recorders
 
-                recorder = RolloutRecorder(args.record, s.task, s.episodes, s.agents, max_envs_drawn=8)
+                rrd = video = None
+                if args.record:
+                    rrd = RolloutRecorder(args.record, s.task, s.episodes, s.agents, max_envs_drawn=args.record_envs)
+                if args.video:
+                    radius = s.comm_radius if s.comm == "rc" else None
+                    video = FrameRecorder(args.video, s.task, s.episodes, s.agents, args.record_envs, radius)
+                recorder = Recorders(rrd, video)
             try:
                 rows.append(run_episodes(model, s, recorder=recorder, threads=args.threads))
             finally:

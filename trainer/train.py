@@ -428,7 +428,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
             tc = time.perf_counter()
             torch.set_num_threads(cfg.torch_threads)
             stats, skipped = ppo_update(
-                policy, optimizer, [(g.buf, r.advantages, r.returns) for g, r in zip(groups, rollouts)], p, loss_fn
+                policy, optimizer, [(g.buf, r.advantages, r.returns) for g, r in zip(groups, rollouts, strict=False)], p, loss_fn
             )
             counters["skipped_minibatches"] = counters.get("skipped_minibatches", 0) + skipped
             bad_updates = bad_updates + 1 if skipped == p.epochs * p.minibatches else 0

@@ -1,0 +1,197 @@
+"""Offline videos of rollouts: GIF, MP4 or PNG frames, drawn with matplotlib (no display,
+no GPU). ``FrameRecorder`` has the recorder interface of ``deploy.recording``
+(``log_step`` / ``log_episode_ends`` / ``close``), so ``swarm eval`` and ``swarm
+execute`` fill it from the same rollout loop; ``close()`` renders the file.
+
+One panel per recorded environment in a grid (never overlaid): the arena, landmarks
+(grey), the current targets (black crosses) with the optimal assignment as thin
+lines, the communication graph (light blue; under RC the radius as a circle round
+each agent), and the agents coloured by id with a short trail. An environment's
+panel freezes on its last frame once its first episode ends, titled with the outcome.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from deploy.recording import ARENA_HALF_SIZE, PALETTE, to_numpy
+
+VIDEO_SUFFIXES = (".gif", ".mp4")
+TRAIL = 6  # steps of trail behind each agent
+
+
+class FrameRecorder:
+    """Collects the first ``num_drawn`` environments' states step by step; ``close()``
+    renders them to ``path`` (.gif, .mp4, or a directory for PNG frames)."""
+
+    def __init__(
+        self, path: str, task: str, num_envs: int, num_agents: int, num_drawn: int = 4, comm_radius=None, fps=10
+    ):
+        check_video_path(path)
+        self.path, self.task, self.fps = path, task, fps
+        self.num_agents = int(num_agents)
+        self.drawn = max(1, min(int(num_drawn), int(num_envs)))
+        self.comm_radius = comm_radius
+        self.frames: list[dict] = []
+        self._ended = np.zeros(int(num_envs), bool)
+        self._outcome: dict[int, str] = {}
+
+    def log_step(self, step: int, env, actions=None, attention=None) -> None:
+        D = self.drawn
+        state = env.get_state()
+        assignment = to_numpy(env.assignment)[:D] if hasattr(env, "assignment") else None
+        self.frames.append(
+            {
+                "step": int(step),
+                "pos": to_numpy(state["pos"])[:D].copy(),
+                "landmarks": to_numpy(state["landmarks"])[:D].copy(),
+                "targets": to_numpy(env.targets)[:D].copy(),
+                "adj": to_numpy(env.obs["adj"])[:D].astype(bool).copy(),
+                "assignment": None if assignment is None else assignment.copy(),
+                "live": ~self._ended[:D].copy(),
+            }
+        )
+
+    def log_episode_ends(self, step: int, mask, episode_info: dict) -> None:
+        mask = to_numpy(mask).astype(bool)
+        success = to_numpy(episode_info["success"]).astype(bool)
+        length = to_numpy(episode_info["length"])
+        for b in np.flatnonzero(mask):
+            if not self._ended[b] and b < self.drawn:
+                self._outcome[int(b)] = f"{'success' if success[b] else 'failed'} at step {int(length[b])}"
+            self._ended[b] = True
+
+    def close(self) -> None:
+        if self.frames:  # one more frame with every finished env marked, so panels show outcomes
+            last = dict(self.frames[-1])
+            last["live"] = ~self._ended[: self.drawn].copy()
+            self.frames.append(last)
+        render(self.frames, self.path, self.task, self.num_agents, self._outcome, self.comm_radius, self.fps)
+
+
+def check_video_path(path: str) -> None:
+    """Fail before any work if ``path`` cannot be written or has an unknown kind."""
+    is_dir_target = not os.path.splitext(path)[1]
+    if not is_dir_target and not path.lower().endswith(VIDEO_SUFFIXES):
+        raise ValueError(f"{path}: a video must end in .gif or .mp4 (or name a directory for PNG frames)")
+    parent = os.path.dirname(os.path.abspath(path)) if not is_dir_target else os.path.abspath(path)
+    probe = parent
+    while not os.path.exists(probe):
+        probe = os.path.dirname(probe)
+    if not os.access(probe, os.W_OK):
+        raise ValueError(f"cannot write {path}: {probe} is not writable")
+    if path.lower().endswith(".mp4"):
+        import matplotlib.animation as animation
+
+        if not animation.writers.is_available("ffmpeg"):
+            raise ValueError(f"{path}: writing MP4 needs ffmpeg on PATH; write a .gif instead")
+
+
+def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=None, comm_radius=None, fps=10):
+    """Draw ``frames`` (as FrameRecorder collects them) into ``path``; returns ``path``."""
+    if not frames:
+        raise ValueError("nothing to render: no steps were recorded")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.animation as animation
+    import matplotlib.pyplot as plt
+    from tqdm import tqdm
+
+    outcome = outcome or {}
+    D = frames[0]["pos"].shape[0]
+    cols = math.ceil(math.sqrt(D))
+    rows = math.ceil(D / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.2 * rows), squeeze=False)
+    colors = PALETTE[np.arange(num_agents) % len(PALETTE)] / 255.0
+    last_live = [0] * D  # the frame each panel froze on
+
+    def draw(k: int) -> None:
+        for b in range(rows * cols):
+            ax = axes[b // cols][b % cols]
+            ax.clear()
+            ax.set_xlim(-ARENA_HALF_SIZE * 1.1, ARENA_HALF_SIZE * 1.1)
+            ax.set_ylim(-ARENA_HALF_SIZE * 1.1, ARENA_HALF_SIZE * 1.1)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            for spine in ax.spines.values():
+                spine.set_visible(False)
+            if b >= D:
+                ax.axis("off")
+                continue
+            if frames[k]["live"][b]:
+                last_live[b] = k
+            f = frames[last_live[b]]
+            ax.add_patch(plt.Rectangle((-1, -1), 2, 2, fill=False, lw=0.8, ec="0.4"))
+            pos = f["pos"][b]
+            adj = f["adj"][b]
+            for i, j in zip(*np.nonzero(np.triu(adj | adj.T, k=1)), strict=True):
+                ax.plot(*pos[[i, j]].T, color=(0.55, 0.6, 0.9), lw=0.7, alpha=0.6, zorder=1)
+            if comm_radius is not None:
+                for p in pos:
+                    ax.add_patch(plt.Circle(p, comm_radius, fill=False, lw=0.4, ec=(0.55, 0.6, 0.9), alpha=0.4))
+            ax.scatter(*f["landmarks"][b].T, s=60, color="0.55", zorder=2)
+            ax.scatter(*f["targets"][b].T, s=25, marker="x", color="k", lw=1, zorder=3)
+            if f["assignment"] is not None:
+                for i, t in enumerate(f["assignment"][b]):
+                    ax.plot(*np.stack([pos[i], f["targets"][b][t]]).T, color="0.3", lw=0.4, ls=":", zorder=2)
+            lo = max(0, last_live[b] - TRAIL)
+            trail = np.stack([frames[t]["pos"][b] for t in range(lo, last_live[b] + 1)])  # [S, M, 2]
+            for i in range(num_agents):
+                ax.plot(*trail[:, i].T, color=colors[i], lw=1, alpha=0.5, zorder=3)
+            ax.scatter(*pos.T, s=55, color=colors, edgecolors="k", linewidths=0.4, zorder=4)
+            title = f"env {b}  step {f['step']}"
+            if not frames[k]["live"][b] and b in outcome:
+                title = f"env {b}: {outcome[b]}"
+            ax.set_title(title, fontsize=8)
+        fig.suptitle(f"{task}, M = {num_agents}", fontsize=10)
+
+    fig.tight_layout(rect=(0, 0, 1, 0.95))
+    bar = tqdm(total=len(frames), desc=f"rendering {os.path.basename(path) or path}", unit="frame", leave=False)
+
+    def update(k):
+        draw(k)
+        bar.update(1)
+        return []
+
+    try:
+        if not os.path.splitext(path)[1]:
+            os.makedirs(path, exist_ok=True)
+            for k in range(len(frames)):
+                update(k)
+                fig.savefig(os.path.join(path, f"frame_{k:04d}.png"), dpi=80)
+        else:
+            anim = animation.FuncAnimation(fig, update, frames=len(frames), blit=False)
+            writer = (
+                animation.PillowWriter(fps=fps) if path.lower().endswith(".gif") else animation.FFMpegWriter(fps=fps)
+            )
+            tmp = os.path.join(os.path.dirname(os.path.abspath(path)), ".tmp-" + os.path.basename(path))
+            anim.save(tmp, writer=writer, dpi=80)
+            os.replace(tmp, path)
+    finally:
+        bar.close()
+        plt.close(fig)
+    return path
+
+
+class Recorders:
+    """Several recorders fed by one rollout loop (e.g. a Rerun file and a GIF)."""
+
+    def __init__(self, *recorders):
+        self.recorders = [r for r in recorders if r is not None]
+
+    def log_step(self, *args, **kwargs) -> None:
+        for r in self.recorders:
+            r.log_step(*args, **kwargs)
+
+    def log_episode_ends(self, *args, **kwargs) -> None:
+        for r in self.recorders:
+            r.log_episode_ends(*args, **kwargs)
+
+    def close(self) -> None:
+        for r in self.recorders:
+            r.close()
