@@ -356,7 +356,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
     sizes = cfg.training_sizes()
     E_group = E // len(sizes)  # validate() checks that the sizes share num_envs evenly
     groups = []
-    for k, size in enumerate(sizes):
+    for size in sizes:
         env = taichi_swarm.make(cfg.task, E_group, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch)
         scaler = RewardScaler(E_group, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
         buf = Rollout.allocate(T, E_group, size, env.num_landmarks, device)
@@ -427,9 +427,8 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
                 g.obs = rollouts[-1].next_obs
             tc = time.perf_counter()
             torch.set_num_threads(cfg.torch_threads)
-            stats, skipped = ppo_update(
-                policy, optimizer, [(g.buf, r.advantages, r.returns) for g, r in zip(groups, rollouts, strict=False)], p, loss_fn
-            )
+            batches = [(g.buf, r.advantages, r.returns) for g, r in zip(groups, rollouts, strict=True)]
+            stats, skipped = ppo_update(policy, optimizer, batches, p, loss_fn)
             counters["skipped_minibatches"] = counters.get("skipped_minibatches", 0) + skipped
             bad_updates = bad_updates + 1 if skipped == p.epochs * p.minibatches else 0
             if bad_updates >= MAX_BAD_UPDATES:
