@@ -48,10 +48,13 @@ def _check_int(name: str, value, minimum: int) -> int:
 
 
 def _check_float(name: str, value, minimum: float) -> float:
+    """A finite real >= minimum that stays finite as the float32 the kernels store."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
     if value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    if not np.isfinite(np.float32(value)):
+        raise ValueError(f"{name} must fit a float32 (|x| < 3.4e38), got {value!r}")
     return float(value)
 
 
@@ -288,14 +291,22 @@ class SwarmEnv:
             arr = _to_numpy(value, name)
             if arr.shape != blk.shape:
                 raise ValueError(f"{name} must have shape {blk.shape}, got {arr.shape}")
+            # checked on the values as stored (int32 / float32), not before narrowing them
             if name == "step":
-                if not np.issubdtype(arr.dtype, np.integer) or (arr < 0).any():
+                if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.integer) or (arr < 0).any():
                     raise ValueError("step must hold non-negative integers")
+                if (arr > np.iinfo(np.int32).max).any():
+                    raise ValueError(f"step must be <= {np.iinfo(np.int32).max}, got {arr.max()}")
                 arr = arr.astype(np.int32)
             else:
+                if arr.dtype == np.bool_ or not (
+                    np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+                ):
+                    raise ValueError(f"{name} must hold real numbers, got dtype {arr.dtype}")
+                with np.errstate(over="ignore"):
+                    arr = arr.astype(np.float32)
                 if not np.isfinite(arr).all():
-                    raise ValueError(f"{name} must be finite")
-                arr = arr.astype(np.float32)
+                    raise ValueError(f"{name} must be finite as float32 (|x| < 3.4e38)")
             self._put(self._bufs[blk.buffer], blk.offset, arr)
         kernels.refresh_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
         return self.obs

@@ -70,3 +70,25 @@ def test_step_before_reset_is_an_error():
     env = taichi_swarm.make("coverage", 1, 2)
     with pytest.raises(RuntimeError, match="reset"):
         env.step(np.zeros((1, 2), dtype=np.int64))
+
+
+def test_set_state_checks_values_as_stored():
+    import numpy as np
+
+    env = taichi_swarm.make("coverage", 2, 3, array="numpy", seed=0)
+    env.reset()
+    pos = np.zeros((2, 3, 2))
+    with pytest.raises(ValueError, match="float32"):
+        env.set_state(pos=pos + 1e39)
+    with pytest.raises(ValueError, match="real numbers"):
+        env.set_state(pos=pos.astype(np.complex64))
+    with pytest.raises(ValueError, match="real numbers"):
+        env.set_state(pos=pos.astype(bool))
+    with pytest.raises(ValueError, match="step must be <="):
+        env.set_state(step=np.full(2, 2**31 + 5, dtype=np.int64))
+    with pytest.raises(ValueError, match="non-negative integers"):
+        env.set_state(step=np.ones(2, dtype=bool))
+    with pytest.raises(ValueError, match="comm_radius"):
+        taichi_swarm.make("coverage", 2, 3, comm="rc", comm_radius=1e40)
+    env.set_state(pos=pos + 0.5, step=np.full(2, 7))
+    assert float(env.get_state()["pos"][0, 0, 0]) == 0.5
