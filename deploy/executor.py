@@ -38,10 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 import onnxruntime as ort
 
+from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, validate
 from taichi_swarm.metrics import FirstEpisodes, format_results
-
-MANIFEST = "manifest.json"
-FORMAT = "taichi-swarm-onnx"
 
 
 class DeployError(ValueError):
@@ -70,6 +68,10 @@ class ExportedModel:
             raise DeployError(f"cannot read {path}: {exc}") from None
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
             raise DeployError(f"{path} is not a taichi-swarm ONNX manifest")
+        try:
+            validate(manifest, path)
+        except ManifestError as exc:
+            raise DeployError(str(exc)) from None
         self.directory = directory
         self.manifest = manifest
         self.rounds: int = int(manifest["rounds"])
@@ -90,6 +92,10 @@ class ExportedModel:
                     f"{file} does not match the sha256 in {MANIFEST}: the file is corrupted or "
                     "was changed after export; export again"
                 )
+            try:
+                check_onnx(manifest, name, data, file)
+            except ManifestError as exc:
+                raise DeployError(str(exc)) from None
             self.models[name] = data
 
     def check_landmarks(self, task: str, num_landmarks: int) -> None:

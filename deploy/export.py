@@ -30,13 +30,11 @@ import warnings
 import torch
 from torch import nn
 
+from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, seal
 from taichi_swarm.physics import ACTION_MEANINGS
 from trainer.checkpoint import CheckpointError, atomic_write_bytes, atomic_write_json, load_policy
 from trainer.model import NUM_ACTIONS, PADDED_SLOTS, SELF_DIM, SwarmPolicy
 
-MANIFEST = "manifest.json"
-FORMAT = "taichi-swarm-onnx"
-VERSION = 1
 OPSET = 18
 
 
@@ -257,6 +255,10 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
         "versions": _versions(),
         "source_checkpoint": os.path.abspath(checkpoint),
     }
+    try:
+        manifest = seal(manifest)  # validated against the schema before it is written
+    except ManifestError as exc:
+        raise ValueError(f"refusing to export: {exc}") from None
     atomic_write_json(os.path.join(out_dir, MANIFEST), manifest)
     return manifest
 

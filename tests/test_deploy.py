@@ -331,3 +331,54 @@ def test_execute_equals_swarm_eval(emp):
     assert got["per_episode"]["success"] == want["per_episode"]["success"]
     assert got["per_episode"]["length"] == want["per_episode"]["length"]
     np.testing.assert_allclose(got["per_episode"]["dist"], want["per_episode"]["dist"], atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "edit,needle",
+    [
+        (lambda m: m.update(rounds=2), "changed after export"),
+        (lambda m: m.update(rounds=-1), "rounds"),
+        (lambda m: m.pop("rounds"), "rounds"),
+        (lambda m: m.update(entity_mode="bogus"), "entity_mode"),
+        (lambda m: m["files"]["encode"].pop("sha256"), "sha256"),
+        (lambda m: m["task"].update(comm_radius=-1.0), "comm_radius"),
+    ],
+)
+def test_edited_manifest_is_refused(emp, tmp_path, capsys, edit, needle):
+    _, directory = emp
+    bad = tmp_path / "bad"
+    shutil.copytree(directory, bad)
+    manifest = json.loads((bad / "manifest.json").read_text())
+    edit(manifest)
+    (bad / "manifest.json").write_text(json.dumps(manifest))
+    code, err = _run(execute_main, [str(bad), "--episodes", "1"], capsys)
+    assert code == 2 and needle in err and "Traceback" not in err, err
+
+
+def test_resealed_manifest_must_still_fit_the_onnx_files(emp, tmp_path):
+    from deploy.manifest import seal
+
+    _, directory = emp
+    bad = tmp_path / "bad"
+    shutil.copytree(directory, bad)
+    manifest = json.loads((bad / "manifest.json").read_text())
+    manifest["files"]["round"]["inputs"] = ["h", "messages"]
+    (bad / "manifest.json").write_text(json.dumps(seal(manifest)))
+    with pytest.raises(DeployError, match="takes"):
+        ExportedModel(str(bad))
+    manifest = json.loads((tmp_path / "bad" / "manifest.json").read_text())
+    manifest["files"]["round"]["inputs"] = ["h", "heard"]
+    rng = np.random.default_rng(0)
+    garbage = rng.bytes(4096)
+    (bad / "round.onnx").write_bytes(garbage)
+    manifest["files"]["round"]["sha256"] = hashlib.sha256(garbage).hexdigest()
+    (bad / "manifest.json").write_text(json.dumps(seal(manifest)))
+    with pytest.raises(DeployError, match="not a readable ONNX"):
+        ExportedModel(str(bad))
+
+
+def test_export_refuses_an_unknown_task(tmp_path, capsys):
+    policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1))
+    ckpt = _save(str(tmp_path / "c.pt"), policy, "coverage", 3)
+    with pytest.raises(ValueError, match="task"):
+        export(ckpt, str(tmp_path / "o"), task={"task": "foo"})

@@ -1,0 +1,155 @@
+"""The export manifest (``manifest.json``): its schema, its seal, and the checks made
+against the ONNX files themselves. One definition, used when ``swarm export`` writes
+it and when the executor reads it (no torch here).
+
+- Schema: jsonschema (draft 2020-12); an error names the field.
+- Seal: ``manifest_sha256`` is the sha256 of the manifest's canonical JSON without
+  that key, so an edited field (``rounds: 2``) is refused like an edited .onnx file.
+- ONNX: each file's graph inputs and outputs must be the ones the manifest lists, and
+  the width of the hidden state the graphs take must be the manifest's ``hidden``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import jsonschema
+
+from taichi_swarm import COMMS, TASKS
+
+MANIFEST = "manifest.json"
+FORMAT = "taichi-swarm-onnx"
+VERSION = 1
+ENTITY_MODES = ("emp", "concat", "padded")
+PIECES = ("encode", "round", "round_heads", "heads")
+
+_POSITIVE_INT = {"type": "integer", "minimum": 1}
+SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "type": "object",
+    "required": [
+        "format",
+        "version",
+        "task",
+        "model_config",
+        "rounds",
+        "hidden",
+        "entity_mode",
+        "files",
+        "num_actions",
+        "manifest_sha256",
+    ],
+    "properties": {
+        "format": {"const": FORMAT},
+        "version": {"const": VERSION},
+        "task": {
+            "type": "object",
+            "required": ["task", "comm", "comm_radius"],
+            "properties": {
+                "task": {"enum": list(TASKS)},
+                "agents": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
+                "comm": {"enum": list(COMMS)},
+                "comm_radius": {"type": "number", "minimum": 0, "maximum": 1e6},
+            },
+        },
+        "model_config": {
+            "type": "object",
+            "required": ["hidden", "rounds", "entity_mode", "num_landmarks"],
+            "properties": {
+                "hidden": _POSITIVE_INT,
+                "rounds": {"type": "integer", "minimum": 0, "maximum": 64},
+                "entity_mode": {"enum": list(ENTITY_MODES)},
+                "num_landmarks": {"type": "integer", "minimum": 0},
+            },
+        },
+        "rounds": {"type": "integer", "minimum": 0, "maximum": 64},
+        "hidden": _POSITIVE_INT,
+        "entity_mode": {"enum": list(ENTITY_MODES)},
+        "num_landmarks": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
+        "max_landmarks": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
+        "num_actions": _POSITIVE_INT,
+        "files": {
+            "type": "object",
+            "required": list(PIECES),
+            "additionalProperties": False,
+            "properties": {
+                name: {
+                    "type": "object",
+                    "required": ["file", "sha256", "inputs", "outputs"],
+                    "properties": {
+                        "file": {"type": "string", "pattern": r"^[A-Za-z0-9_.-]+\.onnx$"},
+                        "sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+                        "inputs": {"type": "array", "items": {"type": "string"}},
+                        "outputs": {"type": "array", "items": {"type": "string"}},
+                    },
+                }
+                for name in PIECES
+            },
+        },
+        "manifest_sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+    },
+}
+
+
+class ManifestError(ValueError):
+    """A manifest that does not follow the schema, was edited, or does not fit its files."""
+
+
+def content_hash(manifest: dict) -> str:
+    """sha256 of the canonical JSON of ``manifest`` without its own seal."""
+    body = {k: v for k, v in manifest.items() if k != "manifest_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def seal(manifest: dict) -> dict:
+    """``manifest`` with ``manifest_sha256`` set; validated before it is returned."""
+    sealed = {**manifest, "manifest_sha256": content_hash(manifest)}
+    validate(sealed)
+    return sealed
+
+
+def validate(manifest, where: str = MANIFEST) -> None:
+    """Schema, seal and internal consistency; raises ManifestError naming the field."""
+    if not isinstance(manifest, dict):
+        raise ManifestError(f"{where} is not a JSON object")
+    try:
+        jsonschema.validate(manifest, SCHEMA)
+    except jsonschema.ValidationError as exc:
+        field = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
+        raise ManifestError(f"{where}: field {field!r}: {exc.message}") from None
+    if manifest["manifest_sha256"] != content_hash(manifest):
+        raise ManifestError(
+            f"{where} was changed after export (its manifest_sha256 does not match its content): export again"
+        )
+    mc = manifest["model_config"]
+    for key in ("rounds", "hidden", "entity_mode"):
+        if manifest[key] != mc[key]:
+            raise ManifestError(f"{where}: {key} {manifest[key]!r} differs from model_config.{key} {mc[key]!r}")
+    if manifest["entity_mode"] == "concat" and not manifest.get("num_landmarks"):
+        raise ManifestError(f"{where}: entity_mode 'concat' needs num_landmarks")
+
+
+def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:
+    """The graph in ``data`` takes and gives what the manifest says, at its hidden width."""
+    import onnx
+
+    try:
+        model = onnx.load_from_string(data)
+    except Exception as exc:  # noqa: BLE001 - random bytes, truncated protobuf
+        raise ManifestError(f"{where} is not a readable ONNX model ({type(exc).__name__})") from None
+    entry = manifest["files"][name]
+    inputs = [i.name for i in model.graph.input]
+    outputs = [o.name for o in model.graph.output]
+    if inputs != entry["inputs"] or outputs != entry["outputs"]:
+        raise ManifestError(
+            f"{where} takes {inputs} and gives {outputs}; the manifest lists {entry['inputs']} -> {entry['outputs']}"
+        )
+    for value in list(model.graph.input) + list(model.graph.output):
+        if value.name != "h":
+            continue
+        dims = value.type.tensor_type.shape.dim
+        if dims and dims[-1].HasField("dim_value") and dims[-1].dim_value != manifest["hidden"]:
+            raise ManifestError(
+                f"{where}: h has width {dims[-1].dim_value}, the manifest says hidden {manifest['hidden']}"
+            )
