@@ -40,6 +40,11 @@ def train_main(argv: list[str]) -> int:
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--resume", default=None)
     known, rest = pre.parse_known_args(argv)
+    if not known.resume and ("-h" in rest or "--help" in rest):
+        print(
+            "swarm train --resume RUN_DIR [--updates N]   continue a stopped run (N raises its update budget)\n"
+            "swarm train [options below]                  start a run\n"
+        )
     try:
         if known.resume:
             extra = argparse.ArgumentParser(prog="swarm train --resume RUN_DIR")

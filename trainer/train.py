@@ -157,7 +157,11 @@ class NonFiniteTraining(ValueError):
     """The loss or gradients stayed NaN/inf: training stopped, the weights untouched."""
 
 
-EVAL_SEED_BASE = 10_000_019  # evaluation streams: seed + update, never a training seed
+# Environment seeds: training streams live at and above 2**40, so an evaluation seed a
+# user types (below that: 777 in docs/RESULTS.md) never replays a training episode;
+# evaluations during training use EVAL_SEED_BASE + update.
+TRAIN_SEED_BASE = 2**40
+EVAL_SEED_BASE = 10_000_019
 
 
 def transfer_sizes(cfg: TrainConfig) -> list[int]:
@@ -377,7 +381,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
     # NOTE: on resume the environments restart fresh episodes from a stream derived from
     # (seed, update): runs continue exactly at update boundaries but not bit-for-bit.
     for k, g in enumerate(groups):
-        g.obs = g.env.reset(seed=cfg.seed * 1_000_003 + counters["update"] + 7_919 * k)
+        g.obs = g.env.reset(seed=TRAIN_SEED_BASE + cfg.seed * 1_000_003 + counters["update"] + 7_919 * k)
 
     def policy_payload() -> dict:
         return {

@@ -1,0 +1,50 @@
+"""The README's commands name real subcommands, options their --help lists, and
+files that exist in the repository."""
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+
+import pytest
+
+from taichi_swarm.cli import COMMANDS
+
+ROOT = os.path.join(os.path.dirname(__file__), "..")
+README = open(os.path.join(ROOT, "README.md")).read()
+
+
+def swarm_lines() -> list[list[str]]:
+    lines = []
+    for block in re.findall(r"```bash\n(.*?)```", README, flags=re.S):
+        for line in block.splitlines():
+            line = line.split("   #")[0].strip()
+            if line.startswith("swarm ") and "|" not in line:
+                lines.append(shlex.split(line))
+    return lines
+
+
+def test_readme_starts_with_setup_and_test_commands():
+    first = re.search(r"```bash\n(.*?)```", README, flags=re.S).group(1)
+    commands = [x for x in first.splitlines() if x and not x.startswith("#")]
+    assert "pip install torch==2.13.0" in commands[0] and "swarm train" in commands[0]
+    assert commands[1].endswith("python -m pytest")
+    assert "python -m pytest" in open(os.path.join(ROOT, ".ci", "run")).read()
+
+
+@pytest.mark.parametrize("argv", swarm_lines(), ids=lambda a: " ".join(a[:3]))
+def test_readme_swarm_command(argv):
+    assert argv[1] in COMMANDS, f"unknown subcommand {argv[1]}"
+    for token in argv[2:]:
+        if token.startswith("results/"):
+            assert os.path.exists(os.path.join(ROOT, token)), f"{token} does not exist"
+    options = {t.split("=")[0] for t in argv[2:] if t.startswith("--")}
+    if not options:
+        return
+    out = subprocess.run(
+        [sys.executable, "-m", "taichi_swarm.cli", argv[1], "--help"], capture_output=True, text=True, cwd=ROOT
+    )
+    text = out.stdout + out.stderr
+    for option in options:
+        assert option in text, f"swarm {argv[1]} --help does not list {option}"
