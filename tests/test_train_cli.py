@@ -301,3 +301,21 @@ def test_several_team_sizes_in_one_run(tmp_path):
         train(tiny(tmp_path, team_sizes=(2, 3, 4), run_dir=str(tmp_path / "x")))
     with pytest.raises(ValueError, match="team_sizes must be >= 2"):
         train(tiny(tmp_path, task="line", team_sizes=(1, 2), run_dir=str(tmp_path / "y")))
+
+
+def test_flipped_byte_in_weights_is_refused_and_leftovers_are_cleaned(tmp_path):
+    cfg = tiny(tmp_path, updates=1)
+    train(cfg)
+    payload = checkpoint.load(cfg.run_dir)
+    payload["model"]["comm_update.bias"][3] += 1e-3  # what a flipped byte does to a tensor...
+    torch.save(payload, str(tmp_path / "flipped.pt"))  # ...saved without a new digest
+    with pytest.raises(checkpoint.CheckpointError, match="sha256"):
+        checkpoint.load(str(tmp_path / "flipped.pt"))
+    # a kill between the checkpoint and policy writes, and a temp file left by a kill
+    stale = checkpoint.load(os.path.join(cfg.run_dir, "policy.pt"))
+    open(os.path.join(cfg.run_dir, ".tmp-abc"), "wb").close()
+    train(resume=cfg.run_dir, updates=2)
+    assert not [n for n in os.listdir(cfg.run_dir) if n.startswith(".tmp-")]
+    final = checkpoint.load(os.path.join(cfg.run_dir, "policy.pt"))
+    assert final["counters"] == checkpoint.load(os.path.join(cfg.run_dir, "checkpoint.pt"))["counters"]
+    assert final["counters"]["update"] == 2 != stale["counters"]["update"]

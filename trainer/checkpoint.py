@@ -3,6 +3,7 @@ before use so a wrong file gives a clear error instead of a torch traceback."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -40,10 +41,32 @@ def atomic_write_json(path: str, obj) -> None:
     atomic_write_bytes(path, lambda f: f.write((json.dumps(obj, indent=2) + "\n").encode()))
 
 
+def weights_digest(state_dict: dict) -> str:
+    """sha256 over the names, dtypes, shapes and bytes of every tensor of a state dict."""
+    h = hashlib.sha256()
+    for name in sorted(state_dict):
+        t = state_dict[name].detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
 def save(path: str, payload: dict) -> None:
-    """Save ``payload`` (must hold "model_config" and "model") atomically."""
-    payload = {"format": FORMAT, "version": VERSION, **payload}
+    """Save ``payload`` (must hold "model_config" and "model") atomically, with the
+    digest of its weights (checked by ``load``)."""
+    payload = {"format": FORMAT, "version": VERSION, **payload, "model_sha256": weights_digest(payload["model"])}
     atomic_write_bytes(path, lambda f: torch.save(payload, f))
+
+
+def clean_leftovers(directory: str) -> list[str]:
+    """Remove temp files a killed write left in ``directory`` (call under the run lock)."""
+    removed = []
+    if os.path.isdir(directory):
+        for name in os.listdir(directory):
+            if name.startswith(".tmp-"):
+                os.unlink(os.path.join(directory, name))
+                removed.append(name)
+    return removed
 
 
 def load(path: str, map_location="cpu") -> dict:
@@ -69,6 +92,13 @@ def load(path: str, map_location="cpu") -> dict:
     for key in ("model_config", "model"):
         if key not in payload:
             raise CheckpointError(f"{path} lacks {key!r}")
+    if not isinstance(payload["model"], dict) or not all(
+        isinstance(v, torch.Tensor) for v in payload["model"].values()
+    ):
+        raise CheckpointError(f"{path}: 'model' is not a dict of tensors")
+    digest = payload.get("model_sha256")  # absent in checkpoints written before it existed
+    if digest is not None and digest != weights_digest(payload["model"]):
+        raise CheckpointError(f"{path}: the weights do not match their stored sha256 (the file was corrupted)")
     return payload
 
 

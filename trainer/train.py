@@ -322,7 +322,11 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         run = Run(resume)
         if not os.path.isdir(resume):
             raise FileNotFoundError(f"run directory {resume} does not exist")
+        checkpoint.clean_leftovers(run.path)  # a kill during a write leaves a .tmp-* file
         payload = checkpoint.load(run.checkpoint)
+        if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
+            if checkpoint.load(run.policy).get("counters") != payload.get("counters"):
+                checkpoint.save_policy_only(payload, run.policy)
         if "train_config" not in payload:
             raise checkpoint.CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
         cfg = train_config_from_dict(payload["train_config"])
