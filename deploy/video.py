@@ -113,8 +113,13 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
         for b in range(rows * cols):
             ax = axes[b // cols][b % cols]
             ax.clear()
-            ax.set_xlim(-ARENA_HALF_SIZE * 1.1, ARENA_HALF_SIZE * 1.1)
-            ax.set_ylim(-ARENA_HALF_SIZE * 1.1, ARENA_HALF_SIZE * 1.1)
+            lim = ARENA_HALF_SIZE * 1.1
+            if b < D:  # MPE has no walls: widen the view when an agent leaves the arena
+                lim = max(
+                    lim, float(np.abs(frames[last_live[b] if not frames[k]["live"][b] else k]["pos"][b]).max()) + 0.1
+                )
+            ax.set_xlim(-lim, lim)
+            ax.set_ylim(-lim, lim)
             ax.set_aspect("equal")
             ax.set_xticks([])
             ax.set_yticks([])
