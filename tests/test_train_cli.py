@@ -319,3 +319,17 @@ def test_flipped_byte_in_weights_is_refused_and_leftovers_are_cleaned(tmp_path):
     final = checkpoint.load(os.path.join(cfg.run_dir, "policy.pt"))
     assert final["counters"] == checkpoint.load(os.path.join(cfg.run_dir, "checkpoint.pt"))["counters"]
     assert final["counters"]["update"] == 2 != stale["counters"]["update"]
+
+
+def test_tensorboard_gets_the_same_scalars(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = tiny(tmp_path, updates=2, eval_every=2, tensorboard=True, transfer_offsets=(1,))
+    train(cfg)
+    acc = EventAccumulator(os.path.join(cfg.run_dir, "tensorboard"))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"reward", "loss_value", "eval_success_rate", "eval_transfer/M3"} <= tags
+    lines = [json.loads(x) for x in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
+    assert [e.value for e in acc.Scalars("reward")] == pytest.approx([r["reward"] for r in lines], rel=1e-6)

@@ -163,6 +163,9 @@ class TrainConfig:
     compile: bool = True
     """Compile the policy forward and PPO loss of the update with torch.compile (needs a
     C++ compiler; ~30 s once per team size, then faster updates: docs/BENCHMARKS.md)."""
+    tensorboard: bool = False
+    """Also write every scalar of metrics.jsonl as TensorBoard events under
+    RUN_DIR/tensorboard (needs the tensorboard package: pip install -e ".[tensorboard]")."""
     progress: bool = True
     """Show a progress bar."""
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -226,6 +229,7 @@ def train_config_from_dict(d: dict) -> TrainConfig:
     """Inverse of ``to_dict`` (for resuming); unknown keys are an error."""
     d = dict(d)
     d.setdefault("compile", False)  # runs from before the option existed ran eagerly
+    d.setdefault("tensorboard", False)
     for key in ("transfer_offsets", "team_sizes"):
         d[key] = tuple(d.get(key, ()))
     model = ModelConfig(**d.pop("model"))

@@ -41,6 +41,30 @@ def resolve_device(device: str) -> str:
     return device
 
 
+class TensorBoardLog:
+    """metrics.jsonl's scalars as TensorBoard events (RUN_DIR/tensorboard), step = update."""
+
+    def __init__(self, run_dir: str):
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            raise ValueError('--tensorboard needs the tensorboard package: pip install -e ".[tensorboard]"') from None
+        self.writer = SummaryWriter(os.path.join(run_dir, "tensorboard"))
+
+    def log(self, record: dict) -> None:
+        step = record["update"]
+        for key, value in record.items():
+            if isinstance(value, dict):
+                for sub, v in value.items():
+                    self.writer.add_scalar(f"{key}/M{sub}", v, step)
+            elif isinstance(value, (int, float)) and key != "update":
+                self.writer.add_scalar(key, value, step)
+        self.writer.flush()
+
+    def close(self) -> None:
+        self.writer.close()
+
+
 class Run:
     """Files of one run directory."""
 
@@ -421,6 +445,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
             dynamic_ncols=True,
         )
     last_eval = evals[-1] if evals else None
+    tensorboard = TensorBoardLog(run.path) if cfg.tensorboard else None
     bad_updates = 0
     start_wall = time.perf_counter() - counters["wall_time"]
     try:
@@ -477,6 +502,8 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
             counters["wall_time"] = time.perf_counter() - start_wall
             record["wall_time"] = counters["wall_time"]
             run.log(record)
+            if tensorboard is not None:
+                tensorboard.log(record)
             if progress is not None:
                 post = {"sps": f"{record['sps']:.0f}", "rew": f"{record['reward']:.3f}"}
                 if last_eval:
@@ -504,6 +531,8 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         raise
     if progress is not None:
         progress.close()
+    if tensorboard is not None:
+        tensorboard.close()
     save_checkpoint()
     try:
         from trainer.plot import plot_run
