@@ -58,6 +58,21 @@ def _edges(adj: np.ndarray, pos: np.ndarray) -> np.ndarray:
     return np.stack([pos[i], pos[j]], axis=1)
 
 
+def layout(num_drawn: int):
+    """The viewer layout sent with every recording: one 2D view per recorded environment
+    in a grid (never overlaid), the arena's bounds fixed, and below them the team reward
+    and success rate on the step timeline."""
+    import rerun.blueprint as rrb
+
+    bounds = rrb.VisualBounds2D(x_range=[-1.2, 1.2], y_range=[-1.2, 1.2])
+    views = [rrb.Spatial2DView(origin=f"env_{b}", name=f"env {b}", visual_bounds=bounds) for b in range(num_drawn)]
+    plots = rrb.TimeSeriesView(origin="/all", name="team reward (mean over envs), success rate")
+    if not views:
+        return rrb.Blueprint(plots, collapse_panels=True)
+    grid = rrb.Grid(*views, grid_columns=max(1, int(np.ceil(np.sqrt(num_drawn)))))
+    return rrb.Blueprint(rrb.Vertical(grid, plots, row_shares=[4, 1]), collapse_panels=True)
+
+
 class RolloutRecorder:
     """Writes one .rrd file of a batched rollout; draw the first ``max_envs_drawn`` envs."""
 
@@ -80,7 +95,7 @@ class RolloutRecorder:
         self.agent_radius, self.landmark_radius = spec.agent_radius, spec.landmark_radius
         self.rec = rr.RecordingStream(app_id)
         self.rec.set_log_time_enabled(False)  # no wall clock: the same rollout gives the same data
-        self.rec.save(path)
+        self.rec.save(path, default_blueprint=layout(self.drawn))
         self._ended = np.zeros(self.num_envs, bool)  # first episode of the env is over: stop drawing it
         self._successes: list[bool] = []
         self.colors = PALETTE[np.arange(self.num_agents) % len(PALETTE)]  # [M, 3]

@@ -101,3 +101,22 @@ def test_replay_stats_and_no_display(tmp_path, capsys, monkeypatch):
     assert replay_main([str(bad), "--stats"]) == 2
     assert "swarm replay: error:" in capsys.readouterr().err
     assert os.path.exists(path)
+
+
+def test_recordings_carry_a_grid_layout_one_view_per_environment(tmp_path):
+    import subprocess
+
+    from deploy.recording import layout
+    from deploy.replay import rerun_command
+
+    grid, plots = layout(5).root_container.contents
+    assert [v.origin for v in grid.contents] == [f"env_{b}" for b in range(5)]  # never overlaid
+    assert type(plots).__name__ == "TimeSeriesView"
+    env = taichi_swarm.make("coverage", 3, 3, array="numpy", seed=0)
+    env.reset()
+    path = str(tmp_path / "r.rrd")
+    rec = RolloutRecorder(path, "coverage", 3, 3, max_envs_drawn=2)
+    rec.log_step(0, env, np.zeros((3, 3), dtype=np.int64))
+    rec.close()
+    printed = subprocess.run(rerun_command() + ["rrd", "print", path], capture_output=True, text=True).stdout
+    assert printed.count("ViewBlueprint:space_origin") >= 3  # 2 environment views and the plot
