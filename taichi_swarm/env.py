@@ -272,6 +272,43 @@ class SwarmEnv:
             raise ValueError(f"actions must be in 0..{NUM_ACTIONS - 1}, got values in [{lo}, {hi}]")
         return host
 
+    def snapshot(self) -> dict:
+        """A copy of everything the environments carry from step to step (the three packed
+        buffers: state, random streams, episode statistics, warm starts, observations);
+        ``restore`` continues from it bit-identically. numpy arrays, any arch."""
+        bufs = {}
+        for k, buf in self._bufs.items():
+            bufs[k] = buf.detach().cpu().numpy().copy() if hasattr(buf, "detach") else buf.copy()
+        return {"shape": self._snapshot_key(), "buffers": bufs}
+
+    def restore(self, snapshot: dict) -> dict:
+        """Continue from ``snapshot()`` of an env built with the same arguments; returns ``obs``."""
+        if not isinstance(snapshot, dict) or "buffers" not in snapshot:
+            raise ValueError("restore() takes what snapshot() returned")
+        if tuple(snapshot.get("shape", ())) != self._snapshot_key():
+            raise ValueError(f"snapshot of {tuple(snapshot.get('shape', ()))} cannot restore {self._snapshot_key()}")
+        for k, buf in self._bufs.items():
+            arr = np.asarray(snapshot["buffers"][k])
+            if arr.shape != tuple(buf.shape) or arr.dtype != self._host_dtype(k):
+                raise ValueError(
+                    f"snapshot buffer {k} has shape {arr.shape} / {arr.dtype}, expected {tuple(buf.shape)}"
+                )
+            if self._host is not None:
+                self._host[k][...] = arr
+            else:
+                import torch
+
+                buf.copy_(torch.from_numpy(arr))
+        self._seeded = True
+        return self.obs
+
+    def _snapshot_key(self) -> tuple:
+        return (self.task, self.num_envs, self.num_agents, self.num_landmarks, self.comm, self.comm_radius)
+
+    @staticmethod
+    def _host_dtype(kind: str):
+        return {"f32": np.float32, "i32": np.int32, "u8": np.uint8}[kind]
+
     def get_state(self) -> dict:
         """Copies of pos [B, M, 2], vel [B, M, 2], landmarks [B, L, 2], step [B]."""
         names = {"pos": "pos", "vel": "vel", "landmarks": "landmarks", "step": "step"}

@@ -333,3 +333,53 @@ def test_tensorboard_gets_the_same_scalars(tmp_path):
     assert {"reward", "loss_value", "eval_success_rate", "eval_transfer/M3"} <= tags
     lines = [json.loads(x) for x in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
     assert [e.value for e in acc.Scalars("reward")] == pytest.approx([r["reward"] for r in lines], rel=1e-6)
+
+
+def _weights(run_dir):
+    return checkpoint.load(os.path.join(run_dir, "checkpoint.pt"))["model"]
+
+
+def test_resume_continues_bit_identically(tmp_path):
+    whole = tiny(tmp_path, updates=4, eval_every=100, run_dir=str(tmp_path / "whole"))
+    train(whole)
+    part = tiny(tmp_path, updates=2, eval_every=100, run_dir=str(tmp_path / "part"))
+    train(part)
+    train(resume=part.run_dir, updates=4)
+    a, b = _weights(whole.run_dir), _weights(part.run_dir)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    la = [json.loads(x)["reward"] for x in open(os.path.join(whole.run_dir, "metrics.jsonl"))]
+    lb = [json.loads(x)["reward"] for x in open(os.path.join(part.run_dir, "metrics.jsonl"))]
+    assert la == lb
+
+
+@pytest.mark.slow
+def test_kill_9_during_training_then_resume_equals_an_uninterrupted_run(tmp_path):
+    import signal
+    import time
+
+    whole = tiny(tmp_path, updates=8, eval_every=100, run_dir=str(tmp_path / "whole"))
+    train(whole)
+    run = str(tmp_path / "killed")
+    code = (
+        "import sys; sys.path.insert(0, {root!r}); sys.path.insert(0, {tests!r})\n"
+        "from test_train_cli import tiny; from trainer.train import train; import pathlib\n"
+        "train(tiny(pathlib.Path({tmp!r}), updates=8, eval_every=100, run_dir={run!r}))\n"
+    ).format(
+        root=os.path.join(os.path.dirname(__file__), ".."),
+        tests=os.path.dirname(__file__),
+        tmp=str(tmp_path),
+        run=run,
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    metrics = os.path.join(run, "metrics.jsonl")
+    deadline = time.time() + 120
+    while time.time() < deadline and (not os.path.exists(metrics) or len(open(metrics).readlines()) < 4):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert len(open(metrics).readlines()) < 8, "the run finished before it could be killed"
+    train(resume=run, updates=8)
+    a, b = _weights(whole.run_dir), _weights(run)
+    for k in a:
+        assert torch.equal(a[k], b[k]), k

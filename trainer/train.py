@@ -308,6 +308,12 @@ def ppo_update(policy, optimizer, groups: list[tuple[Rollout, torch.Tensor, torc
     return stats / steps, skipped
 
 
+def env_state(env) -> dict:
+    """``env.snapshot()`` as torch tensors (checkpoints load with weights_only=True)."""
+    snap = env.snapshot()
+    return {"shape": list(snap["shape"]), "buffers": {k: torch.from_numpy(v) for k, v in snap["buffers"].items()}}
+
+
 @dataclasses.dataclass
 class TeamGroup:
     """The environments of one team size, with their rollout buffer and reward scaler."""
@@ -406,10 +412,14 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         torch.set_rng_state(payload["torch_rng"])
         counters = dict(payload["counters"])
         evals = list(payload.get("evals", []))
-    # NOTE: on resume the environments restart fresh episodes from a stream derived from
-    # (seed, update): runs continue exactly at update boundaries but not bit-for-bit.
+    env_states = (payload or {}).get("env_states")
     for k, g in enumerate(groups):
-        g.obs = g.env.reset(seed=TRAIN_SEED_BASE + cfg.seed * 1_000_003 + counters["update"] + 7_919 * k)
+        if env_states is not None and len(env_states) == len(groups):
+            # resume bit-identically: the environments' buffers as they were at the checkpoint
+            buffers = {name: t.numpy() for name, t in env_states[k]["buffers"].items()}
+            g.obs = g.env.restore({"shape": tuple(env_states[k]["shape"]), "buffers": buffers})
+        else:  # a fresh run (or a checkpoint from before env states were saved)
+            g.obs = g.env.reset(seed=TRAIN_SEED_BASE + cfg.seed * 1_000_003 + counters["update"] + 7_919 * k)
 
     def policy_payload() -> dict:
         return {
@@ -424,6 +434,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         payload = {
             **policy_payload(),
             "optimizer": optimizer.state_dict(),
+            "env_states": [env_state(g.env) for g in groups],
             "reward_scaler": groups[0].scaler.state_dict(),
             "reward_scalers": [g.scaler.state_dict() for g in groups],
             "torch_rng": torch.get_rng_state(),
