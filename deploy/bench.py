@@ -12,7 +12,6 @@ Targets: <= 0.3 ms per agent-step with onnxruntime, >= 3x faster than torch.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -185,8 +184,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(format_result(result))
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
+        from taichi_swarm.files import atomic_write_json
+
+        atomic_write_json(args.json, result)
     return 0
 
 

@@ -114,6 +114,11 @@ def execute_main(argv: list[str]) -> int:
             raise DeployError(f"--threads must be >= 1, got {args.threads}")
         if args.record_envs < 1:
             raise DeployError(f"--record-envs must be >= 1, got {args.record_envs}")
+        from taichi_swarm.files import ensure_writable
+
+        for out, what in ((args.json, "--json"), (args.record, "--record")):
+            if out:
+                ensure_writable(out, what)
         if args.video:
             from .video import check_video_path
 
@@ -158,10 +163,9 @@ def execute_main(argv: list[str]) -> int:
         return _fail("execute", exc)
     print(format_table(rows))
     if args.json:
-        import json
+        from taichi_swarm.files import atomic_write_json
 
-        with open(args.json, "w") as f:
-            json.dump({"directory": args.directory, "rows": rows}, f, indent=2)
+        atomic_write_json(args.json, {"directory": args.directory, "rows": rows})
     return 0
 
 

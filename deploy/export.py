@@ -31,8 +31,9 @@ import torch
 from torch import nn
 
 from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, seal
+from taichi_swarm.files import atomic_write_bytes, atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
-from trainer.checkpoint import CheckpointError, atomic_write_bytes, atomic_write_json, load_policy
+from trainer.checkpoint import CheckpointError, load_policy
 from trainer.model import NUM_ACTIONS, PADDED_SLOTS, SELF_DIM, SwarmPolicy
 
 OPSET = 18

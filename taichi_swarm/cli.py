@@ -45,7 +45,14 @@ def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
     except ImportError as exc:
         print(f"{prog} {name}: cannot import {module_name} ({exc})", file=sys.stderr)
         return 2
-    return int(getattr(module, func_name)(rest) or 0)
+    try:
+        return int(getattr(module, func_name)(rest) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except OSError as exc:  # disk full, read-only file system, permissions: one line, no traceback
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"{prog} {name}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        return 1
 
 
 def main(argv: list[str] | None = None) -> int:

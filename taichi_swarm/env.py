@@ -13,6 +13,7 @@ is overwritten by the next ``step``/``reset``: copy what you keep.
 from __future__ import annotations
 
 import numbers
+import sys
 
 import numpy as np
 
@@ -37,6 +38,10 @@ ARRAYS = ("torch", "numpy")
 # (crossover measured at M = 3, 5, 10 on 2 cores: B*M^2 between ~13k and ~37k).
 SERIAL_BELOW_WORK = 32768
 _TASK_PARAM_NAME = {"formation": "formation_radius", "line": "line_length"}
+
+
+LARGE_TEAM = 64  # from this team size, say that kernels are compiling (it takes a while)
+_ANNOUNCED_CAPACITIES: set[int] = set()
 
 
 def _check_int(name: str, value, minimum: int) -> int:
@@ -109,6 +114,14 @@ class SwarmEnv:
         self.device = "cuda" if self.arch == "cuda" else "cpu"
         self._parallel = self.arch == "cuda" or self.num_envs * self.num_agents**2 >= SERIAL_BELOW_WORK
         self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks)
+        if self.num_agents >= LARGE_TEAM and self._cap not in _ANNOUNCED_CAPACITIES:
+            _ANNOUNCED_CAPACITIES.add(self._cap)
+            print(
+                f"taichi_swarm: compiling kernels for teams of up to {self._cap} agents (first use in this "
+                f"process; M >= 100 can take minutes: docs/BENCHMARKS.md lists the sizes measured)",
+                file=sys.stderr,
+                flush=True,
+            )
         self._allocate()
         self._write_header()
         self._seeded = False

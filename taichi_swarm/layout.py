@@ -11,6 +11,7 @@ buffer (and the float parameters at the start of the float32 buffer), so the
 kernels read ``ib[O_POS]`` instead of being recompiled for each (B, M, L).
 """
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,18 +128,29 @@ class Layout:
     def __init__(self, num_envs: int, num_agents: int, num_landmarks: int):
         self.B, self.M, self.L = num_envs, num_agents, num_landmarks
         self.blocks: dict[str, Block] = {}
-        self.header = np.zeros(INT_HEADER, dtype=np.int32)
-        self.header[[H_B, H_M, H_L]] = (num_envs, num_agents, num_landmarks)
         self.sizes = {}
+        slots = {}
+        # offsets in Python integers first: the int32 header is filled only once they fit
         for buf, entries in _blocks(num_agents, num_landmarks).items():
             offset = INT_HEADER if buf == "i32" else FLOAT_HEADER if buf == "f32" else 0
             for slot, name, per_env in entries:
                 self.blocks[name] = Block(buf, offset, (num_envs, *per_env))
-                self.header[slot] = offset
-                offset += num_envs * int(np.prod(per_env, dtype=np.int64))
+                slots[slot] = offset
+                offset += int(num_envs) * math.prod(int(x) for x in per_env)
             self.sizes[buf] = offset
         if max(self.sizes.values()) >= 2**31:
+            need = 4 * self.sizes["f32"] + 4 * self.sizes["i32"] + self.sizes["u8"]
             raise ValueError(
-                f"num_envs={num_envs} x num_agents={num_agents} needs more than 2^31 buffer "
-                "entries; use fewer environments per SwarmEnv"
+                f"num_envs={num_envs} x num_agents={num_agents} needs {max(self.sizes.values()):,} entries in one "
+                f"buffer (the kernels index with int32: at most 2^31) and {need / 2**30:.1f} GiB of memory; "
+                "use fewer environments per SwarmEnv"
             )
+        self.header = np.zeros(INT_HEADER, dtype=np.int32)
+        self.header[[H_B, H_M, H_L]] = (num_envs, num_agents, num_landmarks)
+        for slot, offset in slots.items():
+            self.header[slot] = offset
+
+    @property
+    def nbytes(self) -> int:
+        """Memory of the three buffers."""
+        return 4 * self.sizes["f32"] + 4 * self.sizes["i32"] + self.sizes["u8"]

@@ -92,3 +92,8 @@ def test_set_state_checks_values_as_stored():
         taichi_swarm.make("coverage", 2, 3, comm="rc", comm_radius=1e40)
     env.set_state(pos=pos + 0.5, step=np.full(2, 7))
     assert float(env.get_state()["pos"][0, 0, 0]) == 0.5
+
+
+def test_oversized_batches_are_refused_with_the_memory_they_would_need():
+    with pytest.raises(ValueError, match="GiB of memory"):
+        taichi_swarm.make("coverage", 10_000_000, 100, array="numpy")

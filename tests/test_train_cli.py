@@ -383,3 +383,31 @@ def test_kill_9_during_training_then_resume_equals_an_uninterrupted_run(tmp_path
     a, b = _weights(whole.run_dir), _weights(run)
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def test_unwritable_outputs_fail_before_the_work_and_os_errors_are_one_line(tmp_path, capsys):
+    from taichi_swarm.cli import main as swarm
+
+    cfg = tiny(tmp_path, updates=1)
+    train(cfg)
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code = swarm(["eval", cfg.run_dir, "--episodes", "2", "--json", str(blocker / "out.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--json" in err and "not a writable directory" in err
+    code = swarm(["eval", cfg.run_dir, "--episodes", "2", "--json", str(tmp_path)])
+    assert code == 2 and "is a directory" in capsys.readouterr().err
+
+    def full_disk(*a, **k):
+        raise OSError(28, "No space left on device", str(tmp_path / "run" / "checkpoint.pt"))
+
+    import trainer.cli
+
+    original = trainer.cli.eval_main
+    trainer.cli.eval_main = full_disk
+    try:
+        assert swarm(["eval", "x"]) == 1
+    finally:
+        trainer.cli.eval_main = original
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "checkpoint.pt" in err and "Traceback" not in err

@@ -4,12 +4,12 @@ before use so a wrong file gives a clear error instead of a torch traceback."""
 from __future__ import annotations
 
 import hashlib
-import json
+import io
 import os
-import tempfile
 
 import torch
 
+from taichi_swarm.files import atomic_write_bytes, atomic_write_json, clean_leftovers, ensure_writable  # noqa: F401
 from trainer.model import ModelConfig, SwarmPolicy
 
 FORMAT = "taichi-swarm-checkpoint"
@@ -18,27 +18,6 @@ VERSION = 1
 
 class CheckpointError(ValueError):
     """A checkpoint file is missing, unreadable or does not fit."""
-
-
-def atomic_write_bytes(path: str, write) -> None:
-    """Call ``write(fileobj)`` on a temp file beside ``path``, fsync, then rename over it."""
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_json(path: str, obj) -> None:
-    atomic_write_bytes(path, lambda f: f.write((json.dumps(obj, indent=2) + "\n").encode()))
 
 
 def weights_digest(state_dict: dict) -> str:
@@ -55,18 +34,9 @@ def save(path: str, payload: dict) -> None:
     """Save ``payload`` (must hold "model_config" and "model") atomically, with the
     digest of its weights (checked by ``load``)."""
     payload = {"format": FORMAT, "version": VERSION, **payload, "model_sha256": weights_digest(payload["model"])}
-    atomic_write_bytes(path, lambda f: torch.save(payload, f))
-
-
-def clean_leftovers(directory: str) -> list[str]:
-    """Remove temp files a killed write left in ``directory`` (call under the run lock)."""
-    removed = []
-    if os.path.isdir(directory):
-        for name in os.listdir(directory):
-            if name.startswith(".tmp-"):
-                os.unlink(os.path.join(directory, name))
-                removed.append(name)
-    return removed
+    data = io.BytesIO()
+    torch.save(payload, data)  # in memory first: a full disk then fails as OSError(ENOSPC), not inside torch
+    atomic_write_bytes(path, lambda f: f.write(data.getbuffer()))
 
 
 def load(path: str, map_location="cpu") -> dict:

@@ -8,7 +8,7 @@ import dataclasses
 import json
 import sys
 
-from trainer.checkpoint import CheckpointError, atomic_write_json
+from trainer.checkpoint import CheckpointError, atomic_write_json, ensure_writable
 
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, CheckpointError)
 
@@ -116,6 +116,9 @@ def eval_main(argv: list[str]) -> int:
     try:
         if args.episodes < 1:
             raise ValueError("--episodes must be >= 1")
+        for out, what in ((args.json, "--json"), (args.record, "--record")):
+            if out:
+                ensure_writable(out, what)
         torch.set_num_threads(1)
         policy, payload = load_policy(args.checkpoint)
         s = _eval_settings(args, payload)
@@ -171,6 +174,8 @@ def zero_shot_main(argv: list[str]) -> int:
     try:
         if args.episodes < 1:
             raise ValueError(f"--episodes must be >= 1, got {args.episodes}")
+        if args.json:
+            ensure_writable(args.json, "--json")
         sizes = parse_sizes(args.sizes)
         torch.set_num_threads(1)
         policy, payload = load_policy(args.checkpoint)
