@@ -179,9 +179,16 @@ def replay_main(argv: list[str]) -> int:
     args, code = _parse(ap, argv)
     if args is None:
         return code
+    if os.path.isdir(args.file):
+        return _fail("replay", f"{args.file} is a directory: pass the .rrd file written by --record")
     if not os.path.isfile(args.file):
         return _fail("replay", f"recording {args.file} does not exist")
     from . import replay
+
+    if not replay.looks_like_rrd(args.file):
+        return _fail(
+            "replay", f"{args.file} is not a Rerun recording (.rrd files start with 'RRF'; written by --record)"
+        )
 
     if args.stats:
         try:

@@ -19,6 +19,12 @@ def rerun_command() -> list[str]:
     return [sys.executable, "-m", "rerun"]
 
 
+def looks_like_rrd(path: str) -> bool:
+    """True if the file starts with Rerun's RRD magic bytes."""
+    with open(path, "rb") as f:
+        return f.read(3) == b"RRF"
+
+
 def summarize(path: str) -> dict:
     """Per entity path: rows, static or not, and the range of the "step" timeline (RrdReader)."""
     from rerun.chunk import RrdReader

@@ -40,15 +40,18 @@ SERIAL_BELOW_WORK = 32768
 _TASK_PARAM_NAME = {"formation": "formation_radius", "line": "line_length"}
 
 
+INT32_MAX = 2**31 - 1
 LARGE_TEAM = 64  # from this team size, say that kernels are compiling (it takes a while)
 _ANNOUNCED_CAPACITIES: set[int] = set()
 
 
-def _check_int(name: str, value, minimum: int) -> int:
+def _check_int(name: str, value, minimum: int, maximum: int | None = None) -> int:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         raise ValueError(f"{name} must be an integer, got {value!r}")
     if value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise ValueError(f"{name} must be <= {maximum}, got {value}")
     return int(value)
 
 
@@ -78,7 +81,7 @@ class SwarmEnv:
         array: str = "torch",
         **task_params,
     ):
-        if task not in TASK_SPECS:
+        if not isinstance(task, str) or task not in TASK_SPECS:
             raise ValueError(f"task must be one of {TASKS}, got {task!r}")
         spec = TASK_SPECS[task]
         self.task = task
@@ -101,7 +104,8 @@ class SwarmEnv:
             raise ValueError(f"unknown parameter(s) {unknown} for task {task!r}; known: {sorted(allowed)}")
         params = {**allowed, **task_params}
         self.params = {
-            k: (_check_int(k, v, 1) if k == "max_steps" else _check_float(k, v, 0.0)) for k, v in params.items()
+            k: (_check_int(k, v, 1, INT32_MAX) if k == "max_steps" else _check_float(k, v, 0.0))
+            for k, v in params.items()
         }
         self.num_actions = NUM_ACTIONS
         self._task_id = spec.task_id

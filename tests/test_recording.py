@@ -120,3 +120,12 @@ def test_recordings_carry_a_grid_layout_one_view_per_environment(tmp_path):
     rec.close()
     printed = subprocess.run(rerun_command() + ["rrd", "print", path], capture_output=True, text=True).stdout
     assert printed.count("ViewBlueprint:space_origin") >= 3  # 2 environment views and the plot
+
+
+def test_replay_names_directories_and_non_recordings(tmp_path, capsys):
+    text = tmp_path / "notes.txt"
+    text.write_text("hello")
+    assert replay_main([str(tmp_path)]) == 2
+    assert "is a directory" in capsys.readouterr().err
+    assert replay_main([str(text)]) == 2
+    assert "not a Rerun recording" in capsys.readouterr().err

@@ -411,3 +411,22 @@ def test_unwritable_outputs_fail_before_the_work_and_os_errors_are_one_line(tmp_
         trainer.cli.eval_main = original
     err = capsys.readouterr().err
     assert "No space left on device" in err and "checkpoint.pt" in err and "Traceback" not in err
+
+
+def test_checkpoints_that_cannot_resume_are_named(tmp_path):
+    cfg = tiny(tmp_path, updates=1)
+    train(cfg)
+    ckpt = os.path.join(cfg.run_dir, "checkpoint.pt")
+    payload = checkpoint.load(ckpt)
+    del payload["counters"]
+    checkpoint.save(ckpt, payload)
+    with pytest.raises(checkpoint.CheckpointError, match="lacks"):
+        train(resume=cfg.run_dir)
+    payload = checkpoint.load(os.path.join(cfg.run_dir, "policy.pt"))
+    full = tiny(tmp_path, updates=1, run_dir=str(tmp_path / "b"))
+    train(full)
+    payload = checkpoint.load(os.path.join(full.run_dir, "checkpoint.pt"))
+    payload["train_config"]["bogus"] = 1
+    checkpoint.save(os.path.join(full.run_dir, "checkpoint.pt"), payload)
+    with pytest.raises(checkpoint.CheckpointError, match="bogus"):
+        train(resume=full.run_dir)

@@ -174,6 +174,7 @@ def collect_rollout(policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, 
     )
 
 
+RESUME_KEYS = ("counters", "optimizer", "reward_scaler", "torch_rng")
 MAX_BAD_UPDATES = 3  # consecutive updates with no finite minibatch before training stops
 
 
@@ -354,12 +355,20 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
             raise FileNotFoundError(f"run directory {resume} does not exist")
         checkpoint.clean_leftovers(run.path)  # a kill during a write leaves a .tmp-* file
         payload = checkpoint.load(run.checkpoint)
+        if "train_config" not in payload:
+            raise checkpoint.CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
+        lacking = [k for k in RESUME_KEYS if k not in payload]
+        if lacking:
+            raise checkpoint.CheckpointError(f"{run.checkpoint} cannot resume a run: it lacks {lacking}")
+        try:
+            cfg = train_config_from_dict(payload["train_config"])
+        except (TypeError, ValueError) as exc:
+            raise checkpoint.CheckpointError(
+                f"{run.checkpoint} holds a training config this version cannot read: {exc}"
+            ) from None
         if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
             if checkpoint.load(run.policy).get("counters") != payload.get("counters"):
                 checkpoint.save_policy_only(payload, run.policy)
-        if "train_config" not in payload:
-            raise checkpoint.CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
-        cfg = train_config_from_dict(payload["train_config"])
         if updates is not None:
             cfg = dataclasses.replace(cfg, updates=updates)
         run.truncate_metrics(payload["counters"]["update"])
