@@ -176,6 +176,7 @@ def replay_main(argv: list[str]) -> int:
     ap.add_argument("--stats", action="store_true", help="print a summary (entity paths, rows, steps) and exit")
     ap.add_argument("--serve-web", action="store_true", help="serve the web viewer on 127.0.0.1 (no GPU needed)")
     ap.add_argument("--port", type=int, default=None, help="web viewer port (with --serve-web)")
+    ap.add_argument("--video", default=None, help="render the recording to a .gif / .mp4 (or a PNG frames directory)")
     args, code = _parse(ap, argv)
     if args is None:
         return code
@@ -190,6 +191,17 @@ def replay_main(argv: list[str]) -> int:
             "replay", f"{args.file} is not a Rerun recording (.rrd files start with 'RRF'; written by --record)"
         )
 
+    if args.video:
+        from .video import check_video_path, frames_from_recording, render
+
+        try:
+            check_video_path(args.video)
+            frames, task, M, outcomes = frames_from_recording(args.file)
+            render(frames, args.video, task, M, outcomes)
+        except (ValueError, OSError) as exc:
+            return _fail("replay", exc)
+        print(f"video: {args.video} ({frames[0]['pos'].shape[0]} environments, {len(frames) - 1} steps)")
+        return 0
     if args.stats:
         try:
             summary = replay.summarize(args.file)

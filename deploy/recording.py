@@ -120,9 +120,11 @@ class RolloutRecorder:
         state = env.get_state()
         pos = to_numpy(state["pos"])[:D]  # [D, M, 2]
         landmarks = to_numpy(state["landmarks"])[:D]  # [D, L, 2]
-        targets = to_numpy(env.targets)[:D]  # [D, M, 2]
-        adj = to_numpy(env.obs["adj"])[:D].astype(bool)  # [D, M, M]
-        acts = to_numpy(actions)[:D]  # [D, M]
+        # copies: Rerun may encode arrays after log() returns, and these are views of the
+        # env's buffers, which the next step overwrites (an auto-reset env's new targets)
+        targets = to_numpy(env.targets)[:D].copy()  # [D, M, 2]
+        adj = to_numpy(env.obs["adj"])[:D].astype(bool)  # [D, M, M] (astype copies)
+        acts = to_numpy(actions)[:D].copy()  # [D, M]
         att = None if attention is None else to_numpy(attention)[:D]  # [D, M, M]
         for b in range(D):
             if self._ended[b]:

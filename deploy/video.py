@@ -200,3 +200,87 @@ class Recorders:
     def close(self) -> None:
         for r in self.recorders:
             r.close()
+
+
+def frames_from_recording(path: str) -> tuple[list[dict], str, int, dict]:
+    """Rebuild FrameRecorder's frames from a Rerun recording written by ``--record``
+    (agents, landmarks, targets and communication edges of every drawn environment).
+    Returns (frames, task, M, outcomes)."""
+    import re
+
+    from rerun.chunk import RrdReader
+
+    data: dict[tuple[int, str], dict[int, object]] = {}  # (env, kind) -> step -> value
+    task = "swarm"
+    for chunk in RrdReader(path).stream():
+        m = re.fullmatch(r"/env_(\d+)(?:/(.+))?", chunk.entity_path)
+        if not m:
+            continue
+        b, kind = int(m.group(1)), m.group(2) or ""
+        rb = chunk.to_record_batch()
+        names = rb.schema.names
+        if kind == "" and "TextDocument:text" in names:
+            text = rb.column("TextDocument:text").to_pylist()[0]
+            task = str(text[0] if isinstance(text, list) else text).split(",")[0]
+            continue
+        if "step" not in names:
+            continue
+        column = {
+            "agents": "Points2D:positions",
+            "landmarks": "Points2D:positions",
+            "targets": "Points2D:positions",
+            "comm": "LineStrips2D:strips",
+            "episode/success": "Scalars:scalars",
+            "episode/length": "Scalars:scalars",
+        }.get(kind)
+        if column is None or column not in names:
+            continue
+        for step, value in zip(rb.column("step").to_pylist(), rb.column(column).to_pylist(), strict=True):
+            if value is not None:
+                data.setdefault((b, kind), {})[int(step)] = value
+    envs = sorted({b for b, kind in data if kind == "agents"})
+    if not envs:
+        raise ValueError(f"{path} holds no drawn environments (was it written by --record?)")
+    steps = sorted({s for b in envs for s in data[(b, "agents")]})
+    M = len(next(iter(data[(envs[0], "agents")].values())))
+    outcomes = {}
+    for i, b in enumerate(envs):
+        if (b, "episode/success") in data:
+            (end, success), *_ = data[(b, "episode/success")].items()
+            length = int(next(iter(data.get((b, "episode/length"), {end: [end]}).values()))[0])
+            outcomes[i] = f"{'success' if success[0] > 0.5 else 'failed'} at step {length}"
+    frames, last = [], {}
+    for step in steps:
+        pos, lmk, tgt, adj, live = [], [], [], [], []
+        for b in envs:
+            here = step in data[(b, "agents")]
+            if here:
+                p = np.asarray(data[(b, "agents")][step], np.float32)
+                a = np.eye(M, dtype=bool)
+                for seg in data.get((b, "comm"), {}).get(step, []) or []:
+                    ij = [int(np.argmin(np.abs(p - np.asarray(pt, np.float32)).sum(-1))) for pt in seg]
+                    a[ij[0], ij[1]] = a[ij[1], ij[0]] = True
+                keep = lambda kind, default, b=b: np.asarray(  # noqa: E731
+                    data.get((b, kind), {}).get(step, last.get((b, kind), default)), np.float32
+                )
+                last[(b, "agents")], last[(b, "adj")] = p, a
+                last[(b, "landmarks")] = keep("landmarks", np.zeros((0, 2)))
+                last[(b, "targets")] = keep("targets", np.zeros((0, 2)))
+            pos.append(last[(b, "agents")])
+            adj.append(last[(b, "adj")])
+            lmk.append(last[(b, "landmarks")])
+            tgt.append(last[(b, "targets")])
+            live.append(here)
+        frames.append(
+            {
+                "step": step,
+                "pos": np.stack(pos),
+                "landmarks": np.stack(lmk) if len({x.shape for x in lmk}) == 1 else np.stack([lmk[0]] * len(lmk)),
+                "targets": np.stack(tgt),
+                "adj": np.stack(adj),
+                "assignment": None,
+                "live": np.array(live),
+            }
+        )
+    frames.append({**frames[-1], "live": np.zeros(len(envs), bool)})
+    return frames, task, M, outcomes

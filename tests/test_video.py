@@ -42,3 +42,34 @@ def test_bad_video_paths_are_refused_before_the_work(tmp_path, capsys):
     with pytest.raises(ValueError, match=".gif or .mp4"):
         check_video_path(str(tmp_path / "x.avi"))
     assert swarm(["eval", str(tmp_path / "none.pt"), "--video", str(tmp_path / "x.avi")]) == 2
+
+
+def test_replay_video_rebuilds_the_recorded_rollout(tmp_path, capsys):
+    """--record and --video of one evaluation; the frames rebuilt from the .rrd equal the
+    live ones (this caught the recorder logging views of buffers the next step overwrote)."""
+    import torch
+
+    from deploy.recording import RolloutRecorder
+    from deploy.video import FrameRecorder, Recorders, frames_from_recording
+    from trainer.evaluate import evaluate
+    from trainer.model import ModelConfig, SwarmPolicy
+
+    torch.manual_seed(0)
+    policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1)).eval()
+    rrd, gif = str(tmp_path / "r.rrd"), str(tmp_path / "r.gif")
+    live = FrameRecorder(gif, "coverage", 5, 3, num_drawn=3)
+    live.close = lambda: None  # keep the frames, skip rendering
+    rec = Recorders(RolloutRecorder(rrd, "coverage", 5, 3, max_envs_drawn=3), live)
+    evaluate(policy, "coverage", 3, episodes=5, seed=3, recorder=rec)
+    rec.close()
+    frames, task, M, _ = frames_from_recording(rrd)
+    assert task == "coverage" and M == 3
+    for got, want in zip(frames, live.frames, strict=False):
+        assert got["step"] == want["step"]
+        for b in range(3):
+            if want["live"][b]:
+                np.testing.assert_allclose(got["pos"][b], want["pos"][b], atol=1e-6)
+                np.testing.assert_allclose(got["targets"][b], want["targets"][b], atol=1e-6)
+                np.testing.assert_array_equal(got["adj"][b], want["adj"][b] | want["adj"][b].T)
+    assert swarm(["replay", rrd, "--video", gif]) == 0
+    assert Image.open(gif).n_frames == len(frames)
