@@ -260,12 +260,10 @@ def frames_from_recording(path: str) -> tuple[list[dict], str, int, dict]:
                 for seg in data.get((b, "comm"), {}).get(step, []) or []:
                     ij = [int(np.argmin(np.abs(p - np.asarray(pt, np.float32)).sum(-1))) for pt in seg]
                     a[ij[0], ij[1]] = a[ij[1], ij[0]] = True
-                keep = lambda kind, default, b=b: np.asarray(  # noqa: E731
-                    data.get((b, kind), {}).get(step, last.get((b, kind), default)), np.float32
-                )
                 last[(b, "agents")], last[(b, "adj")] = p, a
-                last[(b, "landmarks")] = keep("landmarks", np.zeros((0, 2)))
-                last[(b, "targets")] = keep("targets", np.zeros((0, 2)))
+                for kind in ("landmarks", "targets"):  # logged every step; keep the last if absent
+                    value = data.get((b, kind), {}).get(step, last.get((b, kind), np.zeros((0, 2))))
+                    last[(b, kind)] = np.asarray(value, np.float32)
             pos.append(last[(b, "agents")])
             adj.append(last[(b, "adj")])
             lmk.append(last[(b, "landmarks")])
