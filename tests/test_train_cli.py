@@ -430,3 +430,15 @@ def test_checkpoints_that_cannot_resume_are_named(tmp_path):
     checkpoint.save(os.path.join(full.run_dir, "checkpoint.pt"), payload)
     with pytest.raises(checkpoint.CheckpointError, match="bogus"):
         train(resume=full.run_dir)
+
+
+def test_zero_shot_plot(tmp_path):
+    from taichi_swarm.cli import main as swarm
+
+    data = {"trained_agents": 3, "results": [{"agents": m, "success_rate": 1 / m} for m in (2, 3, 4)]}
+    path = tmp_path / "z.json"
+    path.write_text(json.dumps(data))
+    out = tmp_path / "z.png"
+    assert swarm(["plot", "--zero-shot", str(path), "--labels", "x", "--out", str(out)]) == 0
+    assert out.stat().st_size > 5000
+    assert swarm(["plot", "--zero-shot", str(path)]) == 2  # needs --out

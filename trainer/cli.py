@@ -232,11 +232,22 @@ def curriculum_main(argv: list[str]) -> int:
 def plot_main(argv: list[str]) -> int:
     from trainer.plot import plot_run
 
-    ap = argparse.ArgumentParser(prog="swarm plot")
-    ap.add_argument("run_dir")
+    ap = argparse.ArgumentParser(prog="swarm plot", description="learning curves of a run, or zero-shot S% vs M")
+    ap.add_argument("run_dir", nargs="?", help="run directory (learning curves)")
     ap.add_argument("--out", default=None, help="PNG path (default RUN_DIR/curves.png)")
+    ap.add_argument("--zero-shot", nargs="+", default=None, metavar="JSON", help="`swarm zero-shot --json` files")
+    ap.add_argument("--labels", nargs="+", default=None, help="legend labels of the --zero-shot files")
     args = ap.parse_args(argv)
     try:
+        if args.zero_shot:
+            from trainer.plot import plot_zero_shot
+
+            if not args.out:
+                raise ValueError("--zero-shot needs --out FILE.png")
+            print(plot_zero_shot(args.zero_shot, args.out, args.labels))
+            return 0
+        if not args.run_dir:
+            raise ValueError("pass a run directory, or --zero-shot JSON files with --out")
         print(plot_run(args.run_dir, args.out))
     except (FileNotFoundError, ValueError, json.JSONDecodeError) as exc:
         return _fail("plot", exc)

@@ -51,3 +51,36 @@ def plot_run(run_dir: str, out: str | None = None) -> str:
     plt.close(fig)
     os.replace(tmp, out)
     return out
+
+
+def plot_zero_shot(json_paths: list[str], out: str, labels: list[str] | None = None) -> str:
+    """S% against team size from ``swarm zero-shot --json`` files, one line each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 3.4))
+    for k, path in enumerate(json_paths):
+        with open(path) as f:
+            data = json.load(f)
+        rows = data.get("results")
+        if not isinstance(rows, list) or not rows:
+            raise ValueError(f"{path} is not a `swarm zero-shot --json` file")
+        sizes = [r["agents"] for r in rows]
+        rates = [100 * r["success_rate"] for r in rows]
+        trained = data.get("trained_agents")
+        label = labels[k] if labels and k < len(labels) else os.path.splitext(os.path.basename(path))[0]
+        line = ax.plot(sizes, rates, "o-", label=label)[0]
+        if trained in sizes:
+            ax.plot([trained], [rates[sizes.index(trained)]], "*", ms=14, color=line.get_color())
+    ax.set(xlabel="team size M (star: the size trained on)", ylabel="success S%", ylim=(-2, 102))
+    ax.set_title("zero-shot transfer (no fine-tuning)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    tmp = out + ".tmp.png"
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    os.replace(tmp, out)
+    return out
