@@ -19,6 +19,7 @@ import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
 H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
+SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
 # --- int32 header: where each block starts (in its own buffer) -----------------------
 (
     # float32 blocks
@@ -85,7 +86,7 @@ def _blocks(M: int, L: int):
         (O_VEL, "vel", (M, 2)),
         (O_LMK, "landmarks", (L, 2)),
         (O_TGT, "targets", (M, 2)),
-        (O_OBS_SELF, "obs_self", (M, 4)),
+        (O_OBS_SELF, "obs_self", (M, SELF_DIM)),
         (O_OBS_ENT, "obs_entities", (M, L, 2)),
         (O_REWARD, "reward", ()),
         (O_MATCHED, "matched_dist", (M,)),
@@ -93,7 +94,7 @@ def _blocks(M: int, L: int):
         (O_EP_DIST, "ep_dist", ()),
         (O_EP_RETURN, "ep_return", ()),
         (O_RET_ACC, "return_acc", ()),
-        (O_TERM_SELF, "term_self", (M, 4)),
+        (O_TERM_SELF, "term_self", (M, SELF_DIM)),
         (O_TERM_ENT, "term_entities", (M, L, 2)),
         (O_COST, "assign_cost", (M, M)),  # assignment cost matrix (M > SMALL_M)
         (O_PRICES, "prices", (M,)),  # assignment column prices, the next solve's warm start
