@@ -178,6 +178,7 @@ def test_torch_outputs_share_memory_with_the_env():
     assert reward.dtype == torch.float32 and reward.shape == (4,) and done.dtype == torch.bool
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("M", [50, 100])
 def test_large_teams_run(M):
     env = taichi_swarm.make("coverage", 2, M, seed=0, array="numpy")

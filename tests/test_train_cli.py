@@ -115,6 +115,7 @@ def swarm(*args, cwd):
     )
 
 
+@pytest.mark.slow
 def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     common = [
         "--updates",
