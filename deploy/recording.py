@@ -175,8 +175,7 @@ class RolloutRecorder:
                 rec.log(f"{p}/episode/length", rr.Scalars(float(length[b])))
                 if dist is not None:
                     rec.log(f"{p}/episode/dist", rr.Scalars(float(dist[b])))
-                for name in ("agents", "comm", "attention", "targets", "landmarks"):
-                    rec.log(f"{p}/{name}", rr.Clear(recursive=False))
+                # no Clear: the env's last state stays on screen (frozen) once its episode ended
         rec.log("all/success_rate", rr.Scalars(float(np.mean(self._successes))))
 
     def close(self) -> None:

@@ -46,7 +46,7 @@ def test_recording_has_entities_and_steps(tmp_path):
         for name in ("agents", "landmarks", "targets", "comm", "attention", "reward"):
             assert ents[f"/env_{b}/{name}"]["steps"][0] == 0, name
         assert ents[f"/env_{b}/arena"]["static"]
-    assert ents["/env_0/agents"]["steps"] == (0, 5)  # steps 0..4 drawn, cleared at the end (step 5)
+    assert ents["/env_0/agents"]["steps"] == (0, 4)  # steps 0..4 drawn; the last state stays (no Clear)
     assert ents["/env_0/episode/success"]["steps"] == (5, 5)
     assert "/env_1/episode/success" not in ents  # env 1 did not end
     assert not any(name.startswith("/env_2") for name in ents)  # max_envs_drawn = 2
