@@ -149,7 +149,14 @@ def execute_main(argv: list[str]) -> int:
 
                 rrd = video = None
                 if args.record:
-                    rrd = RolloutRecorder(args.record, s.task, s.episodes, s.agents, max_envs_drawn=args.record_envs)
+                    rrd = RolloutRecorder(
+                        args.record,
+                        s.task,
+                        s.episodes,
+                        s.agents,
+                        max_envs_drawn=args.record_envs,
+                        comm_radius=s.comm_radius if s.comm == "rc" else None,
+                    )
                 if args.video:
                     radius = s.comm_radius if s.comm == "rc" else None
                     video = FrameRecorder(args.video, s.task, s.episodes, s.agents, args.record_envs, radius)

@@ -9,10 +9,14 @@ Entity paths, per drawn env b (the first ``max_envs_drawn``), timeline "step":
     env_b/arena        the [-1, 1]^2 box (static)
     env_b/landmarks    Points2D [L]
     env_b/targets      Points2D [M]    where the task wants the agents
+    env_b/assignment   LineStrips2D    agent -> its target in the optimal assignment
     env_b/agents       Points2D [M]    coloured by id, labelled with the id
+    env_b/trails       LineStrips2D    the last few positions of each agent
     env_b/comm         LineStrips2D    the communication graph of the step (undirected i-j)
+    env_b/comm_range   LineStrips2D    under RC, the communication radius round each agent
     env_b/attention    LineStrips2D    last-round attention i <- j, alpha = weight (when given)
     env_b/reward       Scalars         team reward of the step that led to this state
+    env_b/matched_dist_mean  Scalars   mean matched distance d*_i
     env_b/episode/{success,length,dist}  Scalars at the step the env's first episode ended
     all/reward_mean, all/success_rate    Scalars over all B envs
 """
@@ -51,6 +55,14 @@ def to_numpy(x) -> np.ndarray:
     return np.asarray(x)
 
 
+TRAIL = 6  # steps of trail drawn behind each agent
+
+
+def _circle(center: np.ndarray, radius: float, n: int = 48) -> np.ndarray:
+    t = np.linspace(0, 2 * np.pi, n)
+    return np.stack([center[0] + radius * np.cos(t), center[1] + radius * np.sin(t)], axis=1)
+
+
 def _edges(adj: np.ndarray, pos: np.ndarray) -> np.ndarray:
     """adj [M, M] bool, pos [M, 2] -> segments [E, 2, 2] of the undirected graph, no self loops."""
     sym = np.triu(adj | adj.T, k=1)
@@ -66,7 +78,10 @@ def layout(num_drawn: int):
 
     bounds = rrb.VisualBounds2D(x_range=[-1.2, 1.2], y_range=[-1.2, 1.2])
     views = [rrb.Spatial2DView(origin=f"env_{b}", name=f"env {b}", visual_bounds=bounds) for b in range(num_drawn)]
-    plots = rrb.TimeSeriesView(origin="/all", name="team reward (mean over envs), success rate")
+    contents = ["+ /all/**"] + [f"+ /env_{b}/{x}" for b in range(num_drawn) for x in ("reward", "matched_dist_mean")]
+    plots = rrb.TimeSeriesView(
+        origin="/", contents=contents, name="team reward and success rate; per env: reward, mean matched distance"
+    )
     if not views:
         return rrb.Blueprint(plots, collapse_panels=True)
     grid = rrb.Grid(*views, grid_columns=max(1, int(np.ceil(np.sqrt(num_drawn)))))
@@ -84,6 +99,7 @@ class RolloutRecorder:
         num_agents: int,
         max_envs_drawn: int = 8,
         app_id: str = "taichi_swarm",
+        comm_radius: float | None = None,
     ):
         from taichi_swarm.tasks import TASK_SPECS
 
@@ -100,6 +116,8 @@ class RolloutRecorder:
         self._successes: list[bool] = []
         self.colors = PALETTE[np.arange(self.num_agents) % len(PALETTE)]  # [M, 3]
         self.labels = [str(i) for i in range(self.num_agents)]
+        self.comm_radius = comm_radius  # drawn as a circle round each agent (RC)
+        self._trail: list[list[np.ndarray]] = [[] for _ in range(self.drawn)]  # last TRAIL positions
         for b in range(self.drawn):
             self.rec.log(
                 f"env_{b}/arena",
@@ -125,11 +143,26 @@ class RolloutRecorder:
         targets = to_numpy(env.targets)[:D].copy()  # [D, M, 2]
         adj = to_numpy(env.obs["adj"])[:D].astype(bool)  # [D, M, M] (astype copies)
         acts = to_numpy(actions)[:D].copy()  # [D, M]
-        att = None if attention is None else to_numpy(attention)[:D]  # [D, M, M]
+        att = None if attention is None else to_numpy(attention)[:D].copy()  # [D, M, M]
+        assign = to_numpy(env.assignment)[:D].copy() if hasattr(env, "assignment") else None  # [D, M]
+        matched = to_numpy(env.matched_dist)[:D].copy() if hasattr(env, "matched_dist") else None  # [D, M]
         for b in range(D):
             if self._ended[b]:
                 continue
             p = f"env_{b}"
+            trail = self._trail[b]
+            trail.append(pos[b].copy())
+            del trail[:-TRAIL]
+            strips = np.stack(trail, axis=1)  # [M, S, 2]
+            rec.log(f"{p}/trails", rr.LineStrips2D(list(strips), colors=self.colors, radii=0.003))
+            if assign is not None:
+                lines = np.stack([pos[b], targets[b][assign[b]]], axis=1)  # agent -> its target
+                rec.log(f"{p}/assignment", rr.LineStrips2D(lines, colors=(40, 40, 40, 120), radii=0.002))
+            if matched is not None:
+                rec.log(f"{p}/matched_dist_mean", rr.Scalars(float(matched[b].mean())))
+            if self.comm_radius is not None:  # RC: each agent's communication range
+                circles = [_circle(q, self.comm_radius) for q in pos[b]]
+                rec.log(f"{p}/comm_range", rr.LineStrips2D(circles, colors=(150, 150, 220, 60), radii=0.002))
             rec.log(f"{p}/landmarks", rr.Points2D(landmarks[b], radii=self.landmark_radius, colors=LANDMARK_COLOR))
             rec.log(f"{p}/targets", rr.Points2D(targets[b], radii=0.015, colors=TARGET_COLOR))
             rec.log(

@@ -139,7 +139,14 @@ def eval_main(argv: list[str]) -> int:
                 radius = s["comm_radius"] if s["comm"] == "rc" else None
                 video = FrameRecorder(args.video, s["task"], args.episodes, agents, args.record_envs, radius)
             if args.record:
-                rrd = RolloutRecorder(args.record, s["task"], args.episodes, agents, max_envs_drawn=args.record_envs)
+                rrd = RolloutRecorder(
+                    args.record,
+                    s["task"],
+                    args.episodes,
+                    agents,
+                    max_envs_drawn=args.record_envs,
+                    comm_radius=s["comm_radius"] if s["comm"] == "rc" else None,
+                )
             recorder = Recorders(rrd, video)
         result = evaluate(
             policy,

@@ -43,10 +43,14 @@ def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, dev
     fused = policy.fused_weights()  # computed once: the weights do not change here
     step = 0
     while not tally.all_done():
-        logits, _ = policy(obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device), fused=fused)
+        inputs = (obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device))
+        if recorder is None:
+            logits, _ = policy(*inputs, fused=fused)
+        else:  # the last round's attention weights are drawn on the communication edges
+            logits, _, attention = policy(*inputs, fused=fused, return_attention=True)
         actions = logits.argmax(-1).to(env.device)
         if recorder is not None:
-            recorder.log_step(step, env, actions)
+            recorder.log_step(step, env, actions, attention=attention[-1] if attention else None)
         obs, _, done, info = env.step(actions)
         step += 1
         new = tally.add(done, info["episode"])
