@@ -45,6 +45,13 @@ def plot_run(run_dir: str, out: str | None = None) -> str:
     axes[2].plot([r["env_steps"] / 1e6 for r in ev], [r["eval_mean_length"] for r in ev], "o-")
     axes[2].set(title="eval episode length T", xlabel="env steps (M)")
     fig.suptitle(os.path.basename(os.path.normpath(run_dir)))
+    return _save(fig, out)
+
+
+def _save(fig, out: str) -> str:
+    """Write ``fig`` to ``out`` atomically (temp file, then rename) and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     tmp = out + ".tmp.png"
     fig.savefig(tmp, dpi=90)
@@ -78,9 +85,4 @@ def plot_zero_shot(json_paths: list[str], out: str, labels: list[str] | None = N
     ax.set_title("zero-shot transfer (no fine-tuning)", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    tmp = out + ".tmp.png"
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    os.replace(tmp, out)
-    return out
+    return _save(fig, out)

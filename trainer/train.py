@@ -231,20 +231,9 @@ def make_loss_fn(policy, p, compile: bool = False):
     elementwise loops around the GEMMs: 1.3-1.7x per minibatch on this CPU), falling back
     to eager with a warning where compilation fails (no C++ compiler, say)."""
 
-    def loss_fn(self_obs, entities, adj, actions, old_logprobs, old_values, advantages, returns):
+    def loss_fn(self_obs, entities, adj, *batch):  # batch: actions, old log-probs and values, advantages, returns
         logits, values = policy(self_obs, entities, adj)
-        loss, info = ppo_loss(
-            logits,
-            values,
-            actions,
-            old_logprobs,
-            old_values,
-            advantages,
-            returns,
-            p.clip,
-            p.value_coef,
-            p.entropy_coef,
-        )
+        loss, info = ppo_loss(logits, values, *batch, p.clip, p.value_coef, p.entropy_coef)
         return loss, torch.stack([info.policy, info.value, info.entropy, info.approx_kl, info.clipfrac])
 
     if not compile:
