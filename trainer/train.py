@@ -337,46 +337,62 @@ def train(
         return _train_locked(cfg, resume, on_update, updates)
 
 
-def _train_locked(cfg, resume, on_update, updates) -> dict:
-    if resume is not None:
-        run = Run(resume)
-        if not os.path.isdir(resume):
-            raise FileNotFoundError(f"run directory {resume} does not exist")
-        checkpoint.clean_leftovers(run.path)  # a kill during a write leaves a .tmp-* file
-        payload = checkpoint.load(run.checkpoint)
-        if "train_config" not in payload:
-            raise checkpoint.CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
-        lacking = [k for k in RESUME_KEYS if k not in payload]
-        if lacking:
-            raise checkpoint.CheckpointError(f"{run.checkpoint} cannot resume a run: it lacks {lacking}")
-        try:
-            cfg = train_config_from_dict(payload["train_config"])
-        except (TypeError, ValueError) as exc:
-            raise checkpoint.CheckpointError(
-                f"{run.checkpoint} holds a training config this version cannot read: {exc}"
-            ) from None
-        if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
-            if checkpoint.load(run.policy).get("counters") != payload.get("counters"):
-                checkpoint.save_policy_only(payload, run.policy)
-        if updates is not None:
-            cfg = dataclasses.replace(cfg, updates=updates)
-        run.truncate_metrics(payload["counters"]["update"])
-    else:
+def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None):
+    """The run directory of a new run, or of one to resume (its checkpoint checked, its
+    config read back, leftovers of a killed write repaired). Returns (run, cfg, payload)."""
+    if resume is None:
         if cfg is None:
             raise ValueError("train() needs a config or a run directory to resume")
-        payload = None
         run = Run(cfg.default_run_dir())
         if os.path.exists(run.checkpoint):
             raise FileExistsError(
                 f"{run.path} already holds a run; continue it with --resume {run.path} or pick another --run-dir"
             )
         os.makedirs(run.path, exist_ok=True)
+        cfg.validate()
+        checkpoint.atomic_write_json(run.config, to_dict(cfg))
+        return run, cfg, None
+    run = Run(resume)
+    checkpoint.clean_leftovers(run.path)  # a kill during a write leaves a .tmp-* file
+    payload = checkpoint.load(run.checkpoint)
+    if "train_config" not in payload:
+        raise checkpoint.CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
+    lacking = [k for k in RESUME_KEYS if k not in payload]
+    if lacking:
+        raise checkpoint.CheckpointError(f"{run.checkpoint} cannot resume a run: it lacks {lacking}")
+    try:
+        cfg = train_config_from_dict(payload["train_config"])
+    except (TypeError, ValueError) as exc:
+        raise checkpoint.CheckpointError(
+            f"{run.checkpoint} holds a training config this version cannot read: {exc}"
+        ) from None
+    if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
+        if checkpoint.load(run.policy).get("counters") != payload.get("counters"):
+            checkpoint.save_policy_only(payload, run.policy)
+    if updates is not None:
+        cfg = dataclasses.replace(cfg, updates=updates)
+    run.truncate_metrics(payload["counters"]["update"])
     cfg.validate()
     checkpoint.atomic_write_json(run.config, to_dict(cfg))
-    device = resolve_device(cfg.device)
-    p = cfg.ppo
-    E, T, M = p.num_envs, p.num_steps, cfg.agents
+    return run, cfg, payload
 
+
+@dataclasses.dataclass
+class TrainingState:
+    """Everything a checkpoint holds, live."""
+
+    policy: SwarmPolicy
+    optimizer: torch.optim.Optimizer
+    groups: list[TeamGroup]
+    counters: dict  # update, env_steps, wall_time, skipped_minibatches
+    evals: list[dict]
+    bad_updates: int = 0  # consecutive updates without one finite minibatch
+
+
+def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> TrainingState:
+    """The policy (fresh, from --init-from, or from the checkpoint), Adam, and one group of
+    environments per team size, started fresh or restored exactly as checkpointed."""
+    p = cfg.ppo
     torch.manual_seed(cfg.seed)
     policy = SwarmPolicy(model_config_for(cfg)).to(device)
     if cfg.init_from and payload is None:
@@ -388,28 +404,27 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         policy.load_state_dict(init_policy.state_dict())
     # fused: one kernel for every parameter (the per-tensor loop cost ~1.4 ms per minibatch)
     optimizer = torch.optim.Adam(policy.parameters(), lr=p.lr, eps=1e-5, fused=True)
-    loss_fn = make_loss_fn(policy, p, compile=cfg.compile)
     sizes = cfg.training_sizes()
-    E_group = E // len(sizes)  # validate() checks that the sizes share num_envs evenly
+    E = p.num_envs // len(sizes)  # validate() checks that the sizes share num_envs evenly
     groups = []
     for size in sizes:
-        env = taichi_swarm.make(cfg.task, E_group, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch)
-        scaler = RewardScaler(E_group, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
-        buf = Rollout.allocate(T, E_group, size, env.num_landmarks, device)
-        groups.append(TeamGroup(size, env, {}, buf, scaler))
-    counters = {"update": 0, "env_steps": 0, "wall_time": 0.0}
-    evals: list[dict] = []
+        env = taichi_swarm.make(cfg.task, E, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch)
+        scaler = RewardScaler(E, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
+        groups.append(
+            TeamGroup(size, env, {}, Rollout.allocate(p.num_steps, E, size, env.num_landmarks, device), scaler)
+        )
+    state = TrainingState(policy, optimizer, groups, {"update": 0, "env_steps": 0, "wall_time": 0.0}, [])
     if payload is not None:
         checkpoint.load_weights(policy, payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
         scaler_states = payload.get("reward_scalers", [payload["reward_scaler"]])
         if len(scaler_states) != len(groups):
-            raise checkpoint.CheckpointError(f"{run.checkpoint} holds {len(scaler_states)} reward scalers")
-        for g, state in zip(groups, scaler_states, strict=True):
-            g.scaler.load_state_dict(state)
+            raise checkpoint.CheckpointError(f"the checkpoint holds {len(scaler_states)} reward scalers")
+        for g, scaler_state in zip(groups, scaler_states, strict=True):
+            g.scaler.load_state_dict(scaler_state)
         torch.set_rng_state(payload["torch_rng"])
-        counters = dict(payload["counters"])
-        evals = list(payload.get("evals", []))
+        state.counters = dict(payload["counters"])
+        state.evals = list(payload.get("evals", []))
     env_states = (payload or {}).get("env_states")
     for k, g in enumerate(groups):
         if env_states is not None and len(env_states) == len(groups):
@@ -417,132 +432,150 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
             buffers = {name: t.numpy() for name, t in env_states[k]["buffers"].items()}
             g.obs = g.env.restore({"shape": tuple(env_states[k]["shape"]), "buffers": buffers})
         else:  # a fresh run (or a checkpoint from before env states were saved)
-            g.obs = g.env.reset(seed=TRAIN_SEED_BASE + cfg.seed * 1_000_003 + counters["update"] + 7_919 * k)
+            seed = TRAIN_SEED_BASE + cfg.seed * 1_000_003 + state.counters["update"] + 7_919 * k
+            g.obs = g.env.reset(seed=seed)
+    return state
 
-    def policy_payload() -> dict:
-        return {
-            "model_config": policy.config.to_dict(),
-            "model": policy.state_dict(),
-            "task": {"task": cfg.task, "agents": M, "comm": cfg.comm, "comm_radius": cfg.comm_radius},
-            "counters": dict(counters),
-            "evals": list(evals),
-        }
 
-    def save_checkpoint() -> None:
-        payload = {
-            **policy_payload(),
-            "optimizer": optimizer.state_dict(),
-            "env_states": [env_state(g.env) for g in groups],
-            "reward_scaler": groups[0].scaler.state_dict(),
-            "reward_scalers": [g.scaler.state_dict() for g in groups],
-            "torch_rng": torch.get_rng_state(),
-            "train_config": to_dict(cfg),
-        }
-        checkpoint.save(run.checkpoint, payload)
-        # the weights alone (no optimiser): small enough to commit, loads in `swarm eval`/`export`
-        checkpoint.save_policy_only(payload, run.policy)
+def save_checkpoint(run: Run, state: TrainingState, cfg: TrainConfig) -> None:
+    """checkpoint.pt (everything to resume bit-identically), then policy.pt (weights only:
+    small enough to commit; loads in `swarm eval` / `export`)."""
+    payload = {
+        "model_config": state.policy.config.to_dict(),
+        "model": state.policy.state_dict(),
+        "task": {"task": cfg.task, "agents": cfg.agents, "comm": cfg.comm, "comm_radius": cfg.comm_radius},
+        "counters": dict(state.counters),
+        "evals": list(state.evals),
+        "optimizer": state.optimizer.state_dict(),
+        "env_states": [env_state(g.env) for g in state.groups],
+        "reward_scaler": state.groups[0].scaler.state_dict(),
+        "reward_scalers": [g.scaler.state_dict() for g in state.groups],
+        "torch_rng": torch.get_rng_state(),
+        "train_config": to_dict(cfg),
+    }
+    checkpoint.save(run.checkpoint, payload)
+    checkpoint.save_policy_only(payload, run.policy)
 
-    progress = None
-    if cfg.progress:
-        from tqdm import tqdm
 
-        progress = tqdm(
-            total=cfg.updates,
-            initial=counters["update"],
-            desc=f"{cfg.task} M={','.join(map(str, sizes))} {cfg.comm}",
-            unit="upd",
-            dynamic_ncols=True,
+def one_update(state: TrainingState, cfg: TrainConfig, loss_fn, device: str, run: Run) -> dict:
+    """Rollout -> advantages -> clipped-PPO epochs; returns the update's metrics record."""
+    p = cfg.ppo
+    t0 = time.perf_counter()
+    if p.lr_end is not None:  # linear decay from lr to lr_end over the run
+        frac = state.counters["update"] / max(cfg.updates - 1, 1)
+        state.optimizer.param_groups[0]["lr"] = p.lr + (p.lr_end - p.lr) * min(frac, 1.0)
+    rollouts = []
+    for g in state.groups:
+        rollouts.append(collect_rollout(state.policy, g.env, g.obs, g.buf, g.scaler, p, device))
+        g.obs = rollouts[-1].next_obs
+    tc = time.perf_counter()
+    torch.set_num_threads(cfg.torch_threads)
+    batches = [(g.buf, r.advantages, r.returns) for g, r in zip(state.groups, rollouts, strict=True)]
+    stats, skipped = ppo_update(state.policy, state.optimizer, batches, p, loss_fn)
+    t_update = time.perf_counter() - tc
+    state.counters["skipped_minibatches"] = state.counters.get("skipped_minibatches", 0) + skipped
+    state.bad_updates = state.bad_updates + 1 if skipped == p.epochs * p.minibatches else 0
+    if state.bad_updates >= MAX_BAD_UPDATES:
+        raise NonFiniteTraining(
+            f"every minibatch of the last {state.bad_updates} updates had a NaN/inf loss or gradient; "
+            f"stopped before any reached the weights (last good checkpoint: {run.checkpoint}). "
+            "Lower --ppo.lr or check the configuration."
         )
-    last_eval = evals[-1] if evals else None
-    tensorboard = TensorBoardLog(run.path) if cfg.tensorboard else None
-    bad_updates = 0
+    n = p.num_steps * p.num_envs
+    state.counters["update"] += 1
+    state.counters["env_steps"] += n
+    s = stats.tolist()
+    return {
+        "update": state.counters["update"],
+        "env_steps": state.counters["env_steps"],
+        "sps": n / (time.perf_counter() - t0),
+        **rollout_stats(rollouts),
+        "loss_policy": s[0],
+        "loss_value": s[1],
+        "entropy": s[2],
+        "approx_kl": s[3],
+        "clipfrac": s[4],
+        "time_sim": sum(r.time_sim for r in rollouts),
+        "time_policy": sum(r.time_policy for r in rollouts),
+        "time_update": t_update,
+        "skipped_minibatches": skipped,
+        "lr": state.optimizer.param_groups[0]["lr"],
+    }
+
+
+class Reporter:
+    """Where each update's record goes: metrics.jsonl, TensorBoard, the progress bar and
+    the caller's ``on_update``."""
+
+    def __init__(self, run: Run, cfg: TrainConfig, start: int, on_update=None):
+        self.run, self.on_update = run, on_update
+        self.tensorboard = TensorBoardLog(run.path) if cfg.tensorboard else None
+        self.progress = None
+        if cfg.progress:
+            from tqdm import tqdm
+
+            sizes = ",".join(map(str, cfg.training_sizes()))
+            desc = f"{cfg.task} M={sizes} {cfg.comm}"
+            self.progress = tqdm(total=cfg.updates, initial=start, desc=desc, unit="upd", dynamic_ncols=True)
+
+    def report(self, record: dict, last_eval: dict | None) -> None:
+        self.run.log(record)
+        if self.tensorboard is not None:
+            self.tensorboard.log(record)
+        if self.progress is not None:
+            post = {"sps": f"{record['sps']:.0f}", "rew": f"{record['reward']:.3f}"}
+            if last_eval:
+                post["S%"] = f"{100 * last_eval['success_rate']:.0f}"
+                post["T"] = f"{last_eval['mean_length']:.1f}"
+                for size, rate in last_eval.get("transfer", {}).items():
+                    post[f"S%@{size}"] = f"{100 * rate:.0f}"
+            self.progress.set_postfix(post)
+            self.progress.update(1)
+        if self.on_update is not None:
+            self.on_update(record)
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.close()
+        if self.tensorboard is not None:
+            self.tensorboard.close()
+
+
+def _train_locked(cfg, resume, on_update, updates) -> dict:
+    run, cfg, payload = open_run(cfg, resume, updates)
+    device = resolve_device(cfg.device)
+    state = build_state(cfg, payload, device)
+    loss_fn = make_loss_fn(state.policy, cfg.ppo, compile=cfg.compile)
+    counters = state.counters
+    reporter = Reporter(run, cfg, counters["update"], on_update)
+    last_eval = state.evals[-1] if state.evals else None
     start_wall = time.perf_counter() - counters["wall_time"]
     try:
         while counters["update"] < cfg.updates:
-            t0 = time.perf_counter()
-            if p.lr_end is not None:
-                frac = counters["update"] / max(cfg.updates - 1, 1)
-                optimizer.param_groups[0]["lr"] = p.lr + (p.lr_end - p.lr) * min(frac, 1.0)
-            rollouts = []
-            for g in groups:
-                rollouts.append(collect_rollout(policy, g.env, g.obs, g.buf, g.scaler, p, device))
-                g.obs = rollouts[-1].next_obs
-            tc = time.perf_counter()
-            torch.set_num_threads(cfg.torch_threads)
-            batches = [(g.buf, r.advantages, r.returns) for g, r in zip(groups, rollouts, strict=True)]
-            stats, skipped = ppo_update(policy, optimizer, batches, p, loss_fn)
-            counters["skipped_minibatches"] = counters.get("skipped_minibatches", 0) + skipped
-            bad_updates = bad_updates + 1 if skipped == p.epochs * p.minibatches else 0
-            if bad_updates >= MAX_BAD_UPDATES:
-                raise NonFiniteTraining(
-                    f"every minibatch of the last {bad_updates} updates had a NaN/inf loss or gradient; "
-                    f"stopped before any reached the weights (last good checkpoint: {run.checkpoint}). "
-                    "Lower --ppo.lr or check the configuration."
-                )
-            t_update = time.perf_counter() - tc
-            counters["update"] += 1
-            counters["env_steps"] += T * E
-            n = T * E
-            dt = time.perf_counter() - t0
-            s = stats.tolist()
-            record = {
-                "update": counters["update"],
-                "env_steps": counters["env_steps"],
-                "sps": n / dt,
-                **rollout_stats(rollouts),
-                "loss_policy": s[0],
-                "loss_value": s[1],
-                "entropy": s[2],
-                "approx_kl": s[3],
-                "clipfrac": s[4],
-                "time_sim": sum(r.time_sim for r in rollouts),
-                "time_policy": sum(r.time_policy for r in rollouts),
-                "time_update": t_update,
-                "skipped_minibatches": skipped,
-                "lr": optimizer.param_groups[0]["lr"],
-            }
-            done_training = counters["update"] >= cfg.updates
-            if counters["update"] % cfg.eval_every == 0 or done_training:
-                last_eval = evaluate_during_training(policy, cfg, counters["update"], device)
-                evals.append(last_eval)
+            record = one_update(state, cfg, loss_fn, device, run)
+            done = counters["update"] >= cfg.updates
+            if counters["update"] % cfg.eval_every == 0 or done:
+                last_eval = evaluate_during_training(state.policy, cfg, counters["update"], device)
+                state.evals.append(last_eval)
                 record.update({f"eval_{k}": v for k, v in last_eval.items() if k != "update"})
-                if cfg.target_success > 0 and last_eval["success_rate"] >= cfg.target_success:
-                    done_training = True
-            counters["wall_time"] = time.perf_counter() - start_wall
-            record["wall_time"] = counters["wall_time"]
-            run.log(record)
-            if tensorboard is not None:
-                tensorboard.log(record)
-            if progress is not None:
-                post = {"sps": f"{record['sps']:.0f}", "rew": f"{record['reward']:.3f}"}
-                if last_eval:
-                    post["S%"] = f"{100 * last_eval['success_rate']:.0f}"
-                    post["T"] = f"{last_eval['mean_length']:.1f}"
-                    for size, rate in last_eval.get("transfer", {}).items():
-                        post[f"S%@{size}"] = f"{100 * rate:.0f}"
-                progress.set_postfix(post)
-                progress.update(1)
-            if on_update is not None:
-                on_update(record)
-            if counters["update"] % cfg.checkpoint_every == 0 or done_training:
-                save_checkpoint()
-            if done_training:
+                done = done or 0 < cfg.target_success <= last_eval["success_rate"]
+            counters["wall_time"] = record["wall_time"] = time.perf_counter() - start_wall
+            reporter.report(record, last_eval)
+            if counters["update"] % cfg.checkpoint_every == 0 or done:
+                save_checkpoint(run, state, cfg)
+            if done:
                 break
     except KeyboardInterrupt:
         counters["wall_time"] = time.perf_counter() - start_wall
-        save_checkpoint()
-        if progress is not None:
-            progress.close()
+        save_checkpoint(run, state, cfg)
+        reporter.close()
         print(
             f"\ninterrupted: checkpoint saved at update {counters['update']}; "
             f"continue with: swarm train --resume {run.path}"
         )
         raise
-    if progress is not None:
-        progress.close()
-    if tensorboard is not None:
-        tensorboard.close()
-    save_checkpoint()
+    reporter.close()
+    save_checkpoint(run, state, cfg)
     try:
         from trainer.plot import plot_run
 
@@ -553,9 +586,9 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         "run_dir": run.path,
         **counters,
         "last_eval": last_eval,
-        "evals": evals,
+        "evals": state.evals,
         "reached_target": bool(
-            cfg.target_success > 0 and last_eval and last_eval["success_rate"] >= cfg.target_success
+            0 < cfg.target_success and last_eval and last_eval["success_rate"] >= cfg.target_success
         ),
     }
     checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)
