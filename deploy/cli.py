@@ -92,7 +92,12 @@ def execute_main(argv: list[str]) -> int:
     ap.add_argument("--delay", type=int, default=0, metavar="K", help="deliver messages K steps late (default 0)")
     ap.add_argument("--record", default=None, metavar="FILE.rrd", help="write a Rerun recording (first drop rate)")
     ap.add_argument(
-        "--video", default=None, help="render the first drop rate's episodes to a .gif / .mp4 (or PNG frames directory)"
+        "--video",
+        "--gif",
+        "--mp4",
+        dest="video",
+        default=None,
+        help="render the first drop rate's episodes to a .gif / .mp4 (or PNG frames directory)",
     )
     ap.add_argument("--record-envs", type=int, default=4, help="environments drawn by --record / --video (default 4)")
     ap.add_argument("--seed", type=int, default=12345, help="seed of the episodes and of the drops")
@@ -166,6 +171,11 @@ def execute_main(argv: list[str]) -> int:
             finally:
                 if recorder is not None:
                     recorder.close()
+            if recorder is not None:
+                drawn = min(args.record_envs, s.episodes)
+                for kind, out in (("recording", args.record), ("video", args.video)):
+                    if out:
+                        print(f"{kind}: {out} ({drawn} of {s.episodes} environments drawn; --record-envs to change)")
     except (DeployError, ValueError, OSError) as exc:
         return _fail("execute", exc)
     print(format_table(rows))
@@ -183,7 +193,14 @@ def replay_main(argv: list[str]) -> int:
     ap.add_argument("--stats", action="store_true", help="print a summary (entity paths, rows, steps) and exit")
     ap.add_argument("--serve-web", action="store_true", help="serve the web viewer on 127.0.0.1 (no GPU needed)")
     ap.add_argument("--port", type=int, default=None, help="web viewer port (with --serve-web)")
-    ap.add_argument("--video", default=None, help="render the recording to a .gif / .mp4 (or a PNG frames directory)")
+    ap.add_argument(
+        "--video",
+        "--gif",
+        "--mp4",
+        dest="video",
+        default=None,
+        help="render the recording to a .gif / .mp4 (or a PNG frames directory)",
+    )
     args, code = _parse(ap, argv)
     if args is None:
         return code

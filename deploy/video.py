@@ -83,11 +83,25 @@ def check_video_path(path: str) -> None:
         probe = os.path.dirname(probe)
     if not os.access(probe, os.W_OK):
         raise ValueError(f"cannot write {path}: {probe} is not writable")
-    if path.lower().endswith(".mp4"):
-        import matplotlib.animation as animation
+    if path.lower().endswith(".mp4") and ffmpeg_path() is None:
+        raise ValueError(
+            f'{path}: writing MP4 needs ffmpeg (on PATH, or pip install -e ".[video]" for imageio-ffmpeg); '
+            "or write a .gif"
+        )
 
-        if not animation.writers.is_available("ffmpeg"):
-            raise ValueError(f"{path}: writing MP4 needs ffmpeg on PATH; write a .gif instead")
+
+def ffmpeg_path() -> str | None:
+    """An ffmpeg binary: on PATH, else the one imageio-ffmpeg ships (the [video] extra)."""
+    import shutil
+
+    found = shutil.which("ffmpeg")
+    if found:
+        return found
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        return None
+    return imageio_ffmpeg.get_ffmpeg_exe()
 
 
 def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=None, comm_radius=None, fps=10):
@@ -171,10 +185,13 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
                 fig.savefig(os.path.join(path, f"frame_{k:04d}.png"), dpi=80)
         else:
             anim = animation.FuncAnimation(fig, update, frames=len(frames), blit=False)
-            writer = (
-                animation.PillowWriter(fps=fps) if path.lower().endswith(".gif") else animation.FFMpegWriter(fps=fps)
-            )
-            tmp = os.path.join(os.path.dirname(os.path.abspath(path)), ".tmp-" + os.path.basename(path))
+            if path.lower().endswith(".gif"):
+                writer = animation.PillowWriter(fps=fps)
+            else:
+                matplotlib.rcParams["animation.ffmpeg_path"] = ffmpeg_path()
+                writer = animation.FFMpegWriter(fps=fps)
+            name, suffix = os.path.splitext(os.path.basename(path))
+            tmp = os.path.join(os.path.dirname(os.path.abspath(path)), f".tmp-{name}{suffix}")
             anim.save(tmp, writer=writer, dpi=80)
             os.replace(tmp, path)
     finally:

@@ -73,3 +73,24 @@ def test_replay_video_rebuilds_the_recorded_rollout(tmp_path, capsys):
                 np.testing.assert_array_equal(got["adj"][b], want["adj"][b] | want["adj"][b].T)
     assert swarm(["replay", rrd, "--video", gif]) == 0
     assert Image.open(gif).n_frames == len(frames)
+
+
+def test_mp4_when_an_ffmpeg_is_available(tmp_path):
+    from deploy.video import ffmpeg_path, render
+
+    if ffmpeg_path() is None:
+        pytest.skip("no ffmpeg (pip install -e '.[video]')")
+    frames = [
+        {
+            "step": k,
+            "pos": np.full((1, 2, 2), 0.1 * k, np.float32),
+            "landmarks": np.zeros((1, 2, 2), np.float32),
+            "targets": np.zeros((1, 2, 2), np.float32),
+            "adj": np.ones((1, 2, 2), bool),
+            "assignment": None,
+            "live": np.ones(1, bool),
+        }
+        for k in range(5)
+    ]
+    out = render(frames, str(tmp_path / "v.mp4"), "coverage", 2)
+    assert open(out, "rb").read(12)[4:8] == b"ftyp"  # an MP4 container

@@ -86,7 +86,12 @@ def _eval_parser(prog: str, sizes: bool) -> argparse.ArgumentParser:
     if not sizes:
         ap.add_argument("--record", default=None, help="write a Rerun recording (.rrd) of the episodes")
         ap.add_argument(
-            "--video", default=None, help="render the first episodes to a .gif or .mp4 (or a directory of PNG frames)"
+            "--video",
+            "--gif",
+            "--mp4",
+            dest="video",
+            default=None,
+            help="render the first episodes to a .gif or .mp4 (or a directory of PNG frames)",
         )
         ap.add_argument(
             "--record-envs", type=int, default=4, help="environments drawn by --record / --video (default 4)"
@@ -161,8 +166,10 @@ def eval_main(argv: list[str]) -> int:
         )
         if recorder is not None:
             recorder.close()
-            if args.video:
-                print(f"video: {args.video} ({min(args.record_envs, args.episodes)} environments)")
+            drawn = min(args.record_envs, args.episodes)
+            for kind, out in (("recording", args.record), ("video", args.video)):
+                if out:
+                    print(f"{kind}: {out} ({drawn} of {args.episodes} environments drawn; --record-envs to change)")
     except USER_ERRORS as exc:
         return _fail("eval", exc)
     print(format_table([result]))
