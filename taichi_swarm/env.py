@@ -61,7 +61,9 @@ def _check_float(name: str, value, minimum: float) -> float:
         raise ValueError(f"{name} must be a finite number, got {value!r}")
     if value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    if not np.isfinite(np.float32(value)):
+    with np.errstate(over="ignore"):
+        narrowed = np.float32(value)
+    if not np.isfinite(narrowed):
         raise ValueError(f"{name} must fit a float32 (|x| < 3.4e38), got {value!r}")
     return float(value)
 
