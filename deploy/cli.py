@@ -70,6 +70,8 @@ def export_main(argv: list[str]) -> int:
 
 # ----------------------------------------------------------------------------- execute
 def execute_main(argv: list[str]) -> int:
+    from .video import add_output_options, open_recorders
+
     ap = _parser(
         "swarm execute",
         "Run exported models decentralised: one onnxruntime agent per agent, messages "
@@ -91,15 +93,7 @@ def execute_main(argv: list[str]) -> int:
     )
     ap.add_argument("--delay", type=int, default=0, metavar="K", help="deliver messages K steps late (default 0)")
     ap.add_argument("--record", default=None, metavar="FILE.rrd", help="write a Rerun recording (first drop rate)")
-    ap.add_argument(
-        "--video",
-        "--gif",
-        "--mp4",
-        dest="video",
-        default=None,
-        help="render the first drop rate's episodes to a .gif / .mp4 (or PNG frames directory)",
-    )
-    ap.add_argument("--record-envs", type=int, default=4, help="environments drawn by --record / --video (default 4)")
+    add_output_options(ap, "render the first drop rate's episodes to a .gif / .mp4 (or PNG frames directory)")
     ap.add_argument("--seed", type=int, default=12345, help="seed of the episodes and of the drops")
     ap.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads per session (default 1)")
     ap.add_argument("--json", default=None, help="also write the rows to this JSON file")
@@ -117,8 +111,6 @@ def execute_main(argv: list[str]) -> int:
             raise DeployError(f"--delay must be >= 0, got {args.delay}")
         if args.threads < 1:
             raise DeployError(f"--threads must be >= 1, got {args.threads}")
-        if args.record_envs < 1:
-            raise DeployError(f"--record-envs must be >= 1, got {args.record_envs}")
         from taichi_swarm.files import ensure_writable
 
         for out, what in ((args.json, "--json"), (args.record, "--record")):
@@ -147,35 +139,14 @@ def execute_main(argv: list[str]) -> int:
                 delay=args.delay,
                 seed=args.seed,
             )
-            recorder = None
-            if (args.record or args.video) and k == 0:
-                from .recording import RolloutRecorder
-                from .video import FrameRecorder, Recorders
-
-                rrd = video = None
-                if args.record:
-                    rrd = RolloutRecorder(
-                        args.record,
-                        s.task,
-                        s.episodes,
-                        s.agents,
-                        max_envs_drawn=args.record_envs,
-                        comm_radius=s.comm_radius if s.comm == "rc" else None,
-                    )
-                if args.video:
-                    radius = s.comm_radius if s.comm == "rc" else None
-                    video = FrameRecorder(args.video, s.task, s.episodes, s.agents, args.record_envs, radius)
-                recorder = Recorders(rrd, video)
+            recorder = open_recorders(args, s.task, s.episodes, s.agents, s.comm, s.comm_radius) if k == 0 else None
             try:
                 rows.append(run_episodes(model, s, recorder=recorder, threads=args.threads))
             finally:
                 if recorder is not None:
                     recorder.close()
             if recorder is not None:
-                drawn = min(args.record_envs, s.episodes)
-                for kind, out in (("recording", args.record), ("video", args.video)):
-                    if out:
-                        print(f"{kind}: {out} ({drawn} of {s.episodes} environments drawn; --record-envs to change)")
+                recorder.report()
     except (DeployError, ValueError, OSError) as exc:
         return _fail("execute", exc)
     print(format_table(rows))
@@ -188,19 +159,14 @@ def execute_main(argv: list[str]) -> int:
 
 # ----------------------------------------------------------------------------- replay
 def replay_main(argv: list[str]) -> int:
+    from .video import add_output_options
+
     ap = _parser("swarm replay", "Inspect a Rerun recording (--stats) or open it in a viewer.")
     ap.add_argument("file", help="a .rrd file written by --record")
     ap.add_argument("--stats", action="store_true", help="print a summary (entity paths, rows, steps) and exit")
     ap.add_argument("--serve-web", action="store_true", help="serve the web viewer on 127.0.0.1 (no GPU needed)")
     ap.add_argument("--port", type=int, default=None, help="web viewer port (with --serve-web)")
-    ap.add_argument(
-        "--video",
-        "--gif",
-        "--mp4",
-        dest="video",
-        default=None,
-        help="render the recording to a .gif / .mp4 (or a PNG frames directory)",
-    )
+    add_output_options(ap, "render the recording to a .gif / .mp4 (or a PNG frames directory)", record_envs=False)
     args, code = _parse(ap, argv)
     if args is None:
         return code

@@ -17,7 +17,7 @@ import os
 
 import numpy as np
 
-from deploy.recording import ARENA_HALF_SIZE, PALETTE, to_numpy
+from taichi_swarm.files import ensure_writable
 
 VIDEO_SUFFIXES = (".gif", ".mp4")
 TRAIL = 6  # steps of trail behind each agent
@@ -40,6 +40,8 @@ class FrameRecorder:
         self._outcome: dict[int, str] = {}
 
     def log_step(self, step: int, env, actions=None, attention=None) -> None:
+        from deploy.recording import to_numpy  # deploy.recording imports rerun: only when recording
+
         D = self.drawn
         state = env.get_state()
         assignment = to_numpy(env.assignment)[:D] if hasattr(env, "assignment") else None
@@ -56,6 +58,8 @@ class FrameRecorder:
         )
 
     def log_episode_ends(self, step: int, mask, episode_info: dict) -> None:
+        from deploy.recording import to_numpy
+
         mask = to_numpy(mask).astype(bool)
         success = to_numpy(episode_info["success"]).astype(bool)
         length = to_numpy(episode_info["length"])
@@ -77,12 +81,7 @@ def check_video_path(path: str) -> None:
     is_dir_target = not os.path.splitext(path)[1]
     if not is_dir_target and not path.lower().endswith(VIDEO_SUFFIXES):
         raise ValueError(f"{path}: a video must end in .gif or .mp4 (or name a directory for PNG frames)")
-    parent = os.path.dirname(os.path.abspath(path)) if not is_dir_target else os.path.abspath(path)
-    probe = parent
-    while not os.path.exists(probe):
-        probe = os.path.dirname(probe)
-    if not os.access(probe, os.W_OK):
-        raise ValueError(f"cannot write {path}: {probe} is not writable")
+    ensure_writable(os.path.join(path, "frame_0000.png") if is_dir_target else path, "video")
     if path.lower().endswith(".mp4") and ffmpeg_path() is None:
         raise ValueError(
             f'{path}: writing MP4 needs ffmpeg (on PATH, or pip install -e ".[video]" for imageio-ffmpeg); '
@@ -114,6 +113,8 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
     import matplotlib.animation as animation
     import matplotlib.pyplot as plt
     from tqdm import tqdm
+
+    from deploy.recording import ARENA_HALF_SIZE, PALETTE
 
     outcome = outcome or {}
     D = frames[0]["pos"].shape[0]
@@ -200,11 +201,48 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
     return path
 
 
+def add_output_options(ap, video_help: str, record_envs: bool = True) -> None:
+    """``--video/--gif/--mp4`` (and ``--record-envs``), as swarm eval / execute / replay take them."""
+    ap.add_argument("--video", "--gif", "--mp4", dest="video", default=None, help=video_help)
+    if record_envs:
+        ap.add_argument(
+            "--record-envs", type=int, default=4, help="environments drawn by --record / --video (default 4)"
+        )
+
+
+def open_recorders(args, task: str, episodes: int, agents: int, comm: str, comm_radius: float):
+    """The recorders ``args.record`` (Rerun) and ``args.video`` ask for, or None; the video
+    path is checked before any episode runs."""
+    if args.record_envs < 1:
+        raise ValueError(f"--record-envs must be >= 1, got {args.record_envs}")
+    if not (args.record or args.video):
+        return None
+    from deploy.recording import RolloutRecorder
+
+    radius = comm_radius if comm == "rc" else None
+    rrd = video = None
+    if args.video:
+        video = FrameRecorder(args.video, task, episodes, agents, args.record_envs, radius)
+    if args.record:
+        rrd = RolloutRecorder(args.record, task, episodes, agents, max_envs_drawn=args.record_envs, comm_radius=radius)
+    recorders = Recorders(rrd, video)
+    recorders.outputs = [(k, out) for k, out in (("recording", args.record), ("video", args.video)) if out]
+    recorders.drawn, recorders.episodes = min(args.record_envs, episodes), episodes
+    return recorders
+
+
 class Recorders:
     """Several recorders fed by one rollout loop (e.g. a Rerun file and a GIF)."""
 
     def __init__(self, *recorders):
         self.recorders = [r for r in recorders if r is not None]
+        self.outputs: list[tuple[str, str]] = []  # (kind, path) to report after close
+        self.drawn = self.episodes = 0
+
+    def report(self) -> None:
+        """Say what was written and how many environments it draws."""
+        for kind, out in self.outputs:
+            print(f"{kind}: {out} ({self.drawn} of {self.episodes} environments drawn; --record-envs to change)")
 
     def log_step(self, *args, **kwargs) -> None:
         for r in self.recorders:

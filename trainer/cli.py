@@ -85,17 +85,9 @@ def _eval_parser(prog: str, sizes: bool) -> argparse.ArgumentParser:
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
     if not sizes:
         ap.add_argument("--record", default=None, help="write a Rerun recording (.rrd) of the episodes")
-        ap.add_argument(
-            "--video",
-            "--gif",
-            "--mp4",
-            dest="video",
-            default=None,
-            help="render the first episodes to a .gif or .mp4 (or a directory of PNG frames)",
-        )
-        ap.add_argument(
-            "--record-envs", type=int, default=4, help="environments drawn by --record / --video (default 4)"
-        )
+        from deploy.video import add_output_options
+
+        add_output_options(ap, "render the first episodes to a .gif or .mp4 (or a directory of PNG frames)")
     return ap
 
 
@@ -132,27 +124,9 @@ def eval_main(argv: list[str]) -> int:
             raise ValueError("this checkpoint does not say its team size: pass --agents")
         if agents < 1:
             raise ValueError(f"--agents must be >= 1, got {agents}")
-        if args.record_envs < 1:
-            raise ValueError(f"--record-envs must be >= 1, got {args.record_envs}")
-        recorder = None
-        if args.record or args.video:
-            from deploy.recording import RolloutRecorder
-            from deploy.video import FrameRecorder, Recorders
+        from deploy.video import open_recorders
 
-            rrd = video = None
-            if args.video:  # checked before the evaluation runs
-                radius = s["comm_radius"] if s["comm"] == "rc" else None
-                video = FrameRecorder(args.video, s["task"], args.episodes, agents, args.record_envs, radius)
-            if args.record:
-                rrd = RolloutRecorder(
-                    args.record,
-                    s["task"],
-                    args.episodes,
-                    agents,
-                    max_envs_drawn=args.record_envs,
-                    comm_radius=s["comm_radius"] if s["comm"] == "rc" else None,
-                )
-            recorder = Recorders(rrd, video)
+        recorder = open_recorders(args, s["task"], args.episodes, agents, s["comm"], s["comm_radius"])
         result = evaluate(
             policy,
             s["task"],
@@ -166,10 +140,7 @@ def eval_main(argv: list[str]) -> int:
         )
         if recorder is not None:
             recorder.close()
-            drawn = min(args.record_envs, args.episodes)
-            for kind, out in (("recording", args.record), ("video", args.video)):
-                if out:
-                    print(f"{kind}: {out} ({drawn} of {args.episodes} environments drawn; --record-envs to change)")
+            recorder.report()
     except USER_ERRORS as exc:
         return _fail("eval", exc)
     print(format_table([result]))

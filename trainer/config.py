@@ -11,7 +11,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
-from taichi_swarm import COMMS, TASKS
+from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from trainer.model import ENTITY_MODES, ModelConfig
 
 
@@ -176,7 +176,7 @@ class TrainConfig:
         for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        smallest = 2 if self.task in ("formation", "line") else 1
+        smallest = TASK_SPECS[self.task].min_agents
         if any(m < smallest for m in self.team_sizes):
             raise ValueError(f"team_sizes must be >= {smallest} for {self.task}, got {self.team_sizes}")
         if len(set(self.team_sizes)) != len(self.team_sizes):

@@ -191,7 +191,7 @@ EVAL_SEED_BASE = 10_000_019
 
 def transfer_sizes(cfg: TrainConfig) -> list[int]:
     """The neighbouring team sizes evaluated beside the training size."""
-    smallest = 2 if cfg.task in ("formation", "line") else 1
+    smallest = taichi_swarm.TASK_SPECS[cfg.task].min_agents
     return [cfg.agents + d for d in cfg.transfer_offsets if d != 0 and cfg.agents + d >= smallest]
 
 
