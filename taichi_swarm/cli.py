@@ -15,6 +15,7 @@ COMMANDS = {
     "curriculum": ("trainer.cli:curriculum_main", "train stage by stage over team sizes (3 5 7 10)"),
     "zero-shot": ("trainer.cli:zero_shot_main", "evaluate one checkpoint at many team sizes"),
     "plot": ("trainer.cli:plot_main", "draw the learning curves of a run directory"),
+    "reproduce": ("trainer.reproduce.cli:reproduce_main", "the paper's tables as one resumable run on Ray"),
     "import": ("trainer.cli:import_main", "convert a checkpoint of the paper authors' published format"),
     "export": ("deploy.cli:export_main", "export a checkpoint to per-agent ONNX models"),
     "execute": ("deploy.cli:execute_main", "run exported models decentralised, one session per agent"),

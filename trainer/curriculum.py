@@ -8,12 +8,11 @@ stage continues from its checkpoint."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 
 from trainer import checkpoint
 from trainer.config import TrainConfig
-from trainer.train import train
+from trainer.train import train_or_resume
 
 MIN_STAGE_EVAL_EPISODES = 200
 
@@ -31,14 +30,8 @@ def run_curriculum(
     previous_ckpt = base.init_from
     for M in sizes:
         stage_dir = os.path.join(run_dir, f"stage-m{M}")
-        summary_path = os.path.join(stage_dir, "summary.json")
-        if os.path.exists(summary_path):  # finished earlier
-            with open(summary_path) as f:
-                summary = json.load(f)
-        elif os.path.exists(os.path.join(stage_dir, "checkpoint.pt")):
-            summary = train(resume=stage_dir)
-        else:
-            cfg = dataclasses.replace(
+        summary = train_or_resume(
+            dataclasses.replace(
                 base,
                 agents=M,
                 run_dir=stage_dir,
@@ -49,7 +42,7 @@ def run_curriculum(
                 # stages by up to 10 points (docs/RESULTS.md)
                 eval_episodes=max(base.eval_episodes, MIN_STAGE_EVAL_EPISODES),
             )
-            summary = train(cfg)
+        )
         last = summary["last_eval"] or {}
         stage = {
             "agents": M,

@@ -337,6 +337,19 @@ def train(
         return _train_locked(cfg, resume, on_update, updates)
 
 
+def train_or_resume(cfg: TrainConfig) -> dict:
+    """Bring the run of ``cfg`` to its end from whatever state its directory is in:
+    finished (summary.json is read back), stopped (resumed from checkpoint.pt) or new."""
+    run = Run(cfg.default_run_dir())
+    summary_path = os.path.join(run.path, "summary.json")
+    if os.path.exists(summary_path):
+        with open(summary_path) as f:
+            return json.load(f)
+    if os.path.exists(run.checkpoint):
+        return train(resume=run.path)
+    return train(cfg)
+
+
 def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None):
     """The run directory of a new run, or of one to resume (its checkpoint checked, its
     config read back, leftovers of a killed write repaired). Returns (run, cfg, payload)."""
@@ -350,6 +363,7 @@ def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None):
             )
         os.makedirs(run.path, exist_ok=True)
         cfg.validate()
+        run.truncate_metrics(0)  # lines a run killed before its first checkpoint left behind
         checkpoint.atomic_write_json(run.config, to_dict(cfg))
         return run, cfg, None
     run = Run(resume)
@@ -595,4 +609,4 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
     return summary
 
 
-__all__ = ["Run", "resolve_device", "train"]
+__all__ = ["Run", "resolve_device", "train", "train_or_resume"]

@@ -1,0 +1,227 @@
+"""`swarm reproduce`: the spec as data, one cell resumable without Ray, the tables
+rendered from results, and (through local Ray) a killed worker that loses nothing."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from trainer.reproduce import cells as cells_mod
+from trainer.reproduce.spec import SpecError, load_spec
+from trainer.reproduce.tables import DOC_BEGIN, DOC_END, render_all, update_doc
+
+TINY = """
+name = "tiny"
+[defaults]
+preset = "fast"
+ppo = {{ num_envs = 4, num_steps = 8, minibatches = 1, epochs = 1 }}
+eval_every = {eval_every}
+eval_episodes = 10
+final_episodes = 12
+checkpoint_every = 1
+compile = false
+
+[[cells]]
+id = "train-cov"
+table = 1
+kind = "train"
+task = "coverage"
+agents = 2
+updates = {updates}
+paper = {{ "2" = {{ S = 99, T = 10.0 }} }}
+
+[[cells]]
+id = "zs-cov"
+table = 4
+kind = "zero-shot"
+task = "coverage"
+source = "train-cov"
+sizes = [1, 2, 3]
+paper = {{ "3" = {{ S = 50 }} }}
+"""
+
+
+def write_spec(tmp_path, updates=3, eval_every=2, text=None) -> str:
+    path = tmp_path / "tiny.toml"
+    path.write_text(text if text is not None else TINY.format(updates=updates, eval_every=eval_every))
+    return str(path)
+
+
+# --- the spec ------------------------------------------------------------------------
+
+
+def test_shipped_paper_spec_has_every_table_and_the_papers_numbers():
+    spec = load_spec("paper")
+    assert spec.tables() == [1, 2, 3, 4]
+    t1 = [c for c in spec.cells if c.table == 1]
+    assert len(t1) == 12 and {c.agents for c in t1} == {3, 6}
+    assert spec.cell("t1-coverage-rc-m6").paper["6"] == {"S": 5, "T": 48.32, "DIST": 0.17}
+    assert spec.cell("t2-coverage-emp-rc").paper["10"] == {"S": 85, "N": 3250}
+    assert spec.cell("t2-coverage-noemp-uc").entity_mode == "padded"
+    zs = spec.cell("t4-line-rc")
+    assert zs.source == "t3-line-rc" and zs.source_agents == 5 and zs.paper["3"]["S"] == 16
+    # every reported number comes from 500 fresh episodes at a seed training never uses
+    assert all(c.final_episodes >= 500 and c.eval_seed < 2**40 for c in spec.cells)
+
+
+def test_selection_pulls_in_the_source_of_a_zero_shot_row():
+    spec = load_spec("paper")
+    chosen = [c.id for c in spec.select(cell_ids=["t4-coverage-rc"])]
+    assert chosen == ["t2-coverage-emp-rc", "t4-coverage-rc"]
+    assert {c.table for c in spec.select(tables=[1])} == {1}
+    with pytest.raises(SpecError, match="no cell 'nope'"):
+        spec.select(cell_ids=["nope"])
+    with pytest.raises(SpecError, match=r"--tables \[9\]"):
+        spec.select(tables=[9])
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda t: t.replace('kind = "train"', 'kind = "trian"'), "kind must be one of"),
+        (lambda t: t.replace("agents = 2", "agents = 2\nbogus = 1"), r"unknown keys \['bogus'\]"),
+        (lambda t: t.replace('source = "train-cov"', 'source = "missing"'), "must be a cell declared before it"),
+        (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = [0, 2]"), "sizes must be team sizes"),
+        (lambda t: t.replace('id = "zs-cov"', 'id = "train-cov"'), "two cells named 'train-cov'"),
+        (lambda t: t.replace('task = "coverage"\nagents', 'task = "covrage"\nagents'), "task must be one of"),
+        (lambda t: t + "\n[[cells]]\nid = 'x'\n", "missing 'table'"),
+        (lambda t: t.replace("name =", "nmae ="), "unknown top-level keys"),
+        (lambda t: t + "\n[[cells", "not valid TOML"),
+    ],
+)
+def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
+    path = write_spec(tmp_path, text=edit(TINY.format(updates=3, eval_every=2)))
+    with pytest.raises(SpecError, match=message):
+        load_spec(path)
+
+
+def test_unknown_spec_name_lists_the_shipped_ones():
+    with pytest.raises(SpecError, match="paper, smoke"):
+        load_spec("no-such-spec")
+
+
+# --- one cell, no Ray -------------------------------------------------------------------
+
+
+def _metric_updates(run_dir: str) -> list[int]:
+    with open(os.path.join(run_dir, "metrics.jsonl")) as f:
+        return [json.loads(line)["update"] for line in f if line.strip()]
+
+
+def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypatch):
+    spec = load_spec(write_spec(tmp_path, updates=4))
+    train_cell, zs_cell = spec.cells
+    root = str(tmp_path / "root")
+    import trainer.train as train_mod
+
+    real = train_mod.one_update
+
+    def interrupted(state, *args, **kwargs):  # Ctrl-C (or a kill) in the middle of update 3
+        if state.counters["update"] == 2:
+            raise KeyboardInterrupt
+        return real(state, *args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "one_update", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        cells_mod.run_cell(train_cell, 0, root)
+    assert cells_mod.cell_state(root, train_cell, 0) == "started"
+    monkeypatch.setattr(train_mod, "one_update", real)
+
+    result = cells_mod.run_cell(train_cell, 0, root)
+    run_dir = cells_mod.cell_dir(root, train_cell, 0)
+    assert _metric_updates(run_dir) == [1, 2, 3, 4]  # nothing lost, nothing twice
+    assert result["attempts"] == 2
+    row = result["rows"][0]
+    assert row["updates"] == 4 and row["episodes"] == 12 and row["seed"] == 777
+
+    stamp = os.path.getmtime(os.path.join(run_dir, cells_mod.RESULT))
+    assert cells_mod.run_cell(train_cell, 0, root) == result  # done: read back, not rerun
+    assert os.path.getmtime(os.path.join(run_dir, cells_mod.RESULT)) == stamp
+
+    with pytest.raises(SpecError, match="needs its source"):
+        cells_mod.run_cell(zs_cell, 0, root)
+    zs = cells_mod.run_cell(zs_cell, 0, root, source=train_cell)
+    assert [r["agents"] for r in zs["rows"]] == [1, 2, 3]
+
+    # a changed definition never mixes with old results
+    changed = load_spec(write_spec(tmp_path, updates=5)).cells[0]
+    with pytest.raises(SpecError, match=r"differs in \['updates'\]"):
+        cells_mod.run_cell(changed, 0, root)
+
+    # the tables: our numbers beside the paper's; a cell without results says so
+    md = render_all(spec.cells, [0, 1], root, "tiny")
+    assert "| coverage UC | 2 |" in md and "| 99 |" in md
+    assert "(50)" in md and "curves-table-1.png" in md
+    assert os.path.exists(os.path.join(root, "curves-table-1.png"))
+    md_missing = render_all(spec.cells, [0], str(tmp_path / "empty"), "tiny")
+    assert "not run" in md_missing
+
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"# Results\nbefore\n{DOC_BEGIN}\nold\n{DOC_END}\nafter\n")
+    update_doc(str(doc), md)
+    text = doc.read_text()
+    assert "old" not in text and "before" in text and "after" in text and "| coverage UC | 2 |" in text
+    doc.write_text("no markers")
+    with pytest.raises(ValueError, match="markers"):
+        update_doc(str(doc), md)
+
+
+def test_cli_dry_run_status_and_errors(tmp_path):
+    from trainer.reproduce.cli import reproduce_main
+
+    path = write_spec(tmp_path)
+    root = str(tmp_path / "root")
+    assert reproduce_main(["--spec", path, "--root", root, "--dry-run"]) == 0
+    assert reproduce_main(["--spec", path, "--root", root, "--status"]) == 0
+    assert reproduce_main(["--spec", path, "--seeds", "0"]) == 2
+    assert reproduce_main(["--spec", path, "--cells", "nope", "--dry-run"]) == 2
+    assert reproduce_main(["--spec", path, "--root", root, "--render", "--update-doc", str(tmp_path / "x.md")]) == 2
+
+
+# --- through Ray, with a worker killed mid-run ---------------------------------------
+
+
+def test_ray_run_survives_a_killed_worker(tmp_path):
+    pytest.importorskip("ray")
+    spec_path = write_spec(tmp_path, updates=10, eval_every=5)
+    root = tmp_path / "root"
+    run_dir = root / "train-cov" / "s0"
+    cmd = [sys.executable, "-m", "taichi_swarm.cli", "reproduce", "--spec", spec_path, "--root", str(root)]
+    proc = subprocess.Popen(
+        [*cmd, "--workers", "1", "--progress-every", "2"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )
+    try:
+        killed_pid = None
+        deadline = time.time() + 240
+        while time.time() < deadline and killed_pid is None:
+            time.sleep(0.3)
+            metrics = run_dir / "metrics.jsonl"
+            if (run_dir / "attempts.json").exists() and metrics.exists() and len(_metric_updates(str(run_dir))) >= 2:
+                killed_pid = json.loads((run_dir / "attempts.json").read_text())[-1]["pid"]
+                os.kill(killed_pid, signal.SIGKILL)  # the Ray worker running the cell
+        assert killed_pid is not None, "the cell never got going"
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    attempts = json.loads((run_dir / "attempts.json").read_text())
+    assert len(attempts) == 2 and attempts[0]["pid"] == killed_pid != attempts[1]["pid"]
+    assert _metric_updates(str(run_dir)) == list(range(1, 11))  # resumed from its checkpoint
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["rows"][0]["updates"] == 10
+    assert (root / "zs-cov" / "s0" / "result.json").exists()  # the dependent row ran after it
+    assert "| coverage UC | 2 |" in (root / "tables.md").read_text()
+    # a second call finds everything done and runs nothing
+    again = subprocess.run([*cmd, "--dry-run"], capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0 and again.stdout.count("s0 done") == 2

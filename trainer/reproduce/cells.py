@@ -1,0 +1,242 @@
+"""Running one cell of a spec for one seed, resumably, without Ray.
+
+Layout under the reproduction root::
+
+    ROOT/<cell id>/s<seed>/         the run directory (train: the run itself; curriculum:
+                                    curriculum.json + stage-m<M>/ per stage)
+    ROOT/<cell id>/s<seed>/result.json   written last, atomically: the cell is done
+    ROOT/<cell id>/s<seed>/attempts.json every start of the cell (pid, host, time)
+
+``run_cell`` is idempotent: a finished cell returns its result.json, a stopped one
+resumes from its checkpoints (``train_or_resume``), so running it again after a kill
+(of the process, of a Ray worker, of the machine) loses at most the updates since the
+last checkpoint. The reported rows come from a fresh evaluation of each final policy
+(``final_episodes`` greedy episodes at ``eval_seed``), never from the evaluations that
+stopped training.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import os
+import socket
+import time
+
+from taichi_swarm import TASK_SPECS
+from taichi_swarm.files import atomic_write_json
+from trainer.reproduce.spec import Cell, SpecError
+
+RESULT = "result.json"
+ATTEMPTS = "attempts.json"
+
+
+def cell_dir(root: str, cell: Cell, seed: int) -> str:
+    return os.path.join(root, cell.id, f"s{seed}")
+
+
+def read_result(root: str, cell: Cell, seed: int) -> dict | None:
+    """The cell's result if it finished, None otherwise; an error if the result on disk
+    was made by a different definition of the cell (changed budget, preset, ...)."""
+    path = os.path.join(cell_dir(root, cell, seed), RESULT)
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        result = json.load(f)
+    check_same_definition(path, cell, result.get("definition", {}))
+    return result
+
+
+def check_same_definition(path: str, cell: Cell, stored: dict) -> None:
+    now = cell.definition()
+    changed = sorted(k for k in set(now) | set(stored) if now.get(k) != stored.get(k))
+    if changed:
+        raise SpecError(
+            f"{path} was made by another definition of cell {cell.id!r} (differs in {changed}); "
+            "reproduce into another --root, or delete that directory to run the cell again"
+        )
+
+
+def cell_state(root: str, cell: Cell, seed: int) -> str:
+    """done | started | pending (from the files alone: no process is asked)."""
+    d = cell_dir(root, cell, seed)
+    if os.path.exists(os.path.join(d, RESULT)):
+        return "done"
+    if os.path.exists(os.path.join(d, ATTEMPTS)):
+        return "started"
+    return "pending"
+
+
+def train_config(
+    cell: Cell, seed: int, run_dir: str, agents: int, updates: int, arch: str = "cpu", device: str = "cpu"
+):
+    """The TrainConfig of a cell's run (a curriculum changes agents/run_dir per stage)."""
+    from trainer.config import PRESETS, TrainConfig
+    from trainer.model import ModelConfig
+
+    try:
+        ppo = dataclasses.replace(copy.deepcopy(PRESETS[cell.preset]), **cell.ppo)
+    except KeyError:
+        raise SpecError(f"cell {cell.id!r}: preset must be one of {tuple(PRESETS)}, got {cell.preset!r}") from None
+    except TypeError as exc:
+        raise SpecError(f"cell {cell.id!r}: ppo has an unknown option ({exc})") from None
+    landmarks = TASK_SPECS[cell.task].num_landmarks(agents) if cell.entity_mode == "concat" else 0
+    cfg = TrainConfig(
+        task=cell.task,
+        agents=agents,
+        comm=cell.comm,
+        comm_radius=cell.comm_radius,
+        preset=cell.preset,
+        updates=updates,
+        eval_every=cell.eval_every,
+        eval_episodes=cell.eval_episodes,
+        transfer_offsets=(),
+        checkpoint_every=cell.checkpoint_every,
+        seed=seed,
+        run_dir=run_dir,
+        compile=cell.compile,
+        progress=False,
+        arch=arch,
+        device=device,
+        model=ModelConfig(entity_mode=cell.entity_mode, num_landmarks=landmarks),
+        ppo=ppo,
+    )
+    try:
+        cfg.validate()
+    except ValueError as exc:
+        raise SpecError(f"cell {cell.id!r}: {exc}") from None
+    return cfg
+
+
+def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> dict:
+    """S%, T, DIST of a policy on ``final_episodes`` fresh greedy episodes at ``eval_seed``."""
+    from trainer.checkpoint import load_policy
+    from trainer.evaluate import evaluate
+
+    policy, _ = load_policy(policy_path)
+    r = evaluate(policy, cell.task, agents, cell.comm, cell.comm_radius, cell.final_episodes, cell.eval_seed, arch=arch)
+    return {k: r[k] for k in ("agents", "success_rate", "mean_length", "dist", "episodes", "seed")}
+
+
+def policy_path(root: str, cell: Cell, seed: int, agents: int = 0) -> str:
+    """Where a train cell's (or a curriculum stage's) final policy lies."""
+    d = cell_dir(root, cell, seed)
+    if cell.kind == "curriculum":
+        d = os.path.join(d, f"stage-m{agents}")
+    return os.path.join(d, "policy.pt")
+
+
+def _note_attempt(directory: str) -> int:
+    path = os.path.join(directory, ATTEMPTS)
+    attempts = []
+    if os.path.exists(path):
+        with open(path) as f:
+            attempts = json.load(f)
+    attempts.append({"pid": os.getpid(), "host": socket.gethostname(), "started": time.time()})
+    atomic_write_json(path, attempts)
+    return len(attempts)
+
+
+def run_cell(
+    cell: Cell, seed: int, root: str, source: Cell | None = None, arch: str = "cpu", device: str = "cpu"
+) -> dict:
+    """Bring one (cell, seed) to its result: train / run the curriculum / evaluate, then
+    evaluate afresh and write result.json. ``source``: the cell a zero-shot row reads;
+    ``arch`` / ``device``: where the simulator / the network run (not part of the cell's
+    definition: the same cell on a GPU is the same experiment)."""
+    import torch
+
+    done = read_result(root, cell, seed)
+    if done is not None:
+        return done
+    directory = cell_dir(root, cell, seed)
+    os.makedirs(directory, exist_ok=True)
+    attempt = _note_attempt(directory)
+    torch.set_num_threads(1)
+    start = time.time()
+    if cell.kind == "train":
+        from trainer.train import train_or_resume
+
+        summary = train_or_resume(train_config(cell, seed, directory, cell.agents, cell.updates, arch, device))
+        rows = [{**final_eval(policy_path(root, cell, seed), cell, cell.agents, arch), **_training(summary)}]
+    elif cell.kind == "curriculum":
+        from trainer.curriculum import run_curriculum
+
+        base = train_config(cell, seed, directory, cell.sizes[0], cell.max_updates_per_stage, arch, device)
+        stages = run_curriculum(base, list(cell.sizes), cell.threshold, cell.max_updates_per_stage, directory)
+        rows = []
+        for stage in stages:
+            row = final_eval(policy_path(root, cell, seed, stage["agents"]), cell, stage["agents"], arch)
+            row.update(
+                updates=stage["updates"],
+                env_steps=stage["env_steps"],
+                wall_time=stage["wall_time"],
+                reached_threshold=stage["reached_threshold"],
+                stopping_success_rate=stage["success_rate"],
+            )
+            rows.append(row)
+    else:
+        if source is None or source.id != cell.source:
+            raise SpecError(f"cell {cell.id!r} needs its source cell {cell.source!r}")
+        if read_result(root, source, seed) is None:
+            raise SpecError(f"cell {cell.id!r}: its source {source.id!r} (seed {seed}) has not finished")
+        path = policy_path(root, source, seed, cell.source_agents)
+        rows = [final_eval(path, cell, M, arch) for M in cell.sizes]
+    result = {
+        "cell": cell.id,
+        "table": cell.table,
+        "kind": cell.kind,
+        "seed": seed,
+        "digest": cell.digest(),
+        "definition": cell.definition(),
+        "rows": rows,
+        "attempts": attempt,
+        "wall_time_last_attempt": time.time() - start,
+        "finished": time.time(),
+    }
+    atomic_write_json(os.path.join(directory, RESULT), result)
+    return result
+
+
+def _training(summary: dict) -> dict:
+    return {
+        "updates": summary["update"],
+        "env_steps": summary["env_steps"],
+        "wall_time": summary["wall_time"],
+    }
+
+
+def progress(root: str, cell: Cell, seed: int) -> dict:
+    """How far a cell is, from its files: updates done (all stages), the budget, and the
+    training wall-clock so far (for the time-left estimate)."""
+    d = cell_dir(root, cell, seed)
+    state = cell_state(root, cell, seed)
+    runs = [d]
+    if cell.kind == "curriculum":
+        runs = [os.path.join(d, f"stage-m{M}") for M in cell.sizes]
+    updates, wall, stage = 0, 0.0, None
+    for run in runs:
+        last = _last_metrics(os.path.join(run, "metrics.jsonl"))
+        if last:
+            updates += last["update"]
+            wall += last.get("wall_time", 0.0)
+            stage = os.path.basename(run) if cell.kind == "curriculum" else None
+    return {"state": state, "updates": updates, "budget": cell.budget_updates(), "wall_time": wall, "stage": stage}
+
+
+def _last_metrics(path: str) -> dict | None:
+    if not os.path.exists(path):
+        return None
+    last = None
+    with open(path, "rb") as f:
+        try:
+            f.seek(-4096, os.SEEK_END)
+        except OSError:
+            f.seek(0)
+        for line in f.read().decode(errors="replace").splitlines():
+            try:
+                last = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+    return last

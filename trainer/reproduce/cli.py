@@ -1,0 +1,150 @@
+"""``swarm reproduce``: the paper's tables as one resumable command."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from trainer.reproduce.spec import SpecError
+
+DESCRIPTION = """\
+Run the cells of the paper's Tables 1-4 (or a selection) on Ray, resumably, and render
+the tables beside the paper's numbers.
+
+Each (cell, seed) is one Ray task with its own run directory ROOT/<cell>/s<seed>; a
+second call skips finished cells and resumes stopped ones from their checkpoints (also
+after a killed worker: Ray retries the task). Without --address, Ray runs embedded on
+this machine with --workers CPUs (no cluster to start); with --address it joins a
+running cluster (every node needs this package and ROOT on a shared file system).
+
+examples:
+  swarm reproduce --spec smoke --workers 2              a tiny spec end to end (~2 min)
+  swarm reproduce --tables 1 --dry-run                  what Table 1 would run
+  swarm reproduce --cells t1-coverage-rc-m3 --seeds 3   one cell, three seeds
+  swarm reproduce --status                              progress from the files
+  swarm reproduce --render --update-doc docs/RESULTS.md the tables into a document
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="swarm reproduce", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--spec", default="paper", help="a shipped spec (paper, smoke) or a TOML file (default: paper)")
+    ap.add_argument("--tables", nargs="+", type=int, default=None, help="only these tables (e.g. 2 3)")
+    ap.add_argument("--cells", nargs="+", default=None, help="only these cell ids (and the cells they need)")
+    ap.add_argument("--seeds", type=int, default=1, help="seeds 0..N-1 of every cell (default 1)")
+    ap.add_argument("--root", default=None, help="where the runs and results live (default runs/reproduce/<spec>)")
+    ap.add_argument("--workers", type=int, default=max(1, os.cpu_count() or 1), help="local Ray CPUs = parallel cells")
+    ap.add_argument("--address", default=None, help="join this Ray cluster instead of starting one (e.g. auto)")
+    ap.add_argument("--gpus-per-cell", type=float, default=0.0, help="GPU share of each cell's task (e.g. 0.25)")
+    ap.add_argument("--arch", default="cpu", help="simulator arch of every cell: cpu | cuda | auto")
+    ap.add_argument("--device", default="cpu", help="network device of every cell: cpu | cuda | auto")
+    ap.add_argument("--progress-every", type=float, default=60.0, help="seconds between progress views")
+    ap.add_argument("--dry-run", action="store_true", help="list what would run and what is done; run nothing")
+    ap.add_argument("--status", action="store_true", help="print the progress view from the files; run nothing")
+    ap.add_argument("--render", action="store_true", help="only render the tables from the results on disk")
+    ap.add_argument(
+        "--update-doc", default=None, metavar="FILE", help="also write the tables into FILE between its markers"
+    )
+    return ap
+
+
+def reproduce_main(argv: list[str]) -> int:
+    from trainer.reproduce.cells import cell_state
+    from trainer.reproduce.runner import format_progress
+    from trainer.reproduce.spec import load_spec
+    from trainer.reproduce.tables import render_all, update_doc
+
+    args = build_parser().parse_args(argv)
+    try:
+        if args.seeds < 1:
+            raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
+        if args.workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        if args.gpus_per_cell < 0:
+            raise ValueError(f"--gpus-per-cell must be >= 0, got {args.gpus_per_cell}")
+        if args.progress_every <= 0:
+            raise ValueError(f"--progress-every must be > 0, got {args.progress_every}")
+        if args.update_doc and not os.path.isfile(args.update_doc):
+            raise ValueError(f"--update-doc {args.update_doc} is not a file")
+        spec = load_spec(args.spec)
+        cells = spec.select(args.tables, args.cells)
+        seeds = list(range(args.seeds))
+        root = args.root or os.path.join("runs", "reproduce", spec.name)
+        if args.dry_run:
+            print(_dry_run(cells, seeds, root, spec.name))
+            return 0
+        if args.status:
+            print(format_progress(cells, seeds, root, args.workers))
+            return 0
+        failed: dict = {}
+        if not args.render:
+            try:
+                import ray  # noqa: F401
+            except ImportError:
+                raise ValueError(
+                    'running cells needs Ray: pip install -e ".[reproduce]" (--dry-run, --status and --render do not)'
+                ) from None
+            from trainer.reproduce.runner import run_on_ray
+
+            todo = [(c.id, s) for c in cells for s in seeds if cell_state(root, c, s) != "done"]
+            print(f"swarm reproduce: {len(todo)} of {len(cells) * len(seeds)} (cell, seed) to run, in {root}")
+            outcome = run_on_ray(
+                cells,
+                seeds,
+                root,
+                workers=args.workers,
+                address=args.address,
+                gpus_per_cell=args.gpus_per_cell,
+                arch=args.arch,
+                device=args.device,
+                progress_every=args.progress_every,
+            )
+            failed = outcome["failed"]
+        from taichi_swarm.files import atomic_write_bytes
+
+        os.makedirs(root, exist_ok=True)
+        tables_md = os.path.join(root, "tables.md")
+        text = render_all(cells, seeds, root, spec.name)
+        atomic_write_bytes(tables_md, lambda f: f.write(text.encode()))
+        print(text)
+        print(f"(tables: {tables_md})")
+        if args.update_doc:
+            update_doc(args.update_doc, render_all(cells, seeds, root, spec.name, os.path.dirname(args.update_doc)))
+            print(f"(written into {args.update_doc})")
+    except KeyboardInterrupt:
+        return 130
+    except (SpecError, ValueError, FileNotFoundError) as exc:
+        print(f"swarm reproduce: error: {exc}", file=sys.stderr)
+        return 2
+    if failed:
+        print(f"swarm reproduce: {len(failed)} cell(s) failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _dry_run(cells, seeds, root, spec_name: str) -> str:
+    from trainer.config import PRESETS
+    from trainer.reproduce.cells import cell_state
+
+    lines = [f"spec {spec_name}, root {root}, seeds {seeds}", ""]
+    head = f"{'cell':<24} {'kind':<10} {'task':<9} {'comm':<4} {'sizes':<14} {'budget':>22}  state"
+    lines += [head, "-" * len(head)]
+    total_steps = 0
+    for c in cells:
+        ppo = PRESETS[c.preset]
+        per_update = c.ppo.get("num_envs", ppo.num_envs) * c.ppo.get("num_steps", ppo.num_steps)
+        steps = c.budget_updates() * per_update
+        total_steps += steps * len(seeds)
+        sizes = str(c.agents) if c.kind == "train" else " ".join(map(str, c.sizes))
+        budget = f"{c.budget_updates()} upd / {_steps(steps)} steps" if steps else f"{c.final_episodes} episodes"
+        states = ", ".join(f"s{s} {cell_state(root, c, s)}" for s in seeds)
+        lines.append(f"{c.id:<24} {c.kind:<10} {c.task:<9} {c.comm:<4} {sizes:<14} {budget:>22}  {states}")
+    lines.append(f"\nat most {_steps(total_steps)} env steps in all (curricula at their full stage budgets)")
+    return "\n".join(lines)
+
+
+def _steps(n: int) -> str:
+    return f"{n / 1e6:.1f}M" if n >= 1e5 else f"{n / 1e3:.1f}k"

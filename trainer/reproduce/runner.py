@@ -1,0 +1,155 @@
+"""Scheduling the cells of a spec on Ray: one Ray task per (cell, seed).
+
+A curriculum chain is one task (its stages run in order inside it); a zero-shot row
+takes its source's task as an argument, so Ray starts it once the source is done.
+Locally, Ray is started embedded with ``workers`` CPUs (one per task); with
+``address`` it joins a running cluster (every node needs this package installed and
+the reproduction root on a shared file system). A task whose worker dies (killed,
+out of memory, node lost) is retried by Ray and resumes from its checkpoints.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from trainer.reproduce.cells import cell_state, progress, read_result, run_cell
+from trainer.reproduce.spec import Cell
+
+# Seconds a zero-shot row takes (no training), for the time-left estimate.
+ZERO_SHOT_SECONDS = 60.0
+
+
+def _run_cell_task(cell: Cell, seed: int, root: str, source: Cell | None, arch: str, device: str, *upstream):
+    """The Ray task: ``upstream`` (the source's result) only orders the tasks."""
+    result = run_cell(cell, seed, root, source=source, arch=arch, device=device)
+    return {"cell": cell.id, "seed": seed, "attempts": result["attempts"]}
+
+
+def run_on_ray(
+    cells: list[Cell],
+    seeds: list[int],
+    root: str,
+    workers: int = 1,
+    address: str | None = None,
+    gpus_per_cell: float = 0.0,
+    arch: str = "cpu",
+    device: str = "cpu",
+    progress_every: float = 60.0,
+    max_retries: int = 3,
+    out=sys.stdout,
+) -> dict:
+    """Run every unfinished (cell, seed); returns {"done": [...], "failed": {key: error}}."""
+    import ray
+
+    root = os.path.abspath(root)
+    by_id = {c.id: c for c in cells}
+    if address is None:
+        ray.init(
+            num_cpus=workers,
+            num_gpus=None if gpus_per_cell else 0,
+            include_dashboard=False,
+            logging_level="WARNING",
+            object_store_memory=256 * 1024**2,
+            # the workers import this package from the driver's environment
+            runtime_env={"env_vars": {"OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}},
+        )
+    else:
+        ray.init(address=address, logging_level="WARNING")
+    try:
+        task = ray.remote(num_cpus=1, num_gpus=gpus_per_cell, max_retries=max_retries)(_run_cell_task)
+        refs: dict[tuple[str, int], object] = {}
+        for cell in cells:  # spec order: a source is submitted before the rows that read it
+            for seed in seeds:
+                if read_result(root, cell, seed) is not None:
+                    continue
+                source = by_id.get(cell.source) if cell.source else None
+                upstream = [refs[(cell.source, seed)]] if (cell.source, seed) in refs else []
+                refs[(cell.id, seed)] = task.remote(cell, seed, root, source, arch, device, *upstream)
+        key_of = {ref: key for key, ref in refs.items()}
+        pending = list(refs.values())
+        failed: dict[str, str] = {}
+        done: list[str] = []
+        print(format_progress(cells, seeds, root, workers, live=set(refs)), file=out, flush=True)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1, timeout=progress_every)
+            for ref in ready:
+                cell_id, seed = key_of[ref]
+                try:
+                    ray.get(ref)
+                    done.append(f"{cell_id}/s{seed}")
+                    print(f"done: {cell_id} seed {seed}", file=out, flush=True)
+                except Exception as exc:  # noqa: BLE001 - one failed cell never stops the others
+                    failed[f"{cell_id}/s{seed}"] = _short_error(exc)
+                    print(f"FAILED: {cell_id} seed {seed}: {failed[f'{cell_id}/s{seed}']}", file=out, flush=True)
+            if not ready:
+                print(format_progress(cells, seeds, root, workers, live=set(refs)), file=out, flush=True)
+        return {"done": done, "failed": failed}
+    finally:
+        ray.shutdown()
+
+
+def _short_error(exc: Exception) -> str:
+    cause = getattr(exc, "cause", None) or exc
+    text = str(cause).strip().splitlines()
+    return text[-1] if text else type(cause).__name__
+
+
+def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int, live: set | None = None) -> str:
+    """Which cells are done, running (``live``: submitted in this run) or waiting, how far
+    each is, and the time left at the measured seconds per update."""
+    rows, remaining_updates, remaining_fixed = [], 0, 0.0
+    per_update = []
+    info = {}
+    for cell in cells:
+        for seed in seeds:
+            p = progress(root, cell, seed)
+            info[(cell.id, seed)] = p
+            if p["updates"] and p["wall_time"]:
+                per_update.append(p["wall_time"] / p["updates"])
+    rate = sum(per_update) / len(per_update) if per_update else None
+    for cell in cells:
+        for seed in seeds:
+            p = info[(cell.id, seed)]
+            state = p["state"]
+            if state == "started":
+                state = "running" if live is not None and (cell.id, seed) in live else "stopped"
+            if state == "pending" and cell.source and cell_state(root, _find(cells, cell.source), seed) != "done":
+                state = f"waits for {cell.source}"
+            budget = p["budget"]
+            where = f" ({p['stage']})" if p["stage"] else ""
+            done_txt = f"{p['updates']}/{budget}{where}" if budget else "-"
+            left = ""
+            if p["state"] != "done":
+                if cell.kind == "zero-shot":
+                    remaining_fixed += ZERO_SHOT_SECONDS
+                else:
+                    remaining_updates += max(budget - p["updates"], 0)
+                    if rate:
+                        left = _minutes(max(budget - p["updates"], 0) * rate)
+            rows.append((cell.id, str(seed), state, done_txt, _minutes(p["wall_time"]) if p["wall_time"] else "", left))
+    head = ("cell", "seed", "state", "updates", "trained", "left (at most)")
+    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+    lines = ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() for r in [head, *rows]]
+    counts = {}
+    for r in rows:
+        key = r[2].split(" ")[0]
+        counts[key] = counts.get(key, 0) + 1
+    summary = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
+    if rate:
+        total = (remaining_updates * rate + remaining_fixed) / max(workers, 1)
+        summary += (
+            f"; time left at most {_minutes(total)} on {workers} worker(s) "
+            f"({rate:.2f} s/update measured; curricula counted at their full stage budgets)"
+        )
+    return "\n".join([*lines, summary])
+
+
+def _find(cells: list[Cell], cell_id: str) -> Cell:
+    return next(c for c in cells if c.id == cell_id)
+
+
+def _minutes(seconds: float) -> str:
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.1f} min"

@@ -1,0 +1,264 @@
+"""The paper's tables as data: every cell says what to train, how to evaluate it and
+what the paper reported for it.
+
+A spec is a TOML file (``trainer/reproduce/specs/paper.toml`` ships Tables 1-4 of
+docs/PAPER.md s.7; ``smoke.toml`` is a tiny one for tests and a first try). Its
+``[defaults]`` apply to every ``[[cells]]`` entry; a cell's own keys win. Kinds:
+
+- ``train``: one run from scratch at ``agents`` for ``updates`` (Table 1).
+- ``curriculum``: stages over ``sizes``, each from the previous stage's weights,
+  advancing at ``threshold`` or after ``max_updates_per_stage`` (Tables 2, 3).
+- ``zero-shot``: the policy of cell ``source`` (its stage at ``source_agents`` for a
+  curriculum) evaluated at ``sizes`` without fine-tuning (Table 4).
+
+Every number a cell reports comes from ``final_episodes`` fresh greedy episodes at
+``eval_seed`` (training never draws seeds below 2**40), not from the evaluations that
+decided when a stage stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+from dataclasses import dataclass, field
+
+from taichi_swarm import COMMS, TASK_SPECS, TASKS
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+SPECS_DIR = os.path.join(os.path.dirname(__file__), "specs")
+KINDS = ("train", "curriculum", "zero-shot")
+ENTITY_MODES = ("emp", "concat", "padded")  # trainer.model.ENTITY_MODES (kept import-light: no torch here)
+
+
+class SpecError(ValueError):
+    """A spec file or a selection of it is wrong; the message names the cell and the key."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One cell of a table: one training run, one curriculum chain or one zero-shot row."""
+
+    id: str
+    table: int
+    kind: str
+    task: str
+    comm: str = "uc"
+    comm_radius: float = 1.0
+    entity_mode: str = "emp"
+    preset: str = "paper"
+    ppo: dict = field(default_factory=dict)
+    """Overrides of the preset's PPO options (e.g. {num_envs = 8})."""
+    agents: int = 0
+    """train: the team size."""
+    updates: int = 0
+    """train: PPO updates."""
+    sizes: tuple[int, ...] = ()
+    """curriculum: the stages' team sizes; zero-shot: the sizes evaluated."""
+    threshold: float = 0.85
+    max_updates_per_stage: int = 4000
+    source: str = ""
+    """zero-shot: the id of the cell whose policy is evaluated."""
+    source_agents: int = 0
+    """zero-shot from a curriculum: which stage's policy."""
+    eval_every: int = 50
+    eval_episodes: int = 200
+    """Episodes of the evaluations during training (stages advance on them)."""
+    final_episodes: int = 500
+    eval_seed: int = 777
+    checkpoint_every: int = 25
+    compile: bool = True
+    label: str = ""
+    """Row label in the rendered table (default: task and comm)."""
+    paper: dict = field(default_factory=dict)
+    """What the paper reported, by team size: {"3" = {S = 100, T = 14.12, DIST = 0.047, N = 1100}}."""
+
+    def definition(self) -> dict:
+        """Everything that decides what is run (not the paper's numbers or the label)."""
+        d = dataclasses.asdict(self)
+        for key in ("paper", "label", "table"):
+            d.pop(key)
+        d["sizes"] = list(self.sizes)
+        return d
+
+    def digest(self) -> str:
+        return hashlib.sha256(json.dumps(self.definition(), sort_keys=True).encode()).hexdigest()[:16]
+
+    def row_label(self) -> str:
+        return self.label or f"{self.task} {self.comm.upper()}"
+
+    def budget_updates(self) -> int:
+        """Most PPO updates the cell can take (a curriculum may stop stages earlier)."""
+        if self.kind == "train":
+            return self.updates
+        if self.kind == "curriculum":
+            return self.max_updates_per_stage * len(self.sizes)
+        return 0
+
+
+@dataclass(frozen=True)
+class Spec:
+    name: str
+    description: str
+    cells: tuple[Cell, ...]
+    path: str
+
+    def cell(self, cell_id: str) -> Cell:
+        for c in self.cells:
+            if c.id == cell_id:
+                return c
+        raise SpecError(f"{self.path}: no cell {cell_id!r} (cells: {', '.join(c.id for c in self.cells)})")
+
+    def select(self, tables: list[int] | None = None, cell_ids: list[str] | None = None) -> list[Cell]:
+        """The cells of ``tables`` and/or named by ``cell_ids``, plus the cells they need
+        (a zero-shot row needs its source), in an order where sources come first."""
+        if tables:
+            unknown = sorted(set(tables) - {c.table for c in self.cells})
+            if unknown:
+                raise SpecError(f"--tables {unknown}: the spec {self.name!r} has tables {self.tables()}")
+        chosen = [
+            c
+            for c in self.cells
+            if (not tables and not cell_ids) or (tables and c.table in tables) or (cell_ids and c.id in cell_ids)
+        ]
+        for cid in cell_ids or []:
+            self.cell(cid)  # unknown ids are an error
+        needed = {c.id for c in chosen}
+        for c in list(chosen):
+            while c.source and c.source not in needed:
+                c = self.cell(c.source)
+                needed.add(c.id)
+        return [c for c in self.cells if c.id in needed]  # spec order: sources are declared first
+
+    def tables(self) -> list[int]:
+        return sorted({c.table for c in self.cells})
+
+
+def resolve_spec_path(name_or_path: str) -> str:
+    """A shipped spec's name (``paper``, ``smoke``) or a path to a TOML file."""
+    if os.path.exists(name_or_path):
+        return name_or_path
+    shipped = os.path.join(SPECS_DIR, f"{name_or_path}.toml")
+    if os.path.exists(shipped):
+        return shipped
+    names = sorted(f[:-5] for f in os.listdir(SPECS_DIR) if f.endswith(".toml"))
+    raise SpecError(f"--spec {name_or_path!r} is neither a file nor a shipped spec ({', '.join(names)})")
+
+
+def load_spec(name_or_path: str) -> Spec:
+    path = resolve_spec_path(name_or_path)
+    try:
+        with open(path, "rb") as f:
+            raw = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise SpecError(f"{path}: not valid TOML ({exc})") from None
+    known_top = {"name", "description", "defaults", "cells"}
+    extra = sorted(set(raw) - known_top)
+    if extra:
+        raise SpecError(f"{path}: unknown top-level keys {extra} (allowed: {sorted(known_top)})")
+    defaults = raw.get("defaults", {})
+    entries = raw.get("cells", [])
+    if not entries:
+        raise SpecError(f"{path}: no [[cells]]")
+    cells = tuple(_make_cell(path, i, {**defaults, **entry}) for i, entry in enumerate(entries))
+    spec = Spec(
+        name=raw.get("name", os.path.splitext(os.path.basename(path))[0]),
+        description=raw.get("description", ""),
+        cells=cells,
+        path=path,
+    )
+    _check_references(spec)
+    return spec
+
+
+_FIELDS = {f.name: f for f in dataclasses.fields(Cell)}
+
+
+def _make_cell(path: str, index: int, entry: dict) -> Cell:
+    where = f"{path}: cell {entry.get('id', f'#{index + 1}')!r}"
+    unknown = sorted(set(entry) - set(_FIELDS))
+    if unknown:
+        raise SpecError(f"{where}: unknown keys {unknown}")
+    for key in ("id", "table", "kind", "task"):
+        if key not in entry:
+            raise SpecError(f"{where}: missing {key!r}")
+    entry = dict(entry)
+    if "sizes" in entry:
+        entry["sizes"] = tuple(entry["sizes"])
+    try:
+        cell = Cell(**entry)
+    except TypeError as exc:
+        raise SpecError(f"{where}: {exc}") from None
+    _check_cell(where, cell)
+    return cell
+
+
+def _check_cell(where: str, c: Cell) -> None:
+    def bad(msg: str):
+        raise SpecError(f"{where}: {msg}")
+
+    if not c.id or any(ch in c.id for ch in "/\\ ") or c.id.startswith("."):
+        bad("id must be a plain name (no slashes or spaces)")
+    if c.kind not in KINDS:
+        bad(f"kind must be one of {KINDS}, got {c.kind!r}")
+    if c.task not in TASKS:
+        bad(f"task must be one of {TASKS}, got {c.task!r}")
+    if c.comm not in COMMS:
+        bad(f"comm must be one of {COMMS}, got {c.comm!r}")
+    if c.entity_mode not in ENTITY_MODES:
+        bad(f"entity_mode must be one of {ENTITY_MODES}, got {c.entity_mode!r}")
+    smallest = TASK_SPECS[c.task].min_agents
+    if c.kind == "train":
+        if c.agents < smallest:
+            bad(f"agents must be >= {smallest} for {c.task}, got {c.agents}")
+        if c.updates < 1:
+            bad(f"updates must be >= 1, got {c.updates}")
+    if c.kind in ("curriculum", "zero-shot"):
+        if not c.sizes or any(not isinstance(m, int) or m < smallest for m in c.sizes):
+            bad(f"sizes must be team sizes >= {smallest}, got {list(c.sizes)}")
+    if c.kind == "curriculum":
+        if not 0 < c.threshold <= 1:
+            bad(f"threshold must be in (0, 1], got {c.threshold}")
+        if c.max_updates_per_stage < 1:
+            bad(f"max_updates_per_stage must be >= 1, got {c.max_updates_per_stage}")
+    if c.kind == "zero-shot" and not c.source:
+        bad("a zero-shot cell needs source (the id of the cell whose policy it evaluates)")
+    if c.kind != "zero-shot" and c.source:
+        bad("only zero-shot cells have a source")
+    for name in ("eval_every", "eval_episodes", "final_episodes", "checkpoint_every"):
+        if getattr(c, name) < 1:
+            bad(f"{name} must be >= 1, got {getattr(c, name)}")
+    if not 0 <= c.eval_seed < 2**40:
+        bad(f"eval_seed must be in [0, 2**40): training draws its seeds above, got {c.eval_seed}")
+    if not isinstance(c.ppo, dict):
+        bad("ppo must be a table of PPO options")
+    for size, row in c.paper.items():
+        if not str(size).isdigit() or not isinstance(row, dict):
+            bad(f"paper must map team sizes to tables of numbers, got {size!r} = {row!r}")
+
+
+def _check_references(spec: Spec) -> None:
+    seen: dict[str, Cell] = {}
+    for c in spec.cells:
+        if c.id in seen:
+            raise SpecError(f"{spec.path}: two cells named {c.id!r}")
+        if c.source:
+            src = seen.get(c.source)
+            if src is None:
+                raise SpecError(f"{spec.path}: cell {c.id!r}: source {c.source!r} must be a cell declared before it")
+            if src.kind == "zero-shot":
+                raise SpecError(f"{spec.path}: cell {c.id!r}: source {c.source!r} is a zero-shot cell (no policy)")
+            if src.kind == "curriculum" and c.source_agents not in src.sizes:
+                raise SpecError(
+                    f"{spec.path}: cell {c.id!r}: source_agents must be one of {c.source!r}'s stage sizes "
+                    f"{list(src.sizes)}, got {c.source_agents}"
+                )
+            if src.task != c.task:
+                raise SpecError(f"{spec.path}: cell {c.id!r}: task {c.task!r} differs from its source's {src.task!r}")
+        seen[c.id] = c

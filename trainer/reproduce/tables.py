@@ -1,0 +1,195 @@
+"""The tables are generated, not typed: result.json files -> Markdown beside the paper's
+numbers, and one figure of learning curves per table.
+
+Every cell of the selection appears; a cell with no result reads "not run". With
+more than one seed a number reads ``mean ± sd (n)``; the paper reported single runs.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+from trainer.reproduce.cells import cell_dir, read_result
+from trainer.reproduce.spec import Cell
+
+DOC_BEGIN = "<!-- BEGIN swarm reproduce (generated: do not edit by hand) -->"
+DOC_END = "<!-- END swarm reproduce -->"
+
+TITLES = {
+    1: "Table 1: trained from scratch (S%, T; coverage also DIST)",
+    2: "Table 2: coverage curriculum, S% and updates N per stage",
+    3: "Table 3: formation and line curricula, S% and updates N per stage",
+    4: "Table 4: zero-shot S%: one policy at other team sizes, no fine-tuning",
+}
+
+
+def _stat(values: list[float], scale: float = 1.0, digits: int = 1) -> str:
+    values = [v * scale for v in values if v is not None and math.isfinite(v)]
+    if not values:
+        return "-"
+    mean = sum(values) / len(values)
+    if len(values) == 1:
+        return f"{mean:.{digits}f}"
+    sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
+    return f"{mean:.{digits}f} ± {sd:.{digits}f} ({len(values)})"
+
+
+def _paper(cell: Cell, agents: int, key: str, digits: int | None = None) -> str:
+    value = cell.paper.get(str(agents), {}).get(key)
+    if value is None:
+        return "-"
+    return f"{value:.{digits}f}" if digits is not None else str(value)
+
+
+def _rows_by_size(results: list[dict]) -> dict[int, list[dict]]:
+    out: dict[int, list[dict]] = {}
+    for r in results:
+        for row in r["rows"]:
+            out.setdefault(row["agents"], []).append(row)
+    return out
+
+
+def _results(root: str, cell: Cell, seeds: list[int]) -> list[dict]:
+    return [r for r in (read_result(root, cell, s) for s in seeds) if r is not None]
+
+
+def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> str:
+    cells = [c for c in cells if c.table == table]
+    if not cells:
+        return ""
+    kind = cells[0].kind
+    lines = [f"### {TITLES.get(table, f'Table {table}')}", ""]
+    if kind == "train":
+        lines += [
+            "| cell | M | S% | paper S% | T | paper T | DIST | paper DIST | updates | env steps (M) | minutes |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for c in cells:
+            res = _results(root, c, seeds)
+            if not res:
+                lines.append(
+                    f"| {c.row_label()} | {c.agents} | not run | {_paper(c, c.agents, 'S')} | - | "
+                    f"{_paper(c, c.agents, 'T')} | - | {_paper(c, c.agents, 'DIST')} | - | - | - |"
+                )
+                continue
+            rows = _rows_by_size(res)[c.agents]
+            lines.append(
+                f"| {c.row_label()} | {c.agents} | {_stat([r['success_rate'] for r in rows], 100)} | "
+                f"{_paper(c, c.agents, 'S')} | {_stat([r['mean_length'] for r in rows], digits=2)} | "
+                f"{_paper(c, c.agents, 'T')} | {_stat([r['dist'] for r in rows], digits=3)} | "
+                f"{_paper(c, c.agents, 'DIST')} | {_stat([r['updates'] for r in rows], digits=0)} | "
+                f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | {_stat([r['wall_time'] for r in rows], 1 / 60)} |"
+            )
+    elif kind == "curriculum":
+        lines += [
+            "| cell | M | S% | paper S% | N (updates) | paper N | env steps (M) | minutes | reached threshold |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for c in cells:
+            by_size = _rows_by_size(_results(root, c, seeds))
+            for M in c.sizes:
+                rows = by_size.get(M, [])
+                if not rows:
+                    paper = f"{_paper(c, M, 'S')} | - | {_paper(c, M, 'N')}"
+                    lines.append(f"| {c.row_label()} | {M} | not run | {paper} | - | - | - |")
+                    continue
+                reached = sum(bool(r["reached_threshold"]) for r in rows)
+                lines.append(
+                    f"| {c.row_label()} | {M} | {_stat([r['success_rate'] for r in rows], 100)} | "
+                    f"{_paper(c, M, 'S')} | {_stat([r['updates'] for r in rows], digits=0)} | {_paper(c, M, 'N')} | "
+                    f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | "
+                    f"{_stat([r['wall_time'] for r in rows], 1 / 60)} | {reached} of {len(rows)} |"
+                )
+    else:
+        sizes = sorted({M for c in cells for M in c.sizes})
+        lines += [
+            "| cell | from | " + " | ".join(f"M={M} ours (paper)" for M in sizes) + " |",
+            "|---|---|" + "---|" * len(sizes),
+        ]
+        for c in cells:
+            by_size = _rows_by_size(_results(root, c, seeds))
+            cols = []
+            for M in sizes:
+                rows = by_size.get(M, [])
+                ours = _stat([r["success_rate"] for r in rows], 100) if rows else "not run"
+                cols.append(f"{ours} ({_paper(c, M, 'S')})")
+            lines.append(f"| {c.row_label()} | {c.source} M={c.source_agents} | " + " | ".join(cols) + " |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def render_all(cells: list[Cell], seeds: list[int], root: str, spec_name: str, link_from: str | None = None) -> str:
+    """Markdown of every table of ``cells``, and the learning-curve figures (written to
+    ROOT/curves-table-N.png, linked relative to ``link_from``: where the Markdown goes)."""
+    tables = sorted({c.table for c in cells})
+    n_eps = sorted({c.final_episodes for c in cells})
+    parts = [
+        f"Generated by `swarm reproduce --spec {spec_name}` from {root}, seeds {seeds}: "
+        f"every S% / T / DIST from {', '.join(map(str, n_eps))} fresh greedy episodes at seed "
+        f"{', '.join(str(s) for s in sorted({c.eval_seed for c in cells}))} (never a training seed); "
+        "'minutes' is training wall-clock.",
+        "",
+    ]
+    for t in tables:
+        parts.append(render_table(t, cells, seeds, root))
+        figure = plot_curves(t, cells, seeds, root, root)
+        if figure:
+            rel = os.path.relpath(figure, link_from or root)
+            parts += [f"![learning curves, table {t}]({rel})", ""]
+    return "\n".join(parts)
+
+
+def plot_curves(table: int, cells: list[Cell], seeds: list[int], root: str, out_dir: str) -> str | None:
+    """Evaluation S% against env steps of every training cell of ``table`` (curricula:
+    the stages one after another, a dotted line where a stage starts)."""
+    from trainer.plot import _save, read_metrics
+
+    cells = [c for c in cells if c.table == table and c.kind != "zero-shot"]
+    curves = []
+    for c in cells:
+        for seed in seeds:
+            d = cell_dir(root, c, seed)
+            runs = [d] if c.kind == "train" else [os.path.join(d, f"stage-m{M}") for M in c.sizes]
+            xs, ys, starts, offset = [], [], [], 0
+            for run in runs:
+                if not os.path.exists(os.path.join(run, "metrics.jsonl")):
+                    break
+                rows = read_metrics(run)
+                starts.append(offset / 1e6)
+                ev = [r for r in rows if r.get("eval_success_rate") is not None]
+                xs += [(offset + r["env_steps"]) / 1e6 for r in ev]
+                ys += [100 * r["eval_success_rate"] for r in ev]
+                offset += rows[-1]["env_steps"] if rows else 0
+            if xs:
+                curves.append((f"{c.id} s{seed}", xs, ys, starts[1:]))
+    if not curves:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for label, xs, ys, starts in curves:
+        (line,) = ax.plot(xs, ys, "o-", ms=3, label=label)
+        for s in starts:
+            ax.axvline(s, color=line.get_color(), ls=":", alpha=0.6)
+    ax.set(xlabel="env steps (M)", ylabel="evaluation S% (during training)", ylim=(-2, 102), title=TITLES.get(table))
+    ax.legend(fontsize=7)
+    os.makedirs(out_dir, exist_ok=True)
+    return _save(fig, os.path.join(out_dir, f"curves-table-{table}.png"))
+
+
+def update_doc(doc_path: str, markdown: str) -> None:
+    """Replace what lies between DOC_BEGIN and DOC_END in ``doc_path`` (atomically)."""
+    from taichi_swarm.files import atomic_write_bytes
+
+    with open(doc_path) as f:
+        text = f.read()
+    if DOC_BEGIN not in text or DOC_END not in text:
+        raise ValueError(f"{doc_path} has no {DOC_BEGIN!r} ... {DOC_END!r} markers to replace between")
+    head, rest = text.split(DOC_BEGIN, 1)
+    _, tail = rest.split(DOC_END, 1)
+    new = f"{head}{DOC_BEGIN}\n{markdown.rstrip()}\n{DOC_END}{tail}"
+    atomic_write_bytes(doc_path, lambda f: f.write(new.encode()))
