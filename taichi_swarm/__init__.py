@@ -4,17 +4,22 @@
     obs = env.reset(seed=0)
     obs, reward, done, info = env.step(actions)  # actions: int64 [B, M] in 0..4
 
+    # MPE's continuous mode: actions float32 [B, M, 2], force 5 clip(u, -1, 1) per axis
+    env = taichi_swarm.make("coverage", 1024, 3, action_space="continuous")
+
 Taichi is initialised by the first ``make`` (or ``taichi_swarm.init``), never
 at import.
 """
 
 from .env import ARRAYS, COMMS, SwarmEnv, make
-from .physics import ACTION_MEANINGS, NUM_ACTIONS
+from .physics import ACTION_DIM, ACTION_MEANINGS, ACTION_SPACES, NUM_ACTIONS
 from .runtime import init
 from .tasks import TASK_SPECS, TASKS
 
 __all__ = [
+    "ACTION_DIM",
     "ACTION_MEANINGS",
+    "ACTION_SPACES",
     "ARRAYS",
     "COMMS",
     "NUM_ACTIONS",

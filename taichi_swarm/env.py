@@ -4,6 +4,8 @@ Shapes: B environments, M agents, L landmarks.
     obs["self"]      float32 [B, M, 4]     (vx, vy, px, py) of each agent
     obs["entities"]  float32 [B, M, L, 2]  landmark position - agent position
     obs["adj"]       bool    [B, M, M]     adj[b, i, j]: agent i hears agent j
+    actions          int64   [B, M]        discrete (default): 0..4, see ``step``
+                     float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
     done             bool    [B]           the episode ended at this step
 Every returned array is a zero-copy view of the env's preallocated buffers and
@@ -28,7 +30,7 @@ from .layout import (
     Layout,
     static_team_size,
 )
-from .physics import NUM_ACTIONS
+from .physics import ACTION_DIM, ACTION_SPACES, NUM_ACTIONS
 from .tasks import COMMON_PARAMS, TASK_SPECS, TASKS
 
 COMMS = ("uc", "rc")
@@ -81,6 +83,7 @@ class SwarmEnv:
         arch: str = "cpu",
         seed: int | None = None,
         array: str = "torch",
+        action_space: str = "discrete",
         **task_params,
     ):
         if not isinstance(task, str) or task not in TASK_SPECS:
@@ -97,6 +100,10 @@ class SwarmEnv:
         if array not in ARRAYS:
             raise ValueError(f"array must be one of {ARRAYS}, got {array!r}")
         self.array = array
+        if not isinstance(action_space, str) or action_space not in ACTION_SPACES:
+            raise ValueError(f"action_space must be one of {ACTION_SPACES}, got {action_space!r}")
+        self.action_space = action_space
+        self.continuous = action_space == "continuous"
         if seed is not None:
             seed = _check_int("seed", seed, 0)
         self._seed = seed
@@ -109,7 +116,8 @@ class SwarmEnv:
             k: (_check_int(k, v, 1, INT32_MAX) if k == "max_steps" else _check_float(k, v, 0.0))
             for k, v in params.items()
         }
-        self.num_actions = NUM_ACTIONS
+        self.num_actions = NUM_ACTIONS  # discrete actions per agent
+        self.action_dim = ACTION_DIM  # continuous: float32 [B, M, 2]
         self._task_id = spec.task_id
         self._cap = assignment.capacity(self.num_agents)
         self._sm = static_team_size(self.num_agents)  # compile-time M for small teams, else 0
@@ -233,17 +241,51 @@ class SwarmEnv:
         kernels.reset_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
         return self.obs
 
+    def reset_envs(self, mask):
+        """Start a fresh episode in the environments where ``mask`` (bool [B], numpy
+        or torch) is true; the others go on untouched. Returns ``obs``.
+
+        The new episodes draw from each environment's random stream where it stands
+        (no reseeding): what ``step`` does to an environment whose episode ends.
+        """
+        if not self._seeded:
+            raise RuntimeError("call reset() before reset_envs()")
+        host = _to_numpy(mask, "mask")
+        if host.dtype != np.bool_:
+            raise ValueError(f"mask must have dtype bool, got {host.dtype}")
+        if host.shape != (self.num_envs,):
+            raise ValueError(f"mask must have shape ({self.num_envs},) (num_envs,), got {host.shape}")
+        if not host.any():
+            return self.obs
+        flags = np.ascontiguousarray(host, dtype=np.uint8)  # [B] 0/1, the kernel's exact dtype
+        if self.arch == "cuda":
+            import torch
+
+            flags = torch.from_numpy(flags).to("cuda")
+        kernels.reset_masked_kernel(
+            self._f, self._i, self._u8, flags, self._task_id, self._cap, self._sm, self._parallel
+        )
+        return self.obs
+
     def step(self, actions):
         """Advance every environment one step; returns ``(obs, reward, done, info)``.
 
-        ``actions``: int64 [B, M], values 0..4 (no-op, -x, +x, -y, +y), a
-        contiguous tensor on the env's device (or a numpy array on the CPU).
+        ``actions``, a contiguous tensor on the env's device (or a numpy array on
+        the CPU): discrete (default) int64 [B, M], values 0..4 (no-op, -x, +x, -y,
+        +y); continuous (``action_space="continuous"``) float32 [B, M, 2], the
+        force on each axis being 5 clip(u, -1, 1) (NaN is refused).
         Finished environments restart inside this call: ``obs`` is then the
         first observation of the new episode, ``info["terminal_obs"]`` the last
         one of the old, ``info["episode"]`` its statistics.
         """
         if not self._seeded:
             raise RuntimeError("call reset() before step()")
+        if self.continuous:
+            u = self._check_continuous_actions(actions)  # 1-D float32 view, no copy
+            kernels.step_continuous_kernel(
+                self._f, self._i, self._u8, u, self._task_id, self._cap, self._sm, self._parallel
+            )
+            return self.obs, self.reward, self.done, self.info
         host = self._check_actions(actions)
         if host is not None:  # numpy, or a CPU tensor seen through numpy (no torch dispatch)
             np.copyto(self._actions_host, host, casting="unsafe")  # int64 -> int32
@@ -251,6 +293,46 @@ class SwarmEnv:
             self._actions_in.copy_(actions)  # CUDA
         kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
         return self.obs, self.reward, self.done, self.info
+
+    def _check_continuous_actions(self, actions):
+        """Raise ValueError unless ``actions`` are float32 [B, M, 2], contiguous, on the env's
+        device and free of NaN; returns them flattened to [B * M * 2] (a view): numpy on
+        the CPU (a CPU tensor is seen through numpy), a torch tensor on CUDA."""
+        shape = (self.num_envs, self.num_agents, ACTION_DIM)
+        what = "continuous actions"
+        if isinstance(actions, np.ndarray):
+            if self.arch == "cuda":
+                raise ValueError(f"{what} must be a torch tensor on cuda for a CUDA env, got a numpy array")
+            if actions.dtype != np.float32:
+                raise ValueError(f"{what} must have dtype float32, got {actions.dtype}")
+            if actions.shape != shape:
+                raise ValueError(f"{what} must have shape {shape} (num_envs, num_agents, 2), got {actions.shape}")
+            if not actions.flags.c_contiguous:
+                raise ValueError(f"{what} must be C-contiguous (use np.ascontiguousarray)")
+            flat = actions.reshape(-1)
+        else:
+            import torch
+
+            if not isinstance(actions, torch.Tensor):
+                raise ValueError(f"{what} must be a torch tensor or numpy array, got {type(actions).__name__}")
+            if actions.dtype != torch.float32:
+                raise ValueError(f"{what} must have dtype torch.float32, got {actions.dtype}")
+            if tuple(actions.shape) != shape:
+                raise ValueError(
+                    f"{what} must have shape {shape} (num_envs, num_agents, 2), got {tuple(actions.shape)}"
+                )
+            if actions.device.type != self.device:
+                raise ValueError(f"{what} must be on device {self.device!r}, got {actions.device}")
+            if not actions.is_contiguous():
+                raise ValueError(f"{what} must be contiguous (call .contiguous())")
+            if actions.device.type == "cuda":
+                if bool(torch.isnan(actions).any()):
+                    raise ValueError(f"{what} must not contain NaN")
+                return actions.detach().view(-1)
+            flat = actions.detach().numpy().reshape(-1)
+        if np.isnan(flat).any():
+            raise ValueError(f"{what} must not contain NaN")
+        return flat
 
     def _check_actions(self, actions) -> np.ndarray | None:
         """Raise ValueError unless ``actions`` fit this env; returns them as a numpy
@@ -371,7 +453,8 @@ class SwarmEnv:
         return (
             f"SwarmEnv(task={self.task!r}, num_envs={self.num_envs}, num_agents={self.num_agents}, "
             f"num_landmarks={self.num_landmarks}, comm={self.comm!r}, comm_radius={self.comm_radius}, "
-            f"arch={self.arch!r}, array={self.array!r})"
+            f"arch={self.arch!r}, array={self.array!r}"
+            + (f", action_space={self.action_space!r})" if self.continuous else ")")
         )
 
 
@@ -399,6 +482,7 @@ def make(
     arch: str = "cpu",
     seed: int | None = None,
     array: str = "torch",
+    action_space: str = "discrete",
     **task_params,
 ) -> SwarmEnv:
     """Build a batch of ``num_envs`` teams of ``num_agents`` agents for ``task``.
@@ -406,7 +490,9 @@ def make(
     task: one of ``TASKS`` (coverage, formation, line). comm: "uc" (every
     agent hears every agent) or "rc" (within ``comm_radius``). arch: "cpu",
     "cuda"/"gpu" or "auto". array: "torch" or "numpy" outputs (numpy needs no
-    torch). task_params: ``max_steps`` (50) and ``success_threshold`` for all
+    torch). action_space: "discrete" (the paper's 5 actions, int64 [B, M]) or
+    "continuous" (MPE's continuous mode: float32 [B, M, 2], force 5 clip(u, -1, 1)
+    per axis). task_params: ``max_steps`` (50) and ``success_threshold`` for all
     tasks; ``formation_radius`` (formation); ``line_length`` (line).
     """
-    return SwarmEnv(task, num_envs, num_agents, comm, comm_radius, arch, seed, array, **task_params)
+    return SwarmEnv(task, num_envs, num_agents, comm, comm_radius, arch, seed, array, action_space, **task_params)

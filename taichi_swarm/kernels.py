@@ -1,7 +1,9 @@
 """The fused kernels: one launch per ``reset`` and one per ``step``.
 
 Every kernel takes the three packed buffers (see layout.py) and, for the
-step, nothing else (the actions are copied into the int32 buffer first). Each
+discrete step, nothing else (the actions are copied into the int32 buffer
+first); the continuous step also takes the float32 actions, the masked reset
+its mask. Each
 kernel has exactly one parallel loop, over environments (only the outermost
 loop is parallel, and every extra pass costs a thread-pool dispatch, which
 dominated at small B). Per environment, a step is: forces -> velocities ->
@@ -151,16 +153,32 @@ def refresh_kernel(
 
 
 @ti.func
-def physics_step(cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
-    """Action and contact forces -> velocities, then positions, for env b."""
+def physics_step(
+    cap: ti.template(),
+    sm: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    b: ti.i32,
+    u: ti.template(),
+    continuous: ti.template(),
+):
+    """Action and contact forces -> velocities, then positions, for env b.
+
+    Discrete (``continuous`` False): the actions are ib[O_ACTIONS] and ``u`` is not read.
+    Continuous: u is the float32 [B * M * 2] array of force commands (clipped to [-1, 1])."""
     M = team_size(sm, ib)
     dist_min = 2.0 * f[P_AGENT_RADIUS]
     P0, V0, A0 = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_ACTIONS] + b * M
     force = ti.Vector.zero(ti.f32, 2 * cap)  # [M, 2], on the thread's stack
     for i in range(M):
-        a = physics.action_force(ib[A0 + i])
-        force[2 * i] = a[0]
-        force[2 * i + 1] = a[1]
+        if ti.static(continuous):
+            c = physics.continuous_force(ti.math.vec2(u[(b * M + i) * 2], u[(b * M + i) * 2 + 1]))
+            force[2 * i] = c[0]
+            force[2 * i + 1] = c[1]
+        else:
+            a = physics.action_force(ib[A0 + i])
+            force[2 * i] = a[0]
+            force[2 * i + 1] = a[1]
     for i in range(M):  # contact forces from the old positions, each pair once (equal and
         # opposite; every agent still sums its contacts in increasing j, as MPE does)
         p = ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1])
@@ -182,38 +200,94 @@ def physics_step(cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti
         f[P0 + 2 * i + 1] = f[P0 + 2 * i + 1] + v[1] * physics.DT
 
 
+@ti.func
+def step_env(
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    u8: ti.template(),
+    b: ti.i32,
+    u: ti.template(),
+    continuous: ti.template(),
+):
+    """One step of env b: physics, targets, assignment, reward, done, auto-reset, observations."""
+    M = team_size(sm, ib)
+    physics_step(cap, sm, f, ib, b, u, continuous)
+    t = ib[ib[O_STEP] + b] + 1
+    ib[ib[O_STEP] + b] = t
+    match(task, cap, sm, f, ib, b)
+    sum_d, sum_clipped, success = 0.0, 0.0, True
+    for i in range(M):
+        d = f[ib[O_MATCHED] + b * M + i]
+        sum_d += d
+        sum_clipped += ti.math.clamp(d, 0.0, 2.0)
+        success = success and d < f[P_SUCCESS]
+    r = tasks.reward(task, sum_d / M, sum_clipped / M)
+    f[ib[O_REWARD] + b] = r
+    ret = f[ib[O_RET_ACC] + b] + r
+    f[ib[O_RET_ACC] + b] = ret
+    done = success or t >= ib[H_MAX_STEPS]
+    u8[ib[O_DONE] + b] = ti.cast(done, ti.u8)
+    if done:
+        u8[ib[O_EP_SUCCESS] + b] = ti.cast(success, ti.u8)
+        u8[ib[O_EP_TRUNC] + b] = ti.cast(not success, ti.u8)
+        ib[ib[O_EP_LEN] + b] = t
+        f[ib[O_EP_RETURN] + b] = ret
+        f[ib[O_EP_DIST] + b] = target_dist(sm, f, ib, b)
+        for i in range(M):
+            f[ib[O_EP_MATCHED] + b * M + i] = f[ib[O_MATCHED] + b * M + i]
+        write_team_obs(task, sm, f, ib, u8, b, ib[O_TERM_SELF], ib[O_TERM_ENT], ib[O_TERM_ADJ])
+        start_episode(task, cap, sm, f, ib, b)
+    write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+
+
 @ti.kernel
 def step_kernel(
     f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), sm: ti.template(), parallel: ti.template()
 ):
-    """One step of every environment, with the actions already in ib[O_ACTIONS]."""
-    M = team_size(sm, ib)
+    """One step of every environment, with the discrete actions already in ib[O_ACTIONS]."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        physics_step(cap, sm, f, ib, b)
-        t = ib[ib[O_STEP] + b] + 1
-        ib[ib[O_STEP] + b] = t
-        match(task, cap, sm, f, ib, b)
-        sum_d, sum_clipped, success = 0.0, 0.0, True
-        for i in range(M):
-            d = f[ib[O_MATCHED] + b * M + i]
-            sum_d += d
-            sum_clipped += ti.math.clamp(d, 0.0, 2.0)
-            success = success and d < f[P_SUCCESS]
-        r = tasks.reward(task, sum_d / M, sum_clipped / M)
-        f[ib[O_REWARD] + b] = r
-        ret = f[ib[O_RET_ACC] + b] + r
-        f[ib[O_RET_ACC] + b] = ret
-        done = success or t >= ib[H_MAX_STEPS]
-        u8[ib[O_DONE] + b] = ti.cast(done, ti.u8)
-        if done:
-            u8[ib[O_EP_SUCCESS] + b] = ti.cast(success, ti.u8)
-            u8[ib[O_EP_TRUNC] + b] = ti.cast(not success, ti.u8)
-            ib[ib[O_EP_LEN] + b] = t
-            f[ib[O_EP_RETURN] + b] = ret
-            f[ib[O_EP_DIST] + b] = target_dist(sm, f, ib, b)
-            for i in range(M):
-                f[ib[O_EP_MATCHED] + b * M + i] = f[ib[O_MATCHED] + b * M + i]
-            write_team_obs(task, sm, f, ib, u8, b, ib[O_TERM_SELF], ib[O_TERM_ENT], ib[O_TERM_ADJ])
+        step_env(task, cap, sm, f, ib, u8, b, f, False)  # ``u`` unused (discrete): any array will do
+
+
+@ti.kernel
+def step_continuous_kernel(
+    f: F32,
+    ib: I32,
+    u8: U8,
+    u: F32,
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    parallel: ti.template(),
+):
+    """One step of every environment with continuous actions u: float32 [B * M * 2] (a
+    kernel of its own, so that the discrete step keeps its three arguments)."""
+    ti.loop_config(serialize=ti.static(not parallel))
+    for b in range(ib[H_B]):
+        step_env(task, cap, sm, f, ib, u8, b, u, True)
+
+
+@ti.kernel
+def reset_masked_kernel(
+    f: F32,
+    ib: I32,
+    u8: U8,
+    mask: U8,
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    parallel: ti.template(),
+):
+    """A fresh episode in the environments b with mask[b] != 0 (their random streams go on);
+    the others are left as they are."""
+    ti.loop_config(serialize=ti.static(not parallel))
+    for b in range(ib[H_B]):
+        if mask[b] != 0:
             start_episode(task, cap, sm, f, ib, b)
-        write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+            f[ib[O_REWARD] + b] = 0.0
+            u8[ib[O_DONE] + b] = ti.u8(0)
+            write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])

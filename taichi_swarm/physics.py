@@ -1,6 +1,7 @@
 """MPE world physics (Lowe et al. 2017, multiagent/core.py), per agent.
 
-See docs/PAPER.md section 1. One step: action force,
+See docs/PAPER.md section 1. One step: action force (discrete, the paper's; or
+continuous, MPE's continuous mode: 5 clip(u, -1, 1) per axis),
 pairwise contact forces between agents, then semi-implicit Euler
     v <- v (1 - damping);  v <- v + F/m dt;  p <- p + v dt.
 """
@@ -10,10 +11,12 @@ import taichi as ti
 DT = 0.1
 DAMPING = 0.25
 MASS = 1.0
-SENSITIVITY = 5.0  # MPE's agent.accel default for discrete actions
+SENSITIVITY = 5.0  # MPE's agent.accel default (discrete and continuous actions alike)
 CONTACT_FORCE = 100.0
 CONTACT_MARGIN = 1e-3
 NUM_ACTIONS = 5
+ACTION_DIM = 2  # continuous actions: one force command u per axis
+ACTION_SPACES = ("discrete", "continuous")
 CUTOFF_MARGINS = 20.0  # contact force treated as 0 beyond dist_min + 20 contact margins
 ACTION_MEANINGS = ("noop", "-x", "+x", "-y", "+y")
 
@@ -31,6 +34,13 @@ def action_force(a: ti.i32) -> ti.math.vec2:
     elif a == 4:
         u[1] = 1.0
     return u * SENSITIVITY
+
+
+@ti.func
+def continuous_force(u: ti.math.vec2) -> ti.math.vec2:
+    """Force of continuous action u: 5 clip(u, -1, 1) per axis (MPE's continuous mode,
+    with VMAS's clamp to the action range)."""
+    return ti.math.clamp(u, -1.0, 1.0) * SENSITIVITY
 
 
 @ti.func

@@ -14,9 +14,18 @@ ACTION_U = {0: (0, 0), 1: (-1, 0), 2: (1, 0), 3: (0, -1), 4: (0, 1)}
 
 def mpe_step(pos, vel, actions, agent_radius):
     """One world step of one team: pos, vel [M, 2]; actions [M] -> new pos, vel."""
+    return _world_step(pos, vel, [np.array(ACTION_U[int(a)], dtype=np.float64) * SENS for a in actions], agent_radius)
+
+
+def mpe_step_continuous(pos, vel, u, agent_radius):
+    """The same with continuous actions u [M, 2]: force = 5 clip(u, -1, 1) per axis."""
+    return _world_step(pos, vel, [np.clip(np.asarray(a, dtype=np.float64), -1, 1) * SENS for a in u], agent_radius)
+
+
+def _world_step(pos, vel, force, agent_radius):
+    """Contact forces added to the action forces ``force`` (list of M [2]), then Euler."""
     pos, vel = pos.astype(np.float64), vel.astype(np.float64)
     M = len(pos)
-    force = [np.array(ACTION_U[int(a)], dtype=np.float64) * SENS for a in actions]
     for a in range(M):  # MPE: for a, for b > a: equal and opposite contact forces
         for b in range(a + 1, M):
             delta = pos[a] - pos[b]

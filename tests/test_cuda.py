@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from mpe_reference import mpe_step
+from mpe_reference import mpe_step, mpe_step_continuous
 
 import taichi_swarm
 from taichi_swarm import runtime
@@ -29,6 +29,51 @@ def test_cuda_env_steps_torch_tensors_on_the_gpu():
             state["pos"][b].cpu().numpy(), state["vel"][b].cpu().numpy(), actions[b].cpu().numpy(), 0.05
         )
         np.testing.assert_allclose(new["pos"][b].cpu().numpy(), ref_pos, atol=2e-5)
+
+
+def test_cuda_continuous_actions_and_masked_reset():
+    """action_space="continuous" and reset_envs on the GPU: torch CUDA tensors straight into the kernels."""
+    import torch
+
+    if runtime.current_arch() != "cuda":
+        pytest.skip("Taichi runs on the CPU in this session (set TAICHI_SWARM_TEST_ARCH=cuda)")
+    env = taichi_swarm.make("coverage", 64, 5, arch="cuda", seed=0, action_space="continuous")
+    env.reset()
+    state = env.get_state()
+    u = torch.rand((64, 5, 2), device="cuda") * 4 - 2
+    env.step(u)
+    new = env.get_state()
+    for b in range(8):
+        if env.done[b]:
+            continue
+        ref_pos, _ = mpe_step_continuous(
+            state["pos"][b].cpu().numpy(), state["vel"][b].cpu().numpy(), u[b].cpu().numpy(), 0.05
+        )
+        np.testing.assert_allclose(new["pos"][b].cpu().numpy(), ref_pos, atol=2e-5)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(torch.full_like(u, float("nan")))
+    mask = torch.zeros(64, dtype=torch.bool, device="cuda")
+    mask[::2] = True
+    env.reset_envs(mask)
+    steps = env.get_state()["step"].cpu()
+    assert (steps[::2] == 0).all() and (steps[1::2] == 1).all()
+
+
+def test_cuda_torchrl_adapter():
+    """baselines/torchrl_env.py on the GPU: specs hold and the data stays on the device."""
+    if runtime.current_arch() != "cuda":
+        pytest.skip("Taichi runs on the CPU in this session (set TAICHI_SWARM_TEST_ARCH=cuda)")
+    pytest.importorskip("torchrl")
+    from torchrl.envs.utils import check_env_specs
+
+    from baselines.torchrl_env import SwarmTorchRLEnv
+
+    for continuous in (False, True):
+        env = SwarmTorchRLEnv("formation", 32, 4, obs_mode="full", continuous_actions=continuous, device="cuda")
+        check_env_specs(env, seed=0)
+        td = env.rollout(60, break_when_any_done=False)
+        assert td["next", "agents", "observation"].device.type == "cuda"
+        assert td["next", "done"].sum() >= 32  # every env ended at least once (time limit 50)
 
 
 def test_cuda_training_end_to_end(tmp_path):

@@ -21,6 +21,7 @@ import taichi_swarm
         (dict(seed=-3), "seed"),
         (dict(max_steps=0), "max_steps"),
         (dict(line_length=2.0), "line_length"),  # not a coverage parameter
+        (dict(action_space="box"), "action_space"),
     ],
 )
 def test_make_rejects(kwargs, match):
@@ -97,3 +98,44 @@ def test_set_state_checks_values_as_stored():
 def test_oversized_batches_are_refused_with_the_memory_they_would_need():
     with pytest.raises(ValueError, match="GiB of memory"):
         taichi_swarm.make("coverage", 10_000_000, 100, array="numpy")
+
+
+def test_step_rejects_bad_continuous_actions():
+    import torch
+
+    env = taichi_swarm.make("coverage", 2, 3, seed=0, action_space="continuous")
+    env.reset()
+    with pytest.raises(ValueError, match="continuous actions must have dtype"):
+        env.step(torch.zeros((2, 3, 2), dtype=torch.float64))
+    with pytest.raises(ValueError, match="continuous actions must have dtype"):
+        env.step(torch.zeros((2, 3), dtype=torch.int64))  # discrete actions into a continuous env
+    with pytest.raises(ValueError, match="continuous actions must have shape"):
+        env.step(torch.zeros((2, 3, 3)))
+    with pytest.raises(ValueError, match="continuous actions must have shape"):
+        env.step(np.zeros((2, 3), dtype=np.float32))
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(torch.full((2, 3, 2), float("nan")))
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(np.full((2, 3, 2), np.nan, dtype=np.float32))
+    with pytest.raises(ValueError, match="contiguous"):
+        env.step(torch.zeros((2, 2, 3)).transpose(1, 2))
+    with pytest.raises(ValueError, match="contiguous"):
+        env.step(np.zeros((2, 2, 3), dtype=np.float32).transpose(0, 2, 1))
+    with pytest.raises(ValueError, match="continuous actions must be"):
+        env.step([[[0.0, 0.0]] * 3] * 2)
+    assert (env.get_state()["step"] == 0).all()  # nothing stepped
+    discrete = taichi_swarm.make("coverage", 2, 3, seed=0)
+    discrete.reset()
+    with pytest.raises(ValueError, match="actions must have dtype torch.int64"):
+        discrete.step(torch.zeros((2, 3, 2)))  # continuous actions into a discrete env
+
+
+def test_reset_envs_rejects_bad_masks():
+    env = taichi_swarm.make("coverage", 2, 3, seed=0, array="numpy")
+    with pytest.raises(RuntimeError, match="reset"):
+        env.reset_envs(np.ones(2, dtype=bool))
+    env.reset()
+    with pytest.raises(ValueError, match="mask must have dtype bool"):
+        env.reset_envs(np.ones(2, dtype=np.int64))
+    with pytest.raises(ValueError, match="mask must have shape"):
+        env.reset_envs(np.ones(3, dtype=bool))

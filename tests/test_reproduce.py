@@ -102,7 +102,7 @@ def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
-    with pytest.raises(SpecError, match="paper, smoke"):
+    with pytest.raises(SpecError, match=r"\(paper, quick, smoke\)"):
         load_spec("no-such-spec")
 
 
@@ -187,6 +187,7 @@ def test_cli_dry_run_status_and_errors(tmp_path):
 # --- through Ray, with a worker killed mid-run ---------------------------------------
 
 
+@pytest.mark.slow  # ~1-4 min: Ray's start, two workers' imports, the kill and the retry
 def test_ray_run_survives_a_killed_worker(tmp_path):
     pytest.importorskip("ray")
     spec_path = write_spec(tmp_path, updates=10, eval_every=5)

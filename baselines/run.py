@@ -1,0 +1,333 @@
+"""Train a BenchMARL algorithm on one of the simulator's tasks, then evaluate it greedily.
+
+``tools/run_baselines.py`` is the command line of ``main``; ``train`` and ``evaluate_policy``
+are the two halves. The evaluation reads the paper's metrics (PAPER.md s.5) from the
+simulator's episode statistics (the TorchRL env's ("next", "episode", ...) entries, which are
+``SwarmEnv.info["episode"]``): one episode per environment, ``episodes`` environments started
+from ``seed``; S% = share of episodes ending in success, T = mean episode length (the time
+limit for failures), DIST = mean landmark-to-closest-agent distance at the end (coverage).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+
+import torch
+import yaml
+
+from taichi_swarm import TASKS
+from taichi_swarm.files import atomic_write_json, ensure_writable
+from taichi_swarm.metrics import FirstEpisodes
+
+from .benchmarl_tasks import ACTION_CHOICES, SwarmTaskClass, get_task
+from .observations import OBS_MODES
+from .torchrl_env import SwarmTorchRLEnv
+
+EPISODE_STATS = ("success", "length", "dist")
+
+
+def algorithm_names() -> tuple[str, ...]:
+    from benchmarl.algorithms import algorithm_config_registry
+
+    return tuple(sorted(algorithm_config_registry))
+
+
+def algorithm_config(name: str):
+    """BenchMARL's default config (its yaml) of algorithm ``name``, or a ValueError naming it."""
+    from benchmarl.algorithms import algorithm_config_registry
+
+    if not isinstance(name, str) or name.lower() not in algorithm_config_registry:
+        raise ValueError(f"algorithm must be one of {algorithm_names()}, got {name!r}")
+    return algorithm_config_registry[name.lower()].get_from_yaml()
+
+
+def experiment_config(
+    frames: int,
+    num_envs: int,
+    frames_per_batch: int,
+    out_dir: str,
+    device: str = "cpu",
+    overrides: dict | None = None,
+):
+    """BenchMARL's default ExperimentConfig with the run's budget, batch, folder and device;
+    no wandb, no rendering, no evaluation during training (``evaluate_policy`` does it after),
+    a checkpoint at the end. ``overrides``: any other ExperimentConfig field."""
+    from benchmarl.experiment import ExperimentConfig
+
+    cfg = ExperimentConfig.get_from_yaml()
+    settings = {
+        "max_n_frames": frames,
+        "on_policy_n_envs_per_worker": num_envs,
+        "off_policy_n_envs_per_worker": num_envs,
+        "on_policy_collected_frames_per_batch": frames_per_batch,
+        "off_policy_collected_frames_per_batch": frames_per_batch,
+        "sampling_device": device,
+        "train_device": device,
+        "buffer_device": device,
+        "loggers": ["csv"],
+        "create_json": False,
+        "render": False,
+        "evaluation": False,
+        "save_folder": out_dir,
+        "checkpoint_interval": 0,
+        "checkpoint_at_end": True,
+    }
+    fields = {f.name for f in dataclasses.fields(cfg)}
+    for key, value in (overrides or {}).items():
+        if key not in fields:
+            raise ValueError(f"--experiment: {key!r} is not an ExperimentConfig field (known: {sorted(fields)})")
+        settings[key] = value
+    for key, value in settings.items():
+        setattr(cfg, key, value)
+    return cfg
+
+
+def train(
+    algorithm: str,
+    task: SwarmTaskClass,
+    seed: int,
+    config,
+    model: str = "mlp",
+):
+    """Build and run a BenchMARL Experiment; returns it (its ``policy`` is the trained one)."""
+    from benchmarl.experiment import Experiment
+    from benchmarl.models import model_config_registry
+
+    if model not in model_config_registry:
+        raise ValueError(f"model must be one of {sorted(model_config_registry)}, got {model!r}")
+    model_cfg = model_config_registry[model].get_from_yaml()
+    experiment = Experiment(
+        task=task,
+        algorithm_config=algorithm_config(algorithm),
+        model_config=model_cfg,
+        critic_model_config=model_config_registry[model].get_from_yaml(),
+        seed=seed,
+        config=config,
+    )
+    experiment.run()
+    return experiment
+
+
+@torch.no_grad()
+def evaluate_policy(
+    policy,
+    task: SwarmTaskClass,
+    continuous_actions: bool,
+    episodes: int = 500,
+    seed: int = 12345,
+    device: str = "cpu",
+) -> dict:
+    """Greedy (deterministic) actions on ``episodes`` fresh episodes, one per environment, from
+    ``seed``; returns S% as success_rate, T as mean_length, DIST as dist (None unless coverage)."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    name = task.name.lower()
+    cfg = task.config
+    env = SwarmTorchRLEnv(
+        name,
+        num_envs=episodes,
+        num_agents=cfg["num_agents"],
+        obs_mode=cfg["obs_mode"],
+        continuous_actions=continuous_actions,
+        comm=cfg["comm"],
+        comm_radius=cfg["comm_radius"],
+        seed=seed,
+        device=device,
+        max_steps=cfg["max_steps"],
+        **cfg["task_params"],
+    )
+    tally = FirstEpisodes(episodes)
+    steps = 0
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        while not tally.all_done():
+            if steps > cfg["max_steps"]:  # every episode ends by the time limit
+                raise RuntimeError(f"evaluation: episodes still running after {steps} steps")
+            stepped, td = env.step_and_maybe_reset(policy(td))
+            nxt = stepped.get("next")
+            stats = {k: nxt.get(("episode", k)).squeeze(-1) for k in EPISODE_STATS}
+            tally.add(nxt.get("done").squeeze(-1), stats)
+            steps += 1
+    return {
+        "task": name,
+        "agents": cfg["num_agents"],
+        "comm": cfg["comm"],
+        "episodes": episodes,
+        "seed": seed,
+        **tally.summary(name),
+    }
+
+
+def _parse_overrides(items: list[str]) -> dict:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--experiment takes KEY=VALUE, got {item!r}")
+        out[key.strip()] = _parse_value(value.strip())
+    return out
+
+
+def _parse_value(text: str):
+    """An int, a float (also 3e-4, which YAML 1.1 reads as a string), else YAML (true, null, [csv])."""
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return yaml.safe_load(text)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="run_baselines.py",
+        description="Train a BenchMARL algorithm on a taichi_swarm task, then evaluate it greedily "
+        "(S%%, T, DIST on fresh episodes) and write the result as JSON.",
+    )
+    ap.add_argument(
+        "--algorithm", default="mappo", help="BenchMARL algorithm: mappo, ippo, maddpg, iql, ... (default mappo)"
+    )
+    ap.add_argument("--task", default="coverage", help=f"one of {', '.join(TASKS)} (default coverage)")
+    ap.add_argument("--agents", type=int, default=3, help="team size M (default 3)")
+    ap.add_argument("--comm", default="uc", help="uc or rc: the comm graph (local observations only; default uc)")
+    ap.add_argument("--comm-radius", type=float, default=1.0, help="rc radius (default 1.0)")
+    ap.add_argument(
+        "--obs-mode",
+        default="full",
+        help=f"one of {OBS_MODES}: full = the paper's baselines (default), local = the paper's own observation",
+    )
+    ap.add_argument(
+        "--actions",
+        default="any",
+        help=f"one of {ACTION_CHOICES}: any lets the algorithm choose "
+        "(continuous where it can, BenchMARL's prefer_continuous_actions)",
+    )
+    ap.add_argument("--max-steps", type=int, default=50, help="episode length limit (default 50)")
+    ap.add_argument("--frames", type=int, default=1_000_000, help="training budget in env steps (default 1e6)")
+    ap.add_argument("--num-envs", type=int, default=32, help="environments stepped together (default 32)")
+    ap.add_argument(
+        "--frames-per-batch",
+        type=int,
+        default=4096,
+        help="env steps collected per iteration (default 4096 = 32 x 128, the paper's PPO batch)",
+    )
+    ap.add_argument("--model", default="mlp", help="BenchMARL model for actor and critic (default mlp)")
+    ap.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
+    ap.add_argument("--eval-episodes", type=int, default=500, help="evaluation episodes (default 500)")
+    ap.add_argument("--eval-seed", type=int, default=12345, help="evaluation seed (default 12345)")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda: simulator, sampling and training (default cpu)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1; 0 = torch's default)")
+    ap.add_argument(
+        "--experiment",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a BenchMARL ExperimentConfig field, e.g. --experiment lr=3e-4 (repeatable)",
+    )
+    ap.add_argument("--out", required=True, help="output directory: BenchMARL's experiment folder and results.json")
+    return ap
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Check everything, train, evaluate, write ``<out>/results.json``; returns the result."""
+    for name in ("frames", "num_envs", "frames_per_batch", "eval_episodes", "agents", "max_steps"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.threads < 0:
+        raise ValueError(f"--threads must be >= 0, got {args.threads}")
+    algorithm_config(args.algorithm)  # a bad name fails here, before any work
+    task = get_task(
+        args.task,
+        {
+            "num_agents": args.agents,
+            "comm": args.comm,
+            "comm_radius": args.comm_radius,
+            "obs_mode": args.obs_mode,
+            "action_space": args.actions,
+            "max_steps": args.max_steps,
+        },
+    )
+    out_json = os.path.join(args.out, "results.json")
+    ensure_writable(out_json, "--out")
+    os.makedirs(args.out, exist_ok=True)
+    config = experiment_config(
+        args.frames,
+        args.num_envs,
+        args.frames_per_batch,
+        os.path.abspath(args.out),
+        args.device,
+        _parse_overrides(args.experiment),
+    )
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    start = time.time()
+    experiment = train(args.algorithm, task, args.seed, config, args.model)
+    train_s = time.time() - start
+    continuous = bool(experiment.continuous_actions)
+    start = time.time()
+    result = evaluate_policy(
+        experiment.policy, task, continuous, episodes=args.eval_episodes, seed=args.eval_seed, device=args.device
+    )
+    eval_s = time.time() - start
+    summary = {
+        "algorithm": args.algorithm.lower(),
+        "obs_mode": args.obs_mode,
+        "actions": "continuous" if continuous else "discrete",
+        "max_steps": args.max_steps,
+        "frames": int(experiment.total_frames),
+        "train_seed": args.seed,
+        "S%": 100.0 * result["success_rate"],
+        "T": result["mean_length"],
+        "DIST": result["dist"],
+        **result,
+        "train_seconds": round(train_s, 1),
+        "eval_seconds": round(eval_s, 1),
+        "experiment_folder": str(experiment.folder_name),
+        "versions": _versions(),
+    }
+    atomic_write_json(out_json, summary)
+    return summary
+
+
+def _versions() -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ("benchmarl", "torchrl", "tensordict", "torch", "taichi"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        summary = run(args)
+    except ValueError as exc:
+        print(f"run_baselines.py: error: {exc}", file=sys.stderr)
+        return 2
+    dist = "-" if summary["DIST"] is None else f"{summary['DIST']:.3f}"
+    print(
+        f"{summary['algorithm']} {summary['task']} M={summary['agents']} {summary['obs_mode']} {summary['actions']}: "
+        f"S% {summary['S%']:.1f}  T {summary['T']:.2f}  DIST {dist}  ({summary['episodes']} episodes, "
+        f"seed {summary['seed']}) -> {os.path.join(args.out, 'results.json')}"
+    )
+    return 0
+
+
+__all__ = [
+    "algorithm_config",
+    "algorithm_names",
+    "build_parser",
+    "evaluate_policy",
+    "experiment_config",
+    "main",
+    "run",
+    "train",
+]
