@@ -4,8 +4,9 @@
     swarm execute DIR --task ...     one onnxruntime agent object per agent, a message bus along the
                                      communication graph, drops and delays  (deploy/executor.py, no torch)
     swarm replay FILE.rrd            Rerun recordings of rollouts            (deploy/recording.py, deploy/replay.py)
-    swarm bench deploy               per-agent decision latency, ONNX vs torch (deploy/bench.py)
 
-Nothing in this package imports torch at import time; only deploy.export and
-deploy.bench do, and deploy.cli imports them lazily.
+(the commands live in swarm_cli/deploy.py; ``swarm bench deploy`` in swarm_cli/bench_deploy.py)
+
+Nothing in this package imports torch at import time; only deploy.export does, and
+the commands import it lazily.
 """

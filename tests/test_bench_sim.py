@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 import taichi_swarm
-from taichi_swarm import bench_cli, bench_sim, numpy_step
+from swarm_cli import bench as bench_cli
+from swarm_cli import bench_sim
+from taichi_swarm import numpy_step
 
 MEASURED = ("taichi", "taichi-np", "numpy", "numpy-phys")
 
@@ -86,7 +88,7 @@ def test_cli_runs_and_rejects_bad_arguments(capsys):
             bench_cli.main(bad)
         assert exc.value.code == 2
     assert bench_cli.main(["nope"]) == 2
-    from taichi_swarm.cli import dispatch  # the lazy import shared by `swarm` and `swarm bench`
+    from swarm_cli.main import dispatch  # the lazy import shared by `swarm` and `swarm bench`
 
     assert dispatch("swarm bench", {"train": ("trainer.no_such_bench_module:main", "")}, ["train"]) == 2
     assert "cannot import trainer.no_such_bench_module" in capsys.readouterr().err

@@ -21,9 +21,9 @@ import pytest
 import torch
 
 import taichi_swarm
-from deploy.cli import execute_main, export_main
 from deploy.executor import Agent, DeployError, Executor, ExportedModel, MessageBus
 from deploy.export import export
+from swarm_cli.deploy import execute_main, export_main
 from trainer import checkpoint
 from trainer.model import ModelConfig, SwarmPolicy
 
@@ -295,7 +295,7 @@ NO_TORCH = textwrap.dedent("""
             return None
 
     sys.meta_path.insert(0, _NoTorch())
-    from taichi_swarm.cli import main
+    from swarm_cli.main import main
 
     code = main(["execute", sys.argv[1], "--agents", "3", "--episodes", "2", "--comm", "rc", "--drop", "0", "0.5"])
     assert code == 0, code

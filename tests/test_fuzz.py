@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import taichi_swarm
-from taichi_swarm.cli import main as swarm
+from swarm_cli.main import main as swarm
 
 BAD_NUMBERS = [float("nan"), float("inf"), -float("inf"), -1, 0, -1e-9, 1e40, 2**31 + 5, 2**63, 1.5]
 BAD_TEXT = ["", "abc", "nan", "inf", "-1", "0", "1e9", "99999999999999999999", "None", "3;rm", "\x00"]

@@ -9,7 +9,7 @@ import os
 import pytest
 import torch
 
-from taichi_swarm.cli import main as swarm
+from swarm_cli.main import main as swarm
 from trainer.checkpoint import CheckpointError, load_policy
 from trainer.evaluate import evaluate
 from trainer.model import ModelConfig, SwarmPolicy

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from taichi_swarm.cli import COMMANDS
+from swarm_cli.main import COMMANDS
 
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 README = open(os.path.join(ROOT, "README.md")).read()
@@ -43,7 +43,7 @@ def test_readme_swarm_command(argv):
     if not options:
         return
     out = subprocess.run(
-        [sys.executable, "-m", "taichi_swarm.cli", argv[1], "--help"], capture_output=True, text=True, cwd=ROOT
+        [sys.executable, "-m", "swarm_cli", argv[1], "--help"], capture_output=True, text=True, cwd=ROOT
     )
     text = out.stdout + out.stderr
     for option in options:

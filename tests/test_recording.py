@@ -11,9 +11,9 @@ import pytest
 import torch
 
 import taichi_swarm
-from deploy.cli import replay_main
 from deploy.recording import RolloutRecorder
 from deploy.replay import rerun_command, summarize
+from swarm_cli.deploy import replay_main
 from trainer import checkpoint
 from trainer.model import ModelConfig, SwarmPolicy
 
@@ -66,7 +66,7 @@ def test_rrd_verify(tmp_path):
 
 def test_eval_record_with_torch_env(tmp_path, capsys):
     """`swarm eval --record` (torch env, torch actions) uses the same recorder interface."""
-    from trainer.cli import eval_main
+    from swarm_cli.train import eval_main
 
     torch.manual_seed(0)
     policy = SwarmPolicy(ModelConfig(hidden=32, rounds=1))

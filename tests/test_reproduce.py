@@ -173,7 +173,7 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
 
 
 def test_cli_dry_run_status_and_errors(tmp_path):
-    from trainer.reproduce.cli import reproduce_main
+    from swarm_cli.reproduce import reproduce_main
 
     path = write_spec(tmp_path)
     root = str(tmp_path / "root")
@@ -193,7 +193,7 @@ def test_ray_run_survives_a_killed_worker(tmp_path):
     spec_path = write_spec(tmp_path, updates=10, eval_every=5)
     root = tmp_path / "root"
     run_dir = root / "train-cov" / "s0"
-    cmd = [sys.executable, "-m", "taichi_swarm.cli", "reproduce", "--spec", spec_path, "--root", str(root)]
+    cmd = [sys.executable, "-m", "swarm_cli", "reproduce", "--spec", spec_path, "--root", str(root)]
     proc = subprocess.Popen(
         [*cmd, "--workers", "1", "--progress-every", "2"],
         stdout=subprocess.PIPE,

@@ -111,7 +111,7 @@ def test_config_validation_names_the_option(tmp_path):
 def swarm(*args, cwd):
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     return subprocess.run(
-        [sys.executable, "-m", "taichi_swarm.cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "swarm_cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
     )
 
 
@@ -226,7 +226,7 @@ def test_non_finite_loss_never_reaches_the_weights(tmp_path):
     "flag,value", [("--ppo.clip", "nan"), ("--ppo.lr", "inf"), ("--ppo.entropy-coef", "nan"), ("--torch-threads", "0")]
 )
 def test_non_finite_hyperparameters_are_refused(tmp_path, capsys, flag, value):
-    from taichi_swarm.cli import main as swarm
+    from swarm_cli.main import main as swarm
 
     assert swarm(["train", "--run-dir", str(tmp_path / "r"), flag, value, "--updates", "1"]) == 2
     err = capsys.readouterr().err
@@ -387,7 +387,7 @@ def test_kill_9_during_training_then_resume_equals_an_uninterrupted_run(tmp_path
 
 
 def test_unwritable_outputs_fail_before_the_work_and_os_errors_are_one_line(tmp_path, capsys):
-    from taichi_swarm.cli import main as swarm
+    from swarm_cli.main import main as swarm
 
     cfg = tiny(tmp_path, updates=1)
     train(cfg)
@@ -402,14 +402,14 @@ def test_unwritable_outputs_fail_before_the_work_and_os_errors_are_one_line(tmp_
     def full_disk(*a, **k):
         raise OSError(28, "No space left on device", str(tmp_path / "run" / "checkpoint.pt"))
 
-    import trainer.cli
+    import swarm_cli.train
 
-    original = trainer.cli.eval_main
-    trainer.cli.eval_main = full_disk
+    original = swarm_cli.train.eval_main
+    swarm_cli.train.eval_main = full_disk
     try:
         assert swarm(["eval", "x"]) == 1
     finally:
-        trainer.cli.eval_main = original
+        swarm_cli.train.eval_main = original
     err = capsys.readouterr().err
     assert "No space left on device" in err and "checkpoint.pt" in err and "Traceback" not in err
 
@@ -434,7 +434,7 @@ def test_checkpoints_that_cannot_resume_are_named(tmp_path):
 
 
 def test_zero_shot_plot(tmp_path):
-    from taichi_swarm.cli import main as swarm
+    from swarm_cli.main import main as swarm
 
     data = {"trained_agents": 3, "results": [{"agents": m, "success_rate": 1 / m} for m in (2, 3, 4)]}
     path = tmp_path / "z.json"

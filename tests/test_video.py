@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from taichi_swarm.cli import main as swarm
+from swarm_cli.main import main as swarm
 
 
 def test_eval_renders_a_gif_that_reads_back(tmp_path, capsys):

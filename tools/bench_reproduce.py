@@ -28,7 +28,7 @@ def main() -> int:
     rows = []
     for w in args.workers:
         root = os.path.join(base, f"workers-{w}")
-        cmd = [sys.executable, "-m", "taichi_swarm.cli", "reproduce", "--spec", args.spec, "--root", root]
+        cmd = [sys.executable, "-m", "swarm_cli", "reproduce", "--spec", args.spec, "--root", root]
         start = time.perf_counter()
         proc = subprocess.run([*cmd, "--workers", str(w), "--progress-every", "600"], capture_output=True, text=True)
         wall = time.perf_counter() - start

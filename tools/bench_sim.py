@@ -2,7 +2,7 @@
 
 import sys
 
-from taichi_swarm.bench_cli import main
+from swarm_cli.bench import main
 
 if __name__ == "__main__":
     sys.exit(main(["sim", *sys.argv[1:]]))

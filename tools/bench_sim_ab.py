@@ -23,7 +23,7 @@ import statistics
 import sys
 import tempfile
 
-from taichi_swarm.bench_sim import paired_ratio, time_chunk
+from swarm_cli.bench_sim import paired_ratio, time_chunk
 
 
 def _cell(text: str) -> tuple[int, int]:

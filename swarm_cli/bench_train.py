@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(
         "agent-samples/s: agent samples through forward+backward in the update; GFLOP/s: the GEMM and "
-        "attention FLOPs of the fused network (trainer.bench.forward_flops, backward = 2x forward) per "
+        "attention FLOPs of the fused network (swarm_cli.bench_train.forward_flops, backward = 2x forward) per "
         "second of update; sgemm peak measured here (1024^3): "
         + ", ".join(f"{t} thread(s) {g:.0f} GFLOP/s" for t, g in peak.items())
     )

@@ -84,7 +84,7 @@ def _vmas(B: int, M: int) -> Step:
 
 
 def _numpy(B: int, M: int, comm: str, assign: bool) -> Step:
-    from .numpy_step import NumpyCoverage
+    from taichi_swarm.numpy_step import NumpyCoverage
 
     env = NumpyCoverage(B, M, comm_radius=COMM_RADIUS if comm == "rc" else None, assign=assign, seed=0)
     rng = np.random.default_rng(0)

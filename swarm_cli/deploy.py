@@ -47,9 +47,8 @@ def export_main(argv: list[str]) -> int:
 
     for name in ("torch.onnx", "torch.onnx._internal.exporter._registration"):
         logging.getLogger(name).setLevel(logging.ERROR)  # "torchvision is not installed" noise
+    from deploy.export import export
     from trainer.checkpoint import CheckpointError
-
-    from .export import export
 
     try:
         manifest = export(
@@ -70,7 +69,7 @@ def export_main(argv: list[str]) -> int:
 
 # ----------------------------------------------------------------------------- execute
 def execute_main(argv: list[str]) -> int:
-    from .video import add_output_options, open_recorders
+    from deploy.video import add_output_options, open_recorders
 
     ap = _parser(
         "swarm execute",
@@ -100,7 +99,7 @@ def execute_main(argv: list[str]) -> int:
     args, code = _parse(ap, argv)
     if args is None:
         return code
-    from .executor import DeployError, ExportedModel, format_table, resolve_settings, run_episodes
+    from deploy.executor import DeployError, ExportedModel, format_table, resolve_settings, run_episodes
 
     try:
         if args.agents is not None and args.agents < 1:
@@ -117,7 +116,7 @@ def execute_main(argv: list[str]) -> int:
             if out:
                 ensure_writable(out, what)
         if args.video:
-            from .video import check_video_path
+            from deploy.video import check_video_path
 
             check_video_path(args.video)  # before any episode runs
         bad = [p for p in args.drop if not 0.0 <= p <= 1.0]
@@ -159,7 +158,7 @@ def execute_main(argv: list[str]) -> int:
 
 # ----------------------------------------------------------------------------- replay
 def replay_main(argv: list[str]) -> int:
-    from .video import add_output_options
+    from deploy.video import add_output_options
 
     ap = _parser("swarm replay", "Inspect a Rerun recording (--stats) or open it in a viewer.")
     ap.add_argument("file", help="a .rrd file written by --record")
@@ -174,7 +173,7 @@ def replay_main(argv: list[str]) -> int:
         return _fail("replay", f"{args.file} is a directory: pass the .rrd file written by --record")
     if not os.path.isfile(args.file):
         return _fail("replay", f"recording {args.file} does not exist")
-    from . import replay
+    from deploy import replay
 
     if not replay.looks_like_rrd(args.file):
         return _fail(
@@ -182,7 +181,7 @@ def replay_main(argv: list[str]) -> int:
         )
 
     if args.video:
-        from .video import check_video_path, frames_from_recording, render
+        from deploy.video import check_video_path, frames_from_recording, render
 
         try:
             check_video_path(args.video)

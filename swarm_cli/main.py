@@ -10,17 +10,17 @@ import sys
 
 # name -> (module:function, one-line help)
 COMMANDS = {
-    "train": ("trainer.cli:train_main", "train a policy with PPO (one task, one team size)"),
-    "eval": ("trainer.cli:eval_main", "evaluate a checkpoint: S%, T, DIST at any team size"),
-    "curriculum": ("trainer.cli:curriculum_main", "train stage by stage over team sizes (3 5 7 10)"),
-    "zero-shot": ("trainer.cli:zero_shot_main", "evaluate one checkpoint at many team sizes"),
-    "plot": ("trainer.cli:plot_main", "draw the learning curves of a run directory"),
-    "reproduce": ("trainer.reproduce.cli:reproduce_main", "the paper's tables as one resumable run on Ray"),
-    "import": ("trainer.cli:import_main", "convert a checkpoint of the paper authors' published format"),
-    "export": ("deploy.cli:export_main", "export a checkpoint to per-agent ONNX models"),
-    "execute": ("deploy.cli:execute_main", "run exported models decentralised, one session per agent"),
-    "replay": ("deploy.cli:replay_main", "play back or inspect a Rerun recording"),
-    "bench": ("taichi_swarm.bench_cli:main", "benchmarks: sim | train | deploy"),
+    "train": ("swarm_cli.train:train_main", "train a policy with PPO (one task, one team size)"),
+    "eval": ("swarm_cli.train:eval_main", "evaluate a checkpoint: S%, T, DIST at any team size"),
+    "curriculum": ("swarm_cli.train:curriculum_main", "train stage by stage over team sizes (3 5 7 10)"),
+    "zero-shot": ("swarm_cli.train:zero_shot_main", "evaluate one checkpoint at many team sizes"),
+    "plot": ("swarm_cli.train:plot_main", "draw the learning curves of a run directory"),
+    "reproduce": ("swarm_cli.reproduce:reproduce_main", "the paper's tables as one resumable run on Ray"),
+    "import": ("swarm_cli.train:import_main", "convert a checkpoint of the paper authors' published format"),
+    "export": ("swarm_cli.deploy:export_main", "export a checkpoint to per-agent ONNX models"),
+    "execute": ("swarm_cli.deploy:execute_main", "run exported models decentralised, one session per agent"),
+    "replay": ("swarm_cli.deploy:replay_main", "play back or inspect a Rerun recording"),
+    "bench": ("swarm_cli.bench:main", "benchmarks: sim | train | deploy"),
 }
 
 

@@ -1,7 +1,7 @@
 """``swarm bench {sim,train,deploy}``: the benchmarks, one subcommand each.
 
 ``sim`` lives here (bench_sim.py); ``train`` and ``deploy`` are imported lazily
-from ``trainer.bench`` and ``deploy.bench`` and get the remaining arguments.
+from ``swarm_cli.bench_train`` and ``swarm_cli.bench_deploy`` and get the remaining arguments.
 """
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import sys
 
 # name -> (module:function, one-line help); train and deploy import torch, so lazily
 BENCHMARKS = {
-    "sim": ("taichi_swarm.bench_cli:sim_main", "simulator throughput: taichi_swarm vs VMAS vs NumPy (agent-steps/s)"),
-    "train": ("trainer.bench:main", "training throughput (trainer.bench)"),
-    "deploy": ("deploy.bench:main", "decentralised ONNX execution latency (deploy.bench)"),
+    "sim": ("swarm_cli.bench:sim_main", "simulator throughput: taichi_swarm vs VMAS vs NumPy (agent-steps/s)"),
+    "train": ("swarm_cli.bench_train:main", "training throughput (swarm_cli/bench_train.py)"),
+    "deploy": ("swarm_cli.bench_deploy:main", "decentralised ONNX execution latency (swarm_cli/bench_deploy.py)"),
 }
 QUICK_SECONDS = 0.25
 
@@ -93,7 +93,7 @@ def sim_main(argv: list[str]) -> int:
         folder = os.path.dirname(os.path.abspath(args.json))
         if not os.path.isdir(folder):
             parser.error(f"--json: directory {folder!r} does not exist")
-    from . import bench_sim
+    from swarm_cli import bench_sim
 
     seconds = QUICK_SECONDS if args.quick else args.seconds
     if args.serial_sweep:
@@ -115,7 +115,7 @@ def sim_main(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``swarm bench``; returns the exit code."""
-    from .cli import dispatch
+    from swarm_cli.main import dispatch
 
     return dispatch("swarm bench", BENCHMARKS, list(sys.argv[1:] if argv is None else argv))
 

@@ -54,11 +54,10 @@ def run(
     import onnxruntime
     import torch
 
+    from deploy.executor import Agent, ExportedModel
+    from deploy.export import export
     from trainer import checkpoint as ckpt
     from trainer.model import ModelConfig, SwarmPolicy
-
-    from .executor import Agent, ExportedModel
-    from .export import export
 
     for name in ("torch.onnx", "torch.onnx._internal.exporter._registration"):
         logging.getLogger(name).setLevel(logging.ERROR)

@@ -1,0 +1,49 @@
+"""Layers depend only downwards: taichi_swarm < trainer < deploy < swarm_cli, and
+baselines on the simulator alone. Checked on the import statements of every module."""
+
+import ast
+import os
+
+import pytest
+
+ROOT = os.path.join(os.path.dirname(__file__), "..")
+PACKAGES = ("taichi_swarm", "trainer", "deploy", "baselines", "swarm_cli")
+# what each package may import from this project (itself always)
+ALLOWED = {
+    "taichi_swarm": set(),
+    "trainer": {"taichi_swarm"},
+    "deploy": {"taichi_swarm", "trainer"},
+    "baselines": {"taichi_swarm"},
+    "swarm_cli": {"taichi_swarm", "trainer", "deploy", "baselines"},
+}
+
+
+def imported_packages(path: str) -> set[str]:
+    tree = ast.parse(open(path).read(), path)
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names & set(PACKAGES)
+
+
+def modules():
+    for package in PACKAGES:
+        for dirpath, _, files in os.walk(os.path.join(ROOT, package)):
+            for name in files:
+                if name.endswith(".py"):
+                    yield package, os.path.relpath(os.path.join(dirpath, name), ROOT)
+
+
+@pytest.mark.parametrize(("package", "path"), list(modules()), ids=lambda x: x)
+def test_imports_point_downwards(package, path):
+    upward = imported_packages(os.path.join(ROOT, path)) - ALLOWED[package] - {package}
+    assert not upward, f"{path} imports {sorted(upward)}: {package} may use only {sorted(ALLOWED[package])}"
+
+
+def test_the_checker_sees_an_upward_import(tmp_path):
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f():\n    from swarm_cli.main import main\n    import deploy.export\n")
+    assert imported_packages(str(bad)) == {"swarm_cli", "deploy"}
