@@ -31,7 +31,7 @@ from .layout import (
     static_team_size,
 )
 from .physics import ACTION_DIM, ACTION_SPACES, NUM_ACTIONS
-from .tasks import COMMON_PARAMS, TASK_SPECS, TASKS
+from .tasks import COMMON_PARAMS, TASK_SPECS
 
 COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
@@ -39,7 +39,6 @@ ARRAYS = ("torch", "numpy")
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
 # (crossover measured at M = 3, 5, 10 on 2 cores: B*M^2 between ~13k and ~37k).
 SERIAL_BELOW_WORK = 32768
-_TASK_PARAM_NAME = {"formation": "formation_radius", "line": "line_length"}
 
 
 INT32_MAX = 2**31 - 1
@@ -87,7 +86,7 @@ class SwarmEnv:
         **task_params,
     ):
         if not isinstance(task, str) or task not in TASK_SPECS:
-            raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+            raise ValueError(f"task must be one of {tuple(TASK_SPECS)}, got {task!r}")
         spec = TASK_SPECS[task]
         self.task = task
         self.num_envs = _check_int("num_envs", num_envs, 1)
@@ -212,7 +211,7 @@ class SwarmEnv:
         fparams[P_COMM_RADIUS] = self.comm_radius
         fparams[P_AGENT_RADIUS] = TASK_SPECS[self.task].agent_radius
         fparams[P_SUCCESS] = self.params["success_threshold"]
-        fparams[P_TASK_PARAM] = self.params.get(_TASK_PARAM_NAME.get(self.task, ""), 0.0)
+        fparams[P_TASK_PARAM] = self.params.get(TASK_SPECS[self.task].kernel_param, 0.0)
         self._put(self._i, 0, header)
         self._put(self._f, 0, fparams)
 

@@ -11,7 +11,7 @@ positions, targets, optimal assignment, reward, success and done, episode
 statistics, terminal observation and auto-reset, then the observations and
 communication graph.
 
-Compile-time arguments: ``task`` (tasks.py), ``cap`` (work-array size of the
+Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (work-array size of the
 large-M assignment), ``sm`` (M itself for M <= layout.STATIC_M_MAX, so the
 loops over agents unroll; else 0 and M is read from the header) and
 ``parallel`` (serial env loop for small batches, see env.py).

@@ -2,11 +2,13 @@
 ``swarm execute`` (onnxruntime, no torch): one episode per environment,
 S% = share of successful episodes, T = mean episode length (the time limit
 for failures), DIST = mean landmark-to-closest-agent distance at the end
-(coverage only)."""
+(the tasks that report it: coverage)."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from .tasks import TASK_SPECS
 
 
 def _np(x) -> np.ndarray:
@@ -40,7 +42,7 @@ class FirstEpisodes:
         return {
             "success_rate": float(self.success.mean()),
             "mean_length": float(self.length.mean()),
-            "dist": float(self.dist.mean()) if task == "coverage" else None,
+            "dist": float(self.dist.mean()) if TASK_SPECS[task].reports_dist else None,
             "per_episode": {
                 "success": self.success.tolist(),
                 "length": self.length.tolist(),

@@ -1,0 +1,93 @@
+"""The tasks of Agarwal et al. 2019 (docs/PAPER.md s.2), one module each, registered here.
+
+``TASK_SPECS`` maps a task's name to its ``Task`` (base.py); the kernels call the four
+dispatchers below with the task id as a compile-time constant, so each kernel is
+compiled for one task and calls that task's functions directly. An unknown task is
+an error (``make`` names it; a kernel compiled for an unregistered id fails to build),
+never a default branch.
+
+Adding a task (docs/ARCHITECTURE.md "How to add a task"): write ``mytask.py`` like
+``formation.py`` (parameters dataclass, four Taichi functions, ``TASK``), and
+``register(mytask.TASK)``; tests/test_task_registry.py does it for a toy task.
+"""
+
+import taichi as ti
+
+from .. import rng
+from ..layout import O_POS, O_VEL, team_size
+from . import coverage, formation, line
+from .base import COMMON_PARAMS, Task, set2
+
+TASK_SPECS: dict[str, Task] = {}
+_FUNCS_BY_ID: dict[int, object] = {}
+
+
+def register(task: Task) -> Task:
+    """Make ``task`` available to ``taichi_swarm.make`` by its name."""
+    if task.name in TASK_SPECS:
+        raise ValueError(f"a task named {task.name!r} is already registered")
+    if task.task_id in _FUNCS_BY_ID:
+        raise ValueError(f"task id {task.task_id} is taken (by {_name_of(task.task_id)!r})")
+    TASK_SPECS[task.name] = task
+    _FUNCS_BY_ID[task.task_id] = task.funcs
+    return task
+
+
+def unregister(name: str) -> None:
+    """Remove a task registered at run time (tests)."""
+    task = TASK_SPECS.pop(name)
+    del _FUNCS_BY_ID[task.task_id]
+
+
+def _name_of(task_id: int) -> str:
+    return next(t.name for t in TASK_SPECS.values() if t.task_id == task_id)
+
+
+for _task in (coverage.TASK, formation.TASK, line.TASK):
+    register(_task)
+TASKS = tuple(TASK_SPECS)  # the paper's three tasks
+COVERAGE, FORMATION, LINE = (TASK_SPECS[name].task_id for name in TASKS)
+
+
+# --- the kernels' side: compile-time dispatch on the task id ----------------------------
+
+
+@ti.func
+def landmark_count(task: ti.template(), sm: ti.template(), ib: ti.template()) -> ti.i32:
+    """L of the env's team (``Task.num_landmarks``)."""
+    return _FUNCS_BY_ID[task].landmark_count(sm, ib)
+
+
+@ti.func
+def spawn(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Fresh episode for env b: agents U[-1,1]^2 at rest (every task), then the task's landmarks."""
+    M = team_size(sm, ib)
+    for i in range(M):
+        set2(f, ib[O_POS] + (b * M + i) * 2, rng.uniform2(ib, b, -1.0, 1.0))
+        set2(f, ib[O_VEL] + (b * M + i) * 2, ti.math.vec2(0.0, 0.0))
+    _FUNCS_BY_ID[task].spawn_landmarks(sm, f, ib, b)
+
+
+@ti.func
+def place_targets(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Write the M targets of env b from its current landmarks and agents."""
+    _FUNCS_BY_ID[task].place_targets(sm, f, ib, b)
+
+
+@ti.func
+def reward(task: ti.template(), mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
+    """Team reward from the mean matched distance (and its clip(d, 0, 2) mean)."""
+    return _FUNCS_BY_ID[task].reward(mean_d, mean_clipped_d)
+
+
+__all__ = [
+    "COMMON_PARAMS",
+    "COVERAGE",
+    "FORMATION",
+    "LINE",
+    "TASKS",
+    "TASK_SPECS",
+    "Task",
+    "register",
+    "unregister",
+]

@@ -1,0 +1,81 @@
+"""What a task is, for the simulator: one ``Task`` record and four Taichi functions.
+
+A task module (coverage.py, formation.py, line.py) defines
+
+- a frozen dataclass of its overridable parameters (the paper's values as defaults;
+  ``success_threshold`` in every task),
+- the Taichi functions the fused kernels call, with the task as a compile-time
+  constant (kernels.py dispatches through ``tasks.funcs_of``):
+    ``landmark_count(sm, ib) -> i32``   L for the env's M
+    ``spawn_landmarks(sm, f, ib, b)``   the landmarks of a fresh episode of env b
+                                        (the agents are spawned by the caller first)
+    ``place_targets(sm, f, ib, b)``     the M targets of env b from its current state
+    ``reward(mean_d, mean_clipped_d)``  the team reward from the matched distances
+- and ``TASK = Task(...)``, registered in tasks/__init__.py.
+
+Success is the same rule for every task (every matched distance below
+``success_threshold``), in kernels.py.
+"""
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import taichi as ti
+
+# Overridable parameters every task has (``taichi_swarm.make(..., max_steps=...)``).
+COMMON_PARAMS = {"max_steps": 50}
+FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward")
+
+
+@dataclass(frozen=True)
+class Task:
+    """Everything the simulator knows about one task."""
+
+    name: str
+    task_id: int
+    """Compile-time constant of the kernels (unique)."""
+    agent_radius: float
+    landmark_radius: float
+    min_agents: int
+    params_type: type
+    """Frozen dataclass of the task's parameters; its defaults are the paper's."""
+    landmarks: Callable[[int], int]
+    """L for M agents (Python side; ``landmark_count`` is the kernels' side)."""
+    funcs: object
+    """The module (or any object) holding the task's Taichi functions (FUNCS)."""
+    kernel_param: str = ""
+    """The parameter the kernels read (float header slot P_TASK_PARAM), if any."""
+    reports_dist: bool = False
+    """Whether DIST (mean distance from each landmark to its closest agent) is a metric."""
+    doc: str = ""
+
+    def __post_init__(self):
+        missing = [name for name in FUNCS if not callable(getattr(self.funcs, name, None))]
+        if missing:
+            raise ValueError(f"task {self.name!r}: its funcs lack the Taichi functions {missing}")
+        if not dataclasses.is_dataclass(self.params_type):
+            raise ValueError(f"task {self.name!r}: params_type must be a dataclass")
+        if "success_threshold" not in self.params:
+            raise ValueError(f"task {self.name!r}: its parameters must include success_threshold")
+        if self.kernel_param and self.kernel_param not in self.params:
+            raise ValueError(f"task {self.name!r}: kernel_param {self.kernel_param!r} is not one of its parameters")
+
+    @property
+    def params(self) -> dict:
+        """The task's parameters and their defaults."""
+        return dataclasses.asdict(self.params_type())
+
+    def num_landmarks(self, num_agents: int) -> int:
+        return self.landmarks(num_agents)
+
+
+@ti.func
+def get2(f: ti.template(), base: ti.i32) -> ti.math.vec2:
+    return ti.math.vec2(f[base], f[base + 1])
+
+
+@ti.func
+def set2(f: ti.template(), base: ti.i32, v: ti.math.vec2):
+    f[base] = v[0]
+    f[base + 1] = v[1]

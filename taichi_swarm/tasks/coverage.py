@@ -1,0 +1,60 @@
+"""Coverage (MPE simple_spread): M agents cover M landmarks (docs/PAPER.md s.2).
+
+Landmarks uniform in [-1, 1]^2; the targets are the landmarks themselves; reward
+clip(-mean_i d*_i, -15, 15); DIST is reported."""
+
+import sys
+from dataclasses import dataclass
+
+import taichi as ti
+
+from .. import rng
+from ..layout import O_LMK, O_TGT, team_size
+from .base import Task, get2, set2
+
+
+@dataclass(frozen=True)
+class CoverageParams:
+    success_threshold: float = 0.1
+    """Success: every matched distance below this."""
+
+
+@ti.func
+def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
+    return team_size(sm, ib)
+
+
+@ti.func
+def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    L = team_size(sm, ib)
+    lmk = ib[O_LMK] + b * L * 2
+    for k in range(L):
+        set2(f, lmk + 2 * k, rng.uniform2(ib, b, -1.0, 1.0))
+
+
+@ti.func
+def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    M = team_size(sm, ib)
+    lmk = ib[O_LMK] + b * M * 2
+    tgt = ib[O_TGT] + b * M * 2
+    for k in range(M):
+        set2(f, tgt + 2 * k, get2(f, lmk + 2 * k))
+
+
+@ti.func
+def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
+    return ti.math.clamp(-mean_d, -15.0, 15.0)
+
+
+TASK = Task(
+    name="coverage",
+    task_id=0,
+    agent_radius=0.05,
+    landmark_radius=0.05,
+    min_agents=1,
+    params_type=CoverageParams,
+    landmarks=lambda num_agents: num_agents,
+    funcs=sys.modules[__name__],
+    reports_dist=True,
+    doc="M agents cover M landmarks (MPE simple_spread with matched distances).",
+)
