@@ -18,19 +18,21 @@ def _fail(cmd: str, exc: Exception) -> int:
     return 2
 
 
-def _config_from_argv(argv: list[str], prog: str):
-    """Pre-read --preset, then let tyro parse the rest over that preset's defaults."""
+def _config_from_argv(argv: list[str], prog: str, config_type=None):
+    """Pre-read --preset, then let tyro parse the rest over that preset's defaults
+    (``config_type``: TrainConfig, or CurriculumConfig which extends it)."""
     import tyro
 
     from trainer.config import PRESETS, TrainConfig
 
+    config_type = config_type or TrainConfig
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", default="paper")
     known, _ = pre.parse_known_args(argv)
     if known.preset not in PRESETS:
         raise ValueError(f"--preset must be one of {tuple(PRESETS)}, got {known.preset!r}")
-    default = TrainConfig(preset=known.preset, ppo=copy.deepcopy(PRESETS[known.preset]))
-    return tyro.cli(TrainConfig, args=argv, default=default, prog=prog)
+    default = config_type(preset=known.preset, ppo=copy.deepcopy(PRESETS[known.preset]))
+    return tyro.cli(config_type, args=argv, default=default, prog=prog)
 
 
 def train_main(argv: list[str]) -> int:
@@ -188,24 +190,17 @@ def zero_shot_main(argv: list[str]) -> int:
 
 
 def curriculum_main(argv: list[str]) -> int:
+    """swarm curriculum [--sizes 3 5 7 10] [--threshold 0.85] [--max-updates-per-stage N] [train options]"""
+    from trainer.config import CurriculumConfig
     from trainer.curriculum import format_stages, run_curriculum
-    from trainer.evaluate import parse_sizes
 
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--sizes", nargs="+", default=["3", "5", "7", "10"])
-    pre.add_argument("--threshold", type=float, default=0.85)
-    pre.add_argument("--max-updates-per-stage", type=int, default=4000)
-    known, rest = pre.parse_known_args(argv)
-    if "-h" in rest or "--help" in rest:
-        print("swarm curriculum [--sizes 3 5 7 10] [--threshold 0.85] [--max-updates-per-stage N] [train options]\n")
     try:
-        sizes = parse_sizes(known.sizes)
-        if known.max_updates_per_stage < 1:
-            raise ValueError("--max-updates-per-stage must be >= 1")
-        base = _config_from_argv(rest, "swarm curriculum")
-        run_dir = base.run_dir or f"runs/curriculum-{base.task}-{base.comm}-s{base.seed}"
-        base = dataclasses.replace(base, run_dir=run_dir)
-        stages = run_curriculum(base, sizes, known.threshold, known.max_updates_per_stage, run_dir)
+        cfg = _config_from_argv(argv, "swarm curriculum", CurriculumConfig)
+        if cfg.max_updates_per_stage < 1:
+            raise ValueError(f"--max-updates-per-stage must be >= 1, got {cfg.max_updates_per_stage}")
+        run_dir = cfg.default_run_dir()
+        base = dataclasses.replace(cfg.train_config(), run_dir=run_dir)
+        stages = run_curriculum(base, list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, run_dir)
     except KeyboardInterrupt:
         return 130
     except USER_ERRORS as exc:

@@ -212,6 +212,32 @@ class TrainConfig:
         return self.run_dir or f"runs/{self.task}-m{self.agents}-{self.comm}-s{self.seed}"
 
 
+@dataclass
+class CurriculumConfig(TrainConfig):
+    """``swarm curriculum``: train stage by stage over team sizes, each stage from the last
+    stage's weights (fresh optimiser and reward normaliser), moving on once a greedy
+    evaluation of at least 200 episodes reaches ``threshold`` (docs/PAPER.md s.6). Every
+    option of ``swarm train`` applies to every stage, except ``agents``, ``updates`` and
+    ``target_success``, which the stages set. The run directory (default
+    runs/curriculum-<task>-<comm>-s<seed>) holds curriculum.json and one stage-m<M>/ run
+    per stage; the same command again resumes where it stopped."""
+
+    sizes: tuple[int, ...] = (3, 5, 7, 10)
+    """Team sizes of the stages, in order."""
+    threshold: float = 0.85
+    """Evaluation success rate that ends a stage (the paper: 85%)."""
+    max_updates_per_stage: int = 4000
+    """A stage that never reaches the threshold stops here; the next starts from its weights."""
+
+    def train_config(self) -> TrainConfig:
+        """The options every stage shares, as a TrainConfig."""
+        names = [f.name for f in dataclasses.fields(TrainConfig)]
+        return TrainConfig(**{name: getattr(self, name) for name in names})
+
+    def default_run_dir(self) -> str:
+        return self.run_dir or f"runs/curriculum-{self.task}-{self.comm}-s{self.seed}"
+
+
 def to_dict(cfg) -> dict:
     return dataclasses.asdict(cfg)
 
