@@ -39,7 +39,7 @@ import numpy as np
 import onnxruntime as ort
 
 from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, validate
-from taichi_swarm.metrics import FirstEpisodes, format_results
+from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 
 
 class DeployError(ValueError):
@@ -309,28 +309,14 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy"
     )
     executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, seed=s.seed, threads=threads)
-    obs = env.reset()
-    tally = FirstEpisodes(s.episodes)
-    step = 0
-    while not tally.all_done():
+
+    def decide(obs):
         _, actions, attention = executor.decide(obs["self"], obs["entities"], obs["adj"])
-        if recorder is not None:
-            recorder.log_step(step, env, actions, attention=attention)
-        obs, _, done, info = env.step(actions)
-        step += 1
-        done = np.array(done, dtype=bool)
-        if done.any():
-            executor.bus.reset_envs(done)
-        new = tally.add(done, info["episode"])
-        if recorder is not None and new.any():
-            recorder.log_episode_ends(step, new, info["episode"])
+        return actions, attention
+
+    tally = run_first_episodes(env, decide, recorder, on_done=executor.bus.reset_envs)
     return {
-        "task": s.task,
-        "agents": s.agents,
-        "comm": s.comm,
-        "comm_radius": s.comm_radius,
-        "episodes": s.episodes,
-        "seed": s.seed,
+        **result_header(s.task, s.agents, s.comm, s.comm_radius, s.episodes, s.seed),
         "drop": s.drop,
         "delay": s.delay,
         "messages_sent": executor.bus.sent,

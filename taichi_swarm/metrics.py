@@ -51,6 +51,42 @@ class FirstEpisodes:
         }
 
 
+def run_first_episodes(env, decide, recorder=None, on_done=None) -> FirstEpisodes:
+    """The evaluation loop of ``swarm eval`` (torch) and ``swarm execute`` (onnxruntime):
+    from ``env.reset()``, step every environment with ``decide(obs) -> (actions,
+    attention or None)`` until each has finished its first episode; ``on_done(done)``
+    sees every step's done mask [B] (numpy bool); ``recorder`` (deploy/recording.py)
+    logs the steps and episode ends. Returns the tally of those first episodes."""
+    obs = env.reset()
+    tally = FirstEpisodes(env.num_envs)
+    step = 0
+    while not tally.all_done():
+        actions, attention = decide(obs)
+        if recorder is not None:
+            recorder.log_step(step, env, actions, attention=attention)
+        obs, _, done, info = env.step(actions)
+        step += 1
+        done = _np(done).astype(bool)
+        if on_done is not None and done.any():
+            on_done(done)
+        new = tally.add(done, info["episode"])
+        if recorder is not None and new.any():
+            recorder.log_episode_ends(step, new, info["episode"])
+    return tally
+
+
+def result_header(task: str, agents: int, comm: str, comm_radius: float, episodes: int, seed: int) -> dict:
+    """The setting every evaluation result row starts with."""
+    return {
+        "task": task,
+        "agents": agents,
+        "comm": comm,
+        "comm_radius": comm_radius,
+        "episodes": episodes,
+        "seed": seed,
+    }
+
+
 def format_results(rows: list[dict], extra: tuple[str, ...] = ()) -> str:
     """Result rows as an aligned table: task, comm, M, episodes, [extra columns], S%, T, DIST."""
     head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8}" + "".join(f" {c:>5}" for c in extra)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 import taichi_swarm
-from taichi_swarm.metrics import FirstEpisodes, format_results
+from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 
 
 @torch.no_grad()
@@ -38,33 +38,20 @@ def evaluate(
 
 def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder) -> dict:
     env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed)
-    obs = env.reset()
-    tally = FirstEpisodes(episodes)
     fused = policy.fused_weights()  # computed once: the weights do not change here
-    step = 0
-    while not tally.all_done():
+
+    def decide(obs):
         inputs = (obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device))
         if recorder is None:
             logits, _ = policy(*inputs, fused=fused)
+            attention = None
         else:  # the last round's attention weights are drawn on the communication edges
-            logits, _, attention = policy(*inputs, fused=fused, return_attention=True)
-        actions = logits.argmax(-1).to(env.device)
-        if recorder is not None:
-            recorder.log_step(step, env, actions, attention=attention[-1] if attention else None)
-        obs, _, done, info = env.step(actions)
-        step += 1
-        new = tally.add(done, info["episode"])
-        if recorder is not None and new.any():
-            recorder.log_episode_ends(step, new, info["episode"])
-    return {
-        "task": task,
-        "agents": agents,
-        "comm": comm,
-        "comm_radius": comm_radius,
-        "episodes": episodes,
-        "seed": seed,
-        **tally.summary(task),
-    }
+            logits, _, rounds = policy(*inputs, fused=fused, return_attention=True)
+            attention = rounds[-1] if rounds else None
+        return logits.argmax(-1).to(env.device), attention
+
+    tally = run_first_episodes(env, decide, recorder)
+    return {**result_header(task, agents, comm, comm_radius, episodes, seed), **tally.summary(task)}
 
 
 def format_table(rows: list[dict]) -> str:
