@@ -49,6 +49,8 @@ from .layout import (
     P_AGENT_RADIUS,
     P_COMM_RADIUS,
     P_SUCCESS,
+    agent_at,
+    env_at,
     team_size,
 )
 
@@ -124,8 +126,8 @@ def start_episode(
     task: ti.template(), cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
 ):
     tasks.spawn(task, sm, f, ib, b)
-    ib[ib[O_STEP] + b] = 0
-    f[ib[O_RET_ACC] + b] = 0.0
+    ib[env_at(ib, O_STEP, b)] = 0
+    f[env_at(ib, O_RET_ACC, b)] = 0.0
     match(task, cap, sm, f, ib, b)
 
 
@@ -136,8 +138,8 @@ def reset_kernel(
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
         start_episode(task, cap, sm, f, ib, b)
-        f[ib[O_REWARD] + b] = 0.0
-        u8[ib[O_DONE] + b] = ti.u8(0)
+        f[env_at(ib, O_REWARD, b)] = 0.0
+        u8[env_at(ib, O_DONE, b)] = ti.u8(0)
         write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
 
 
@@ -215,29 +217,29 @@ def step_env(
     """One step of env b: physics, targets, assignment, reward, done, auto-reset, observations."""
     M = team_size(sm, ib)
     physics_step(cap, sm, f, ib, b, u, continuous)
-    t = ib[ib[O_STEP] + b] + 1
-    ib[ib[O_STEP] + b] = t
+    t = ib[env_at(ib, O_STEP, b)] + 1
+    ib[env_at(ib, O_STEP, b)] = t
     match(task, cap, sm, f, ib, b)
     sum_d, sum_clipped, success = 0.0, 0.0, True
     for i in range(M):
-        d = f[ib[O_MATCHED] + b * M + i]
+        d = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
         sum_d += d
         sum_clipped += ti.math.clamp(d, 0.0, 2.0)
         success = success and d < f[P_SUCCESS]
     r = tasks.reward(task, sum_d / M, sum_clipped / M)
-    f[ib[O_REWARD] + b] = r
-    ret = f[ib[O_RET_ACC] + b] + r
-    f[ib[O_RET_ACC] + b] = ret
+    f[env_at(ib, O_REWARD, b)] = r
+    ret = f[env_at(ib, O_RET_ACC, b)] + r
+    f[env_at(ib, O_RET_ACC, b)] = ret
     done = success or t >= ib[H_MAX_STEPS]
-    u8[ib[O_DONE] + b] = ti.cast(done, ti.u8)
+    u8[env_at(ib, O_DONE, b)] = ti.cast(done, ti.u8)
     if done:
-        u8[ib[O_EP_SUCCESS] + b] = ti.cast(success, ti.u8)
-        u8[ib[O_EP_TRUNC] + b] = ti.cast(not success, ti.u8)
-        ib[ib[O_EP_LEN] + b] = t
-        f[ib[O_EP_RETURN] + b] = ret
-        f[ib[O_EP_DIST] + b] = target_dist(sm, f, ib, b)
+        u8[env_at(ib, O_EP_SUCCESS, b)] = ti.cast(success, ti.u8)
+        u8[env_at(ib, O_EP_TRUNC, b)] = ti.cast(not success, ti.u8)
+        ib[env_at(ib, O_EP_LEN, b)] = t
+        f[env_at(ib, O_EP_RETURN, b)] = ret
+        f[env_at(ib, O_EP_DIST, b)] = target_dist(sm, f, ib, b)
         for i in range(M):
-            f[ib[O_EP_MATCHED] + b * M + i] = f[ib[O_MATCHED] + b * M + i]
+            f[agent_at(ib, O_EP_MATCHED, b, M, i, 1)] = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
         write_team_obs(task, sm, f, ib, u8, b, ib[O_TERM_SELF], ib[O_TERM_ENT], ib[O_TERM_ADJ])
         start_episode(task, cap, sm, f, ib, b)
     write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
@@ -288,6 +290,6 @@ def reset_masked_kernel(
     for b in range(ib[H_B]):
         if mask[b] != 0:
             start_episode(task, cap, sm, f, ib, b)
-            f[ib[O_REWARD] + b] = 0.0
-            u8[ib[O_DONE] + b] = ti.u8(0)
+            f[env_at(ib, O_REWARD, b)] = 0.0
+            u8[env_at(ib, O_DONE, b)] = ti.u8(0)
             write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])

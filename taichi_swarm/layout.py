@@ -19,40 +19,65 @@ import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
 H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
+SIZE_SLOTS = 5
 SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
-# --- int32 header: where each block starts (in its own buffer) -----------------------
-(
-    # float32 blocks
-    O_POS,
-    O_VEL,
-    O_LMK,
-    O_TGT,
-    O_OBS_SELF,
-    O_OBS_ENT,
-    O_REWARD,
-    O_MATCHED,
-    O_EP_MATCHED,
-    O_EP_DIST,
-    O_EP_RETURN,
-    O_RET_ACC,
-    O_TERM_SELF,
-    O_TERM_ENT,
-    O_COST,
-    O_PRICES,
-    # int32 blocks
-    O_STEP,
-    O_RNG,
-    O_EP_LEN,
-    O_ASSIGN,
-    O_ACTIONS,
-    # uint8 blocks
-    O_ADJ,
-    O_DONE,
-    O_EP_SUCCESS,
-    O_EP_TRUNC,
-    O_TERM_ADJ,
-) = range(5, 5 + 26)
-INT_HEADER = 5 + 26
+
+
+@dataclass(frozen=True)
+class BlockSpec:
+    """One named array: its buffer and its per-environment shape ("M", "L" or numbers)."""
+
+    name: str
+    buffer: str  # "f32" | "i32" | "u8"
+    per_env: tuple = ()
+
+    def shape(self, M: int, L: int) -> tuple:
+        return tuple(M if d == "M" else L if d == "L" else int(d) for d in self.per_env)
+
+
+# THE declaration of every block, in buffer order; its index here (after the size slots)
+# is its slot in the int32 header, which holds the block's offset.
+BLOCKS = (
+    BlockSpec("pos", "f32", ("M", 2)),
+    BlockSpec("vel", "f32", ("M", 2)),
+    BlockSpec("landmarks", "f32", ("L", 2)),
+    BlockSpec("targets", "f32", ("M", 2)),
+    BlockSpec("obs_self", "f32", ("M", SELF_DIM)),
+    BlockSpec("obs_entities", "f32", ("M", "L", 2)),
+    BlockSpec("reward", "f32"),
+    BlockSpec("matched_dist", "f32", ("M",)),
+    BlockSpec("ep_matched_dist", "f32", ("M",)),
+    BlockSpec("ep_dist", "f32"),
+    BlockSpec("ep_return", "f32"),
+    BlockSpec("return_acc", "f32"),
+    BlockSpec("term_self", "f32", ("M", SELF_DIM)),
+    BlockSpec("term_entities", "f32", ("M", "L", 2)),
+    BlockSpec("assign_cost", "f32", ("M", "M")),  # assignment cost matrix (M > SMALL_M)
+    BlockSpec("prices", "f32", ("M",)),  # assignment column prices, the next solve's warm start
+    BlockSpec("step", "i32"),
+    BlockSpec("rng", "i32"),
+    BlockSpec("ep_length", "i32"),
+    BlockSpec("assignment", "i32", ("M",)),
+    BlockSpec("actions", "i32", ("M",)),  # the step's actions, copied in (one kernel argument less)
+    BlockSpec("adj", "u8", ("M", "M")),
+    BlockSpec("done", "u8"),
+    BlockSpec("ep_success", "u8"),
+    BlockSpec("ep_truncated", "u8"),
+    BlockSpec("term_adj", "u8", ("M", "M")),
+)
+SLOT = {spec.name: SIZE_SLOTS + i for i, spec in enumerate(BLOCKS)}
+INT_HEADER = SIZE_SLOTS + len(BLOCKS)
+
+# The kernels' names for the slots (compile-time constants): ib[O_POS] is where pos starts.
+O_POS, O_VEL, O_LMK, O_TGT = SLOT["pos"], SLOT["vel"], SLOT["landmarks"], SLOT["targets"]
+O_OBS_SELF, O_OBS_ENT, O_ADJ = SLOT["obs_self"], SLOT["obs_entities"], SLOT["adj"]
+O_REWARD, O_DONE, O_STEP, O_RNG = SLOT["reward"], SLOT["done"], SLOT["step"], SLOT["rng"]
+O_MATCHED, O_RET_ACC = SLOT["matched_dist"], SLOT["return_acc"]
+O_EP_MATCHED, O_EP_DIST, O_EP_RETURN = SLOT["ep_matched_dist"], SLOT["ep_dist"], SLOT["ep_return"]
+O_EP_LEN, O_EP_SUCCESS, O_EP_TRUNC = SLOT["ep_length"], SLOT["ep_success"], SLOT["ep_truncated"]
+O_TERM_SELF, O_TERM_ENT, O_TERM_ADJ = SLOT["term_self"], SLOT["term_entities"], SLOT["term_adj"]
+O_COST, O_PRICES, O_ASSIGN, O_ACTIONS = SLOT["assign_cost"], SLOT["prices"], SLOT["assignment"], SLOT["actions"]
+
 # --- float32 header: physical and task parameters ------------------------------------
 P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM = range(4)
 FLOAT_HEADER = 4
@@ -79,43 +104,6 @@ def team_size(sm: ti.template(), ib: ti.template()) -> ti.i32:
     return m
 
 
-def _blocks(M: int, L: int):
-    """(header slot, name, per-env shape) of every block, per buffer dtype."""
-    f32 = [
-        (O_POS, "pos", (M, 2)),
-        (O_VEL, "vel", (M, 2)),
-        (O_LMK, "landmarks", (L, 2)),
-        (O_TGT, "targets", (M, 2)),
-        (O_OBS_SELF, "obs_self", (M, SELF_DIM)),
-        (O_OBS_ENT, "obs_entities", (M, L, 2)),
-        (O_REWARD, "reward", ()),
-        (O_MATCHED, "matched_dist", (M,)),
-        (O_EP_MATCHED, "ep_matched_dist", (M,)),
-        (O_EP_DIST, "ep_dist", ()),
-        (O_EP_RETURN, "ep_return", ()),
-        (O_RET_ACC, "return_acc", ()),
-        (O_TERM_SELF, "term_self", (M, SELF_DIM)),
-        (O_TERM_ENT, "term_entities", (M, L, 2)),
-        (O_COST, "assign_cost", (M, M)),  # assignment cost matrix (M > SMALL_M)
-        (O_PRICES, "prices", (M,)),  # assignment column prices, the next solve's warm start
-    ]
-    i32 = [
-        (O_STEP, "step", ()),
-        (O_RNG, "rng", ()),
-        (O_EP_LEN, "ep_length", ()),
-        (O_ASSIGN, "assignment", (M,)),
-        (O_ACTIONS, "actions", (M,)),  # the step's actions, copied in (one kernel argument less)
-    ]
-    u8 = [
-        (O_ADJ, "adj", (M, M)),
-        (O_DONE, "done", ()),
-        (O_EP_SUCCESS, "ep_success", ()),
-        (O_EP_TRUNC, "ep_truncated", ()),
-        (O_TERM_ADJ, "term_adj", (M, M)),
-    ]
-    return {"f32": f32, "i32": i32, "u8": u8}
-
-
 @dataclass(frozen=True)
 class Block:
     buffer: str  # "f32" | "i32" | "u8"
@@ -129,16 +117,13 @@ class Layout:
     def __init__(self, num_envs: int, num_agents: int, num_landmarks: int):
         self.B, self.M, self.L = num_envs, num_agents, num_landmarks
         self.blocks: dict[str, Block] = {}
-        self.sizes = {}
-        slots = {}
         # offsets in Python integers first: the int32 header is filled only once they fit
-        for buf, entries in _blocks(num_agents, num_landmarks).items():
-            offset = INT_HEADER if buf == "i32" else FLOAT_HEADER if buf == "f32" else 0
-            for slot, name, per_env in entries:
-                self.blocks[name] = Block(buf, offset, (num_envs, *per_env))
-                slots[slot] = offset
-                offset += int(num_envs) * math.prod(int(x) for x in per_env)
-            self.sizes[buf] = offset
+        offset = {"f32": FLOAT_HEADER, "i32": INT_HEADER, "u8": 0}
+        for spec in BLOCKS:
+            per_env = spec.shape(num_agents, num_landmarks)
+            self.blocks[spec.name] = Block(spec.buffer, offset[spec.buffer], (num_envs, *per_env))
+            offset[spec.buffer] += int(num_envs) * math.prod(int(x) for x in per_env)
+        self.sizes = dict(offset)
         if max(self.sizes.values()) >= 2**31:
             need = 4 * self.sizes["f32"] + 4 * self.sizes["i32"] + self.sizes["u8"]
             raise ValueError(
@@ -148,10 +133,24 @@ class Layout:
             )
         self.header = np.zeros(INT_HEADER, dtype=np.int32)
         self.header[[H_B, H_M, H_L]] = (num_envs, num_agents, num_landmarks)
-        for slot, offset in slots.items():
-            self.header[slot] = offset
+        for name, block in self.blocks.items():
+            self.header[SLOT[name]] = block.offset
 
     @property
     def nbytes(self) -> int:
         """Memory of the three buffers."""
         return 4 * self.sizes["f32"] + 4 * self.sizes["i32"] + self.sizes["u8"]
+
+
+# --- named accessors: where env b's (and its agent i's) entry of a block starts ----------
+@ti.func
+def env_at(ib: ti.template(), slot: ti.template(), b: ti.i32) -> ti.i32:
+    """Index of env b's entry in a per-env block (reward, done, step, ...)."""
+    return ib[slot] + b
+
+
+@ti.func
+def agent_at(ib: ti.template(), slot: ti.template(), b: ti.i32, M: ti.i32, i: ti.i32, width: ti.template()) -> ti.i32:
+    """Index of agent i of env b in a per-agent block of ``width`` entries per agent
+    (pos and vel: 2, matched_dist: 1, obs_self: SELF_DIM)."""
+    return ib[slot] + (b * M + i) * width

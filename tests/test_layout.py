@@ -20,8 +20,12 @@ def test_blocks_tile_their_buffers_and_the_header_points_at_them(B, M, L):
             assert offset == end, f"{name} starts at {offset}, the previous block ends at {end}"
             end = offset + math.prod(block.shape)
         assert end == lo.sizes[buf]
-    slots = {slot: name for buf in lay._blocks(M, L).values() for slot, name, _ in buf}
-    assert len(slots) == sum(len(v) for v in lay._blocks(M, L).values()) == lay.INT_HEADER - 5  # no slot twice
-    for slot, name in slots.items():
+    assert sorted(lay.SLOT.values()) == list(range(lay.SIZE_SLOTS, lay.INT_HEADER))  # each slot once
+    for name, slot in lay.SLOT.items():
         assert lo.header[slot] == lo.blocks[name].offset, name
     assert (lo.header[[lay.H_B, lay.H_M, lay.H_L]] == (B, M, L)).all()
+
+
+def test_every_kernel_slot_constant_names_a_declared_block():
+    constants = {name: value for name, value in vars(lay).items() if name.startswith("O_")}
+    assert sorted(constants.values()) == sorted(lay.SLOT.values())  # one constant per block, none twice

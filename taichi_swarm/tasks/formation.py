@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import O_LMK, O_POS, O_TGT, P_TASK_PARAM, team_size
+from ..layout import O_LMK, O_POS, O_TGT, P_TASK_PARAM, agent_at, team_size
 from .base import Task, get2, set2
 
 
@@ -40,7 +40,7 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
     tgt = ib[O_TGT] + b * M * 2
     theta0 = 1e9
     for i in range(M):
-        d = get2(f, ib[O_POS] + (b * M + i) * 2) - centre
+        d = get2(f, agent_at(ib, O_POS, b, M, i, 2)) - centre
         ang = ti.atan2(d[1], d[0])
         if ang < 0.0:
             ang += 2.0 * math.pi
