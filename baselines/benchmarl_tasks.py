@@ -78,14 +78,17 @@ class SwarmTaskClass(TaskClass):
         super().__init__(name, check_task_config(config))
 
     def get_env_fun(self, num_envs: int, continuous_actions: bool, seed: int | None, device) -> Callable[[], EnvBase]:
-        cfg = dict(self.config)
         if continuous_actions and not self.supports_continuous_actions():
             raise ValueError(f"continuous_actions: task {self.name} is configured with action_space='discrete'")
         if not continuous_actions and not self.supports_discrete_actions():
             raise ValueError(f"continuous_actions: task {self.name} is configured with action_space='continuous'")
-        task = self.name.lower()
-        return lambda: SwarmTorchRLEnv(
-            task,
+        return lambda: self.make_env(num_envs, continuous_actions, seed, device)
+
+    def make_env(self, num_envs: int, continuous_actions: bool, seed: int | None, device) -> SwarmTorchRLEnv:
+        """The task's batch of ``num_envs`` environments as configured (training and evaluation)."""
+        cfg = self.config
+        return SwarmTorchRLEnv(
+            self.name.lower(),
             num_envs=num_envs,
             num_agents=cfg["num_agents"],
             obs_mode=cfg["obs_mode"],

@@ -25,7 +25,6 @@ from taichi_swarm.metrics import FirstEpisodes
 
 from .benchmarl_tasks import ACTION_CHOICES, SwarmTaskClass, get_task
 from .observations import OBS_MODES
-from .torchrl_env import SwarmTorchRLEnv
 
 EPISODE_STATS = ("success", "length", "dist")
 
@@ -127,19 +126,7 @@ def evaluate_policy(
 
     name = task.name.lower()
     cfg = task.config
-    env = SwarmTorchRLEnv(
-        name,
-        num_envs=episodes,
-        num_agents=cfg["num_agents"],
-        obs_mode=cfg["obs_mode"],
-        continuous_actions=continuous_actions,
-        comm=cfg["comm"],
-        comm_radius=cfg["comm_radius"],
-        seed=seed,
-        device=device,
-        max_steps=cfg["max_steps"],
-        **cfg["task_params"],
-    )
+    env = task.make_env(episodes, continuous_actions, seed, device)
     tally = FirstEpisodes(episodes)
     steps = 0
     with set_exploration_type(ExplorationType.DETERMINISTIC):
