@@ -6,7 +6,7 @@ import argparse
 import os
 import sys
 
-from trainer.reproduce.spec import SpecError
+from reproduce.spec import SpecError
 
 DESCRIPTION = """\
 Run the cells of the paper's Tables 1-4 (or a selection) on Ray, resumably, and render
@@ -52,10 +52,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def reproduce_main(argv: list[str]) -> int:
-    from trainer.reproduce.cells import cell_state
-    from trainer.reproduce.runner import format_progress
-    from trainer.reproduce.spec import load_spec
-    from trainer.reproduce.tables import render_all, update_doc
+    from reproduce.cells import cell_state
+    from reproduce.runner import format_progress
+    from reproduce.spec import load_spec
+    from reproduce.tables import render_all, update_doc
 
     args = build_parser().parse_args(argv)
     try:
@@ -87,7 +87,7 @@ def reproduce_main(argv: list[str]) -> int:
                 raise ValueError(
                     'running cells needs Ray: pip install -e ".[reproduce]" (--dry-run, --status and --render do not)'
                 ) from None
-            from trainer.reproduce.runner import run_on_ray
+            from reproduce.runner import run_on_ray
 
             todo = [(c.id, s) for c in cells for s in seeds if cell_state(root, c, s) != "done"]
             print(f"swarm reproduce: {len(todo)} of {len(cells) * len(seeds)} (cell, seed) to run, in {root}")
@@ -126,8 +126,8 @@ def reproduce_main(argv: list[str]) -> int:
 
 
 def _dry_run(cells, seeds, root, spec_name: str) -> str:
+    from reproduce.cells import cell_state
     from trainer.config import PRESETS
-    from trainer.reproduce.cells import cell_state
 
     lines = [f"spec {spec_name}, root {root}, seeds {seeds}", ""]
     head = f"{'cell':<24} {'kind':<10} {'task':<9} {'comm':<4} {'sizes':<14} {'budget':>22}  state"
@@ -136,10 +136,15 @@ def _dry_run(cells, seeds, root, spec_name: str) -> str:
     for c in cells:
         ppo = PRESETS[c.preset]
         per_update = c.ppo.get("num_envs", ppo.num_envs) * c.ppo.get("num_steps", ppo.num_steps)
-        steps = c.budget_updates() * per_update
+        steps = c.frames if c.kind == "baseline" else c.budget_updates() * per_update
         total_steps += steps * len(seeds)
-        sizes = str(c.agents) if c.kind == "train" else " ".join(map(str, c.sizes))
-        budget = f"{c.budget_updates()} upd / {_steps(steps)} steps" if steps else f"{c.final_episodes} episodes"
+        sizes = str(c.agents) if c.kind in ("train", "baseline") else " ".join(map(str, c.sizes))
+        if c.kind == "baseline":
+            budget = f"{c.algorithm} / {_steps(steps)} steps"
+        elif steps:
+            budget = f"{c.budget_updates()} upd / {_steps(steps)} steps"
+        else:
+            budget = f"{c.final_episodes} episodes"
         states = ", ".join(f"s{s} {cell_state(root, c, s)}" for s in seeds)
         lines.append(f"{c.id:<24} {c.kind:<10} {c.task:<9} {c.comm:<4} {sizes:<14} {budget:>22}  {states}")
     lines.append(f"\nat most {_steps(total_steps)} env steps in all (curricula at their full stage budgets)")

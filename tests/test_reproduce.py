@@ -12,9 +12,9 @@ import time
 
 import pytest
 
-from trainer.reproduce import cells as cells_mod
-from trainer.reproduce.spec import SpecError, load_spec
-from trainer.reproduce.tables import DOC_BEGIN, DOC_END, render_all, update_doc
+from reproduce import cells as cells_mod
+from reproduce.spec import SpecError, load_spec
+from reproduce.tables import DOC_BEGIN, DOC_END, render_all, update_doc
 
 TINY = """
 name = "tiny"
@@ -59,8 +59,13 @@ def write_spec(tmp_path, updates=3, eval_every=2, text=None) -> str:
 def test_shipped_paper_spec_has_every_table_and_the_papers_numbers():
     spec = load_spec("paper")
     assert spec.tables() == [1, 2, 3, 4]
-    t1 = [c for c in spec.cells if c.table == 1]
+    t1 = [c for c in spec.cells if c.table == 1 and c.kind == "train"]
     assert len(t1) == 12 and {c.agents for c in t1} == {3, 6}
+    baselines = [c for c in spec.cells if c.kind == "baseline"]
+    assert {c.algorithm for c in baselines} == {"maddpg", "mappo", "ippo", "qmix", "vdn", "iql"}
+    assert all(c.table == 1 and c.obs_mode == "full" and c.frames <= 4_500_000 for c in baselines)
+    assert spec.cell("t1-coverage-maddpg-m3").paper["3"] == {"S": 95, "T": 17.89, "DIST": 0.065}
+    assert spec.cell("t1-coverage-qmix-m6").paper["6"] == {"S": 0}
     assert spec.cell("t1-coverage-rc-m6").paper["6"] == {"S": 5, "T": 48.32, "DIST": 0.17}
     assert spec.cell("t2-coverage-emp-rc").paper["10"] == {"S": 85, "N": 3250}
     assert spec.cell("t2-coverage-noemp-uc").entity_mode == "padded"
@@ -93,6 +98,8 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t + "\n[[cells]]\nid = 'x'\n", "missing 'table'"),
         (lambda t: t.replace("name =", "nmae ="), "unknown top-level keys"),
         (lambda t: t + "\n[[cells", "not valid TOML"),
+        (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nframes = 9'), "needs algorithm"),
+        (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nalgorithm = "mappo"'), "frames must be >= 1"),
     ],
 )
 def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
@@ -226,3 +233,34 @@ def test_ray_run_survives_a_killed_worker(tmp_path):
     # a second call finds everything done and runs nothing
     again = subprocess.run([*cmd, "--dry-run"], capture_output=True, text=True, timeout=120)
     assert again.returncode == 0 and again.stdout.count("s0 done") == 2
+
+
+def test_a_benchmarl_baseline_cell_trains_evaluates_and_renders(tmp_path):
+    pytest.importorskip("benchmarl")
+    text = """
+[[cells]]
+id = "base-cov"
+table = 1
+kind = "baseline"
+task = "coverage"
+algorithm = "mappo"
+agents = 2
+frames = 256
+actions = "discrete"
+final_episodes = 16
+baseline_options = { num_envs = 4, frames_per_batch = 128 }
+paper = { "2" = { S = 42 } }
+"""
+    spec = load_spec(write_spec(tmp_path, text=text))
+    (cell,) = spec.cells
+    assert cell.definition()["algorithm"] == "mappo"
+    root = str(tmp_path / "root")
+    result = cells_mod.run_cell(cell, 0, root)
+    (row,) = result["rows"]
+    assert row["episodes"] == 16 and row["env_steps"] >= 256 and row["algorithm"] == "mappo"
+    assert 0.0 <= row["success_rate"] <= 1.0
+    md = render_all(spec.cells, [0], root, "tiny")
+    assert "| coverage MAPPO (full obs.) | 2 |" in md and "| 42 |" in md
+    bad = load_spec(write_spec(tmp_path, text=text.replace("frames_per_batch = 128", "bogus = 1"))).cells[0]
+    with pytest.raises(SpecError, match="does not know"):
+        cells_mod.run_cell(bad, 0, str(tmp_path / "root2"))

@@ -17,6 +17,7 @@ stopped training.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import dataclasses
 import json
@@ -24,9 +25,9 @@ import os
 import socket
 import time
 
+from reproduce.spec import Cell, SpecError
 from taichi_swarm import TASK_SPECS
 from taichi_swarm.files import atomic_write_json
-from trainer.reproduce.spec import Cell, SpecError
 
 RESULT = "result.json"
 ATTEMPTS = "attempts.json"
@@ -176,6 +177,8 @@ def run_cell(
                 stopping_success_rate=stage["success_rate"],
             )
             rows.append(row)
+    elif cell.kind == "baseline":
+        rows = [run_baseline(cell, seed, directory, device)]
     else:
         if source is None or source.id != cell.source:
             raise SpecError(f"cell {cell.id!r} needs its source cell {cell.source!r}")
@@ -197,6 +200,47 @@ def run_cell(
     }
     atomic_write_json(os.path.join(directory, RESULT), result)
     return result
+
+
+def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> dict:
+    """Train and evaluate a stock BenchMARL algorithm (baselines/run.py) into ``directory``;
+    the row in this module's format. Not resumable mid-run: a stopped one starts over."""
+    try:
+        from baselines.run import build_parser, run
+    except ImportError as exc:
+        raise SpecError(
+            f'cell {cell.id!r} is a BenchMARL baseline: pip install -c constraints.txt -e ".[baselines]" ({exc})'
+        ) from None
+    argv = [
+        "--algorithm", cell.algorithm, "--task", cell.task, "--agents", str(cell.agents),
+        "--comm", cell.comm, "--comm-radius", str(cell.comm_radius), "--obs-mode", cell.obs_mode,
+        "--actions", cell.actions, "--frames", str(cell.frames), "--seed", str(seed),
+        "--eval-episodes", str(cell.final_episodes), "--eval-seed", str(cell.eval_seed),
+        "--device", device, "--out", directory,
+    ]  # fmt: skip
+    for key, value in cell.baseline_options.items():
+        argv += [f"--{key.replace('_', '-')}", str(value)]
+    parser = build_parser()
+    parser.exit_on_error = False  # a bad option value raises ArgumentError instead of exiting
+    try:
+        args, unknown = parser.parse_known_args(argv)
+    except argparse.ArgumentError as exc:
+        raise SpecError(f"cell {cell.id!r}: baseline_options: {exc}") from None
+    if unknown:
+        raise SpecError(f"cell {cell.id!r}: baseline_options has options run_baselines does not know: {unknown}")
+    summary = run(args)
+    return {
+        "agents": cell.agents,
+        "success_rate": summary["success_rate"],
+        "mean_length": summary["mean_length"],
+        "dist": summary["dist"],
+        "episodes": summary["episodes"],
+        "seed": summary["seed"],
+        "env_steps": summary["frames"],
+        "wall_time": summary["train_seconds"],
+        "algorithm": summary["algorithm"],
+        "actions": summary["actions"],
+    }
 
 
 def _training(summary: dict) -> dict:

@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 import os
 
-from trainer.reproduce.cells import cell_dir, read_result
-from trainer.reproduce.spec import Cell
+from reproduce.cells import cell_dir, read_result
+from reproduce.spec import Cell
 
 DOC_BEGIN = "<!-- BEGIN swarm reproduce (generated: do not edit by hand) -->"
 DOC_END = "<!-- END swarm reproduce -->"
@@ -60,7 +60,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
         return ""
     kind = cells[0].kind
     lines = [f"### {TITLES.get(table, f'Table {table}')}", ""]
-    if kind == "train":
+    if kind in ("train", "baseline"):
         lines += [
             "| cell | M | S% | paper S% | T | paper T | DIST | paper DIST | updates | env steps (M) | minutes |",
             "|---|---|---|---|---|---|---|---|---|---|---|",
@@ -78,7 +78,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
                 f"| {c.row_label()} | {c.agents} | {_stat([r['success_rate'] for r in rows], 100)} | "
                 f"{_paper(c, c.agents, 'S')} | {_stat([r['mean_length'] for r in rows], digits=2)} | "
                 f"{_paper(c, c.agents, 'T')} | {_stat([r['dist'] for r in rows], digits=3)} | "
-                f"{_paper(c, c.agents, 'DIST')} | {_stat([r['updates'] for r in rows], digits=0)} | "
+                f"{_paper(c, c.agents, 'DIST')} | {_stat([r.get('updates') for r in rows], digits=0)} | "
                 f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | {_stat([r['wall_time'] for r in rows], 1 / 60)} |"
             )
     elif kind == "curriculum":
@@ -145,7 +145,7 @@ def plot_curves(table: int, cells: list[Cell], seeds: list[int], root: str, out_
     the stages one after another, a dotted line where a stage starts)."""
     from trainer.plot import _save, read_metrics
 
-    cells = [c for c in cells if c.table == table and c.kind != "zero-shot"]
+    cells = [c for c in cells if c.table == table and c.kind in ("train", "curriculum")]
     curves = []
     for c in cells:
         for seed in seeds:

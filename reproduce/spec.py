@@ -1,7 +1,7 @@
 """The paper's tables as data: every cell says what to train, how to evaluate it and
 what the paper reported for it.
 
-A spec is a TOML file (``trainer/reproduce/specs/paper.toml`` ships Tables 1-4 of
+A spec is a TOML file (``reproduce/specs/paper.toml`` ships Tables 1-4 of
 docs/PAPER.md s.7; ``smoke.toml`` is a tiny one for tests and a first try). Its
 ``[defaults]`` apply to every ``[[cells]]`` entry; a cell's own keys win. Kinds:
 
@@ -10,6 +10,9 @@ docs/PAPER.md s.7; ``smoke.toml`` is a tiny one for tests and a first try). Its
   advancing at ``threshold`` or after ``max_updates_per_stage`` (Tables 2, 3).
 - ``zero-shot``: the policy of cell ``source`` (its stage at ``source_agents`` for a
   curriculum) evaluated at ``sizes`` without fine-tuning (Table 4).
+- ``baseline``: a stock BenchMARL ``algorithm`` (baselines/) trained at ``agents`` for
+  ``frames`` env steps with ``obs_mode`` observations (Table 1's baseline rows; needs
+  the ``baselines`` extra). It is not resumable mid-run: a stopped one starts over.
 
 Every number a cell reports comes from ``final_episodes`` fresh greedy episodes at
 ``eval_seed`` (training never draws seeds below 2**40), not from the evaluations that
@@ -33,7 +36,8 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 SPECS_DIR = os.path.join(os.path.dirname(__file__), "specs")
-KINDS = ("train", "curriculum", "zero-shot")
+KINDS = ("train", "curriculum", "zero-shot", "baseline")
+BASELINE_FIELDS = ("algorithm", "frames", "obs_mode", "actions", "baseline_options")
 ENTITY_MODES = ("emp", "concat", "padded")  # trainer.model.ENTITY_MODES (kept import-light: no torch here)
 
 
@@ -56,7 +60,7 @@ class Cell:
     ppo: dict = field(default_factory=dict)
     """Overrides of the preset's PPO options (e.g. {num_envs = 8})."""
     agents: int = 0
-    """train: the team size."""
+    """train, baseline: the team size."""
     updates: int = 0
     """train: PPO updates."""
     sizes: tuple[int, ...] = ()
@@ -67,6 +71,16 @@ class Cell:
     """zero-shot: the id of the cell whose policy is evaluated."""
     source_agents: int = 0
     """zero-shot from a curriculum: which stage's policy."""
+    algorithm: str = ""
+    """baseline: a BenchMARL algorithm (mappo, ippo, maddpg, qmix, vdn, iql, masac, ...)."""
+    frames: int = 0
+    """baseline: the training budget in env steps."""
+    obs_mode: str = "full"
+    """baseline: "full" (the paper's baselines: everything observed, no communication) or "local"."""
+    actions: str = "any"
+    """baseline: discrete | continuous | any (the algorithm's preference)."""
+    baseline_options: dict = field(default_factory=dict)
+    """baseline: more options of tools/run_baselines.py, e.g. {num_envs = 4, frames_per_batch = 64}."""
     eval_every: int = 50
     eval_episodes: int = 200
     """Episodes of the evaluations during training (stages advance on them)."""
@@ -84,6 +98,9 @@ class Cell:
         d = dataclasses.asdict(self)
         for key in ("paper", "label", "table"):
             d.pop(key)
+        if self.kind != "baseline":  # fields only a baseline reads (older results lack them)
+            for key in BASELINE_FIELDS:
+                d.pop(key)
         d["sizes"] = list(self.sizes)
         return d
 
@@ -91,7 +108,11 @@ class Cell:
         return hashlib.sha256(json.dumps(self.definition(), sort_keys=True).encode()).hexdigest()[:16]
 
     def row_label(self) -> str:
-        return self.label or f"{self.task} {self.comm.upper()}"
+        if self.label:
+            return self.label
+        if self.kind == "baseline":
+            return f"{self.task} {self.algorithm.upper()} ({self.obs_mode} obs.)"
+        return f"{self.task} {self.comm.upper()}"
 
     def budget_updates(self) -> int:
         """Most PPO updates the cell can take (a curriculum may stop stages earlier)."""
@@ -99,7 +120,7 @@ class Cell:
             return self.updates
         if self.kind == "curriculum":
             return self.max_updates_per_stage * len(self.sizes)
-        return 0
+        return 0  # zero-shot: none; baseline: ``frames`` env steps (not PPO updates of ours)
 
 
 @dataclass(frozen=True)
@@ -214,11 +235,24 @@ def _check_cell(where: str, c: Cell) -> None:
     if c.entity_mode not in ENTITY_MODES:
         bad(f"entity_mode must be one of {ENTITY_MODES}, got {c.entity_mode!r}")
     smallest = TASK_SPECS[c.task].min_agents
-    if c.kind == "train":
+    if c.kind in ("train", "baseline"):
         if c.agents < smallest:
             bad(f"agents must be >= {smallest} for {c.task}, got {c.agents}")
-        if c.updates < 1:
-            bad(f"updates must be >= 1, got {c.updates}")
+    if c.kind == "train" and c.updates < 1:
+        bad(f"updates must be >= 1, got {c.updates}")
+    if c.kind == "baseline":
+        if not c.algorithm:
+            bad("a baseline cell needs algorithm (a BenchMARL algorithm name)")
+        if c.frames < 1:
+            bad(f"frames must be >= 1, got {c.frames}")
+        if c.obs_mode not in ("full", "local"):
+            bad(f"obs_mode must be full or local, got {c.obs_mode!r}")
+        if c.actions not in ("any", "discrete", "continuous"):
+            bad(f"actions must be any, discrete or continuous, got {c.actions!r}")
+        taken = {"algorithm", "task", "agents", "comm", "comm_radius", "obs_mode", "actions", "frames", "seed"}
+        clash = sorted(set(c.baseline_options) & (taken | {"eval_episodes", "eval_seed", "device", "out"}))
+        if clash:
+            bad(f"baseline_options {clash} are set by the cell itself")
     if c.kind in ("curriculum", "zero-shot"):
         if not c.sizes or any(not isinstance(m, int) or m < smallest for m in c.sizes):
             bad(f"sizes must be team sizes >= {smallest}, got {list(c.sizes)}")
@@ -252,8 +286,10 @@ def _check_references(spec: Spec) -> None:
             src = seen.get(c.source)
             if src is None:
                 raise SpecError(f"{spec.path}: cell {c.id!r}: source {c.source!r} must be a cell declared before it")
-            if src.kind == "zero-shot":
-                raise SpecError(f"{spec.path}: cell {c.id!r}: source {c.source!r} is a zero-shot cell (no policy)")
+            if src.kind in ("zero-shot", "baseline"):
+                raise SpecError(
+                    f"{spec.path}: cell {c.id!r}: source {c.source!r} is a {src.kind} cell (no policy of ours)"
+                )
             if src.kind == "curriculum" and c.source_agents not in src.sizes:
                 raise SpecError(
                     f"{spec.path}: cell {c.id!r}: source_agents must be one of {c.source!r}'s stage sizes "

@@ -13,11 +13,13 @@ from __future__ import annotations
 import os
 import sys
 
-from trainer.reproduce.cells import cell_state, progress, read_result, run_cell
-from trainer.reproduce.spec import Cell
+from reproduce.cells import cell_state, progress, read_result, run_cell
+from reproduce.spec import Cell
 
-# Seconds a zero-shot row takes (no training), for the time-left estimate.
+# For the time-left estimate: seconds a zero-shot row takes (no training), and the env
+# steps per second of a BenchMARL baseline (stock MAPPO, coverage M = 3, one core here).
 ZERO_SHOT_SECONDS = 60.0
+BASELINE_FRAMES_PER_SECOND = 450.0
 
 
 def _run_cell_task(cell: Cell, seed: int, root: str, source: Cell | None, arch: str, device: str, *upstream):
@@ -123,6 +125,8 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
             if p["state"] != "done":
                 if cell.kind == "zero-shot":
                     remaining_fixed += ZERO_SHOT_SECONDS
+                elif cell.kind == "baseline":
+                    remaining_fixed += cell.frames / BASELINE_FRAMES_PER_SECOND
                 else:
                     remaining_updates += max(budget - p["updates"], 0)
                     if rate:
