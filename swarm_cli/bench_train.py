@@ -119,10 +119,12 @@ def measure(
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="swarm bench train", description=__doc__)
-    ap.add_argument("--task", default="coverage")
-    ap.add_argument("--agents", type=int, default=3)
+    ap.add_argument("--task", default="coverage", help="task of the timed updates (default coverage)")
+    ap.add_argument("--agents", type=int, default=3, help="team size M (default 3)")
     ap.add_argument("--updates", type=int, default=3, help="timed updates per row (after one warm-up)")
-    ap.add_argument("--presets", nargs="+", default=list(PRESETS))
+    ap.add_argument(
+        "--presets", nargs="+", default=list(PRESETS), help=f"PPO presets, one row each (default: {' '.join(PRESETS)})"
+    )
     ap.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="torch threads of the update")
     ap.add_argument("--device", default="cpu", help="where the network runs: cpu | cuda | auto")
     ap.add_argument("--arch", default="cpu", help="where the simulator runs: cpu | cuda | auto")

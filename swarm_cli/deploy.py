@@ -34,8 +34,8 @@ def export_main(argv: list[str]) -> int:
     ap.add_argument("--out", required=True, help="output directory (created)")
     ap.add_argument("--task", default=None, help="task to record in the manifest (default: the training task)")
     ap.add_argument("--agents", type=int, default=None, help="team size to record (default: the training size)")
-    ap.add_argument("--comm", choices=("uc", "rc"), default=None)
-    ap.add_argument("--comm-radius", type=float, default=None)
+    ap.add_argument("--comm", choices=("uc", "rc"), default=None, help="communication to record (default: training)")
+    ap.add_argument("--comm-radius", type=float, default=None, help="rc radius to record (default: training)")
     args, code = _parse(ap, argv)
     if args is None:
         return code
@@ -81,7 +81,7 @@ def execute_main(argv: list[str]) -> int:
     ap.add_argument("--agents", type=int, default=None, help="team size M (default: the manifest's)")
     ap.add_argument("--episodes", type=int, default=10, help="episodes, one per environment (default 10)")
     ap.add_argument("--comm", choices=("uc", "rc"), default=None, help="communication graph (default: manifest)")
-    ap.add_argument("--comm-radius", type=float, default=None)
+    ap.add_argument("--comm-radius", type=float, default=None, help="rc radius (default: the manifest's)")
     ap.add_argument(
         "--drop",
         type=float,

@@ -80,9 +80,9 @@ def _eval_parser(prog: str, sizes: bool) -> argparse.ArgumentParser:
         ap.add_argument("--agents", type=int, default=None, help="team size M (default: the training size)")
     ap.add_argument("--task", default=None, help="task (default: the training task)")
     ap.add_argument("--comm", default=None, help="uc | rc (default: the training setting)")
-    ap.add_argument("--comm-radius", type=float, default=None)
-    ap.add_argument("--episodes", type=int, default=100)
-    ap.add_argument("--seed", type=int, default=12345, help="seed of the evaluation episodes")
+    ap.add_argument("--comm-radius", type=float, default=None, help="rc radius (default: the training setting)")
+    ap.add_argument("--episodes", type=int, default=100, help="episodes, one per environment (default 100)")
+    ap.add_argument("--seed", type=int, default=12345, help="seed of the evaluation episodes (default 12345)")
     ap.add_argument("--arch", default="cpu", help="simulator arch: cpu | cuda | auto")
     ap.add_argument("--json", default=None, help="also write the results to this JSON file")
     if not sizes:
@@ -247,7 +247,7 @@ def import_main(argv: list[str]) -> int:
     ap.add_argument("--out", required=True, help="where to write the converted policy (.pt)")
     ap.add_argument("--task", default=None, help="coverage | formation | line (default: from the input width)")
     ap.add_argument("--comm", default="uc", choices=("uc", "rc"), help="communication it is to run with")
-    ap.add_argument("--comm-radius", type=float, default=1.0)
+    ap.add_argument("--comm-radius", type=float, default=1.0, help="rc radius (default 1.0)")
     args = ap.parse_args(argv)
     try:
         payload = import_to(args.published, args.out, task=args.task, comm=args.comm, comm_radius=args.comm_radius)

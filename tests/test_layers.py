@@ -49,3 +49,32 @@ def test_the_checker_sees_an_upward_import(tmp_path):
     bad = tmp_path / "bad.py"
     bad.write_text("def f():\n    from swarm_cli.main import main\n    import deploy.export\n")
     assert imported_packages(str(bad)) == {"swarm_cli", "deploy"}
+
+
+def test_every_command_option_has_help(monkeypatch):
+    """Every option of every `swarm` subcommand (argparse or tyro) says what it does."""
+    import argparse
+    import importlib
+
+    from swarm_cli.main import COMMANDS
+
+    missing = []
+    real = argparse.ArgumentParser.add_argument
+
+    def recording(self, *args, **kwargs):
+        action = real(self, *args, **kwargs)
+        user_facing = self.add_help and args and str(args[0]).startswith("--")
+        if user_facing and not kwargs.get("help") and args[0] != "--help":
+            missing.append(f"{self.prog}: {args[0]}")
+        return action
+
+    monkeypatch.setattr(argparse.ArgumentParser, "add_argument", recording)
+    for name, (target, _) in COMMANDS.items():
+        module, func = target.split(":")
+        argvs = [["sim", "--help"], ["train", "--help"], ["deploy", "--help"]] if name == "bench" else [["--help"]]
+        for argv in argvs:
+            try:
+                getattr(importlib.import_module(module), func)(argv)
+            except SystemExit:
+                pass
+    assert not missing, missing
