@@ -277,7 +277,56 @@ def run(args: argparse.Namespace) -> dict:
         "versions": _versions(),
     }
     atomic_write_json(out_json, summary)
+    try:
+        plot_curves(args.out)
+    except Exception as exc:  # noqa: BLE001 - a missing plot never loses a result
+        print(f"(could not draw curves: {exc})", file=sys.stderr)
     return summary
+
+
+def plot_curves(out_dir: str) -> str | None:
+    """Learning curves of the BenchMARL run in ``out_dir`` (its csv scalars: sampled success
+    rate, episode reward and length per iteration, against env steps) -> out_dir/curves.png."""
+    import csv
+    import glob
+
+    found = sorted(glob.glob(os.path.join(out_dir, "*", "*", "scalars")))
+    if not found:
+        return None
+    scalars = found[-1]  # the latest experiment in the folder
+
+    def series(name: str) -> dict[int, float]:
+        path = os.path.join(scalars, f"{name}.csv")
+        if not os.path.exists(path):
+            return {}
+        with open(path) as f:
+            return {int(float(row[0])): float(row[1]) for row in csv.reader(f) if len(row) >= 2}
+
+    frames = series("counters_total_frames")
+    panels = [
+        ("collection_success_rate", "sampled success rate (training)", 100.0),
+        ("collection_reward_episode_reward_mean", "mean episode return (team)", 1.0),
+        ("collection_episode_length", "episode length", 1.0),
+    ]
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(13, 3.6))
+    for ax, (name, title, scale) in zip(axes, panels, strict=True):
+        points = sorted(series(name).items())
+        xs = [frames.get(i, float("nan")) / 1e6 for i, _ in points]
+        ax.plot(xs, [v * scale for _, v in points])
+        ax.set(title=title, xlabel="env steps (M)")
+    fig.suptitle(os.path.basename(os.path.normpath(out_dir)))
+    fig.tight_layout()
+    out = os.path.join(out_dir, "curves.png")
+    tmp = out + ".tmp.png"
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    os.replace(tmp, out)
+    return out
 
 
 def _versions() -> dict:

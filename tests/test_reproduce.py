@@ -259,6 +259,7 @@ paper = { "2" = { S = 42 } }
     (row,) = result["rows"]
     assert row["episodes"] == 16 and row["env_steps"] >= 256 and row["algorithm"] == "mappo"
     assert 0.0 <= row["success_rate"] <= 1.0
+    assert os.path.exists(os.path.join(cells_mod.cell_dir(root, cell, 0), "curves.png"))  # BenchMARL's csv drawn
     md = render_all(spec.cells, [0], root, "tiny")
     assert "| coverage MAPPO (full obs.) | 2 |" in md and "| 42 |" in md
     bad = load_spec(write_spec(tmp_path, text=text.replace("frames_per_batch = 128", "bogus = 1"))).cells[0]
