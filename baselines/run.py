@@ -169,6 +169,17 @@ def _parse_value(text: str):
     return yaml.safe_load(text)
 
 
+def _count(text: str) -> int:
+    """An env-step count: 1000000, 1_000_000 or 1e6."""
+    try:
+        value = float(text.replace("_", ""))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number like 1000000 or 1e6, got {text!r}") from None
+    if not value.is_integer():
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}")
+    return int(value)
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="run_baselines.py",
@@ -194,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(continuous where it can, BenchMARL's prefer_continuous_actions)",
     )
     ap.add_argument("--max-steps", type=int, default=50, help="episode length limit (default 50)")
-    ap.add_argument("--frames", type=int, default=1_000_000, help="training budget in env steps (default 1e6)")
+    ap.add_argument("--frames", type=_count, default=1_000_000, help="training budget in env steps (default 1e6)")
     ap.add_argument("--num-envs", type=int, default=32, help="environments stepped together (default 32)")
     ap.add_argument(
         "--frames-per-batch",

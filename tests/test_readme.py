@@ -48,3 +48,26 @@ def test_readme_swarm_command(argv):
     text = out.stdout + out.stderr
     for option in options:
         assert option in text, f"swarm {argv[1]} --help does not list {option}"
+
+
+def tool_lines() -> list[list[str]]:
+    lines = []
+    for block in re.findall(r"```bash\n(.*?)```", README, flags=re.S):
+        for line in block.splitlines():
+            line = line.split("   #")[0].strip()
+            if line.startswith("python tools/"):
+                lines.append(shlex.split(line))
+    lines += [shlex.split(m) for m in re.findall(r"`(python tools/[^`]+)`", README)]
+    return lines
+
+
+@pytest.mark.parametrize("argv", tool_lines(), ids=lambda a: " ".join(a[:2]))
+def test_readme_tool_command(argv):
+    script = os.path.join(ROOT, argv[1])
+    assert os.path.exists(script), f"{argv[1]} does not exist"
+    out = subprocess.run([sys.executable, script, "--help"], capture_output=True, text=True, cwd=ROOT)
+    if out.returncode != 0 and "No module named" in out.stderr:
+        pytest.skip(f"{argv[1]} needs an optional extra: {out.stderr.strip().splitlines()[-1]}")
+    assert out.returncode == 0, out.stderr
+    for option in {t.split("=")[0] for t in argv[2:] if t.startswith("--")}:
+        assert option in out.stdout, f"{argv[1]} --help does not list {option}"
