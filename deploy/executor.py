@@ -267,6 +267,22 @@ class ExecuteSettings:
     delay: int = 0
     seed: int = 12345
 
+    def __post_init__(self):
+        """Every setting checked here, once (``swarm execute`` and ``run_episodes`` alike)."""
+        import taichi_swarm
+
+        if self.task not in taichi_swarm.TASK_SPECS:
+            raise DeployError(f"--task must be one of {tuple(taichi_swarm.TASK_SPECS)}, got {self.task!r}")
+        if self.comm not in taichi_swarm.COMMS:
+            raise DeployError(f"--comm must be one of {taichi_swarm.COMMS}, got {self.comm!r}")
+        for name, low in (("agents", 1), ("episodes", 1), ("delay", 0)):
+            if getattr(self, name) < low:
+                raise DeployError(f"--{name} must be >= {low}, got {getattr(self, name)}")
+        if not 0.0 <= self.drop <= 1.0:
+            raise DeployError(f"--drop values must be probabilities in [0, 1], got {self.drop}")
+        if not self.comm_radius >= 0:
+            raise DeployError(f"--comm-radius must be >= 0, got {self.comm_radius}")
+
 
 def resolve_settings(
     model: ExportedModel,
@@ -298,12 +314,6 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
     (T is the episode length: the time limit, 50, for a failed episode)."""
     import taichi_swarm
 
-    if s.agents < 1:
-        raise DeployError(f"--agents must be >= 1, got {s.agents}")
-    if s.episodes < 1:
-        raise DeployError(f"--episodes must be >= 1, got {s.episodes}")
-    if s.task not in taichi_swarm.TASK_SPECS:
-        raise DeployError(f"task must be one of {taichi_swarm.TASKS}, got {s.task!r}")
     model.check_landmarks(s.task, taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents))
     env = taichi_swarm.make(
         s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy"

@@ -102,12 +102,6 @@ def execute_main(argv: list[str]) -> int:
     from deploy.executor import DeployError, ExportedModel, format_table, resolve_settings, run_episodes
 
     try:
-        if args.agents is not None and args.agents < 1:
-            raise DeployError(f"--agents must be >= 1, got {args.agents}")
-        if args.episodes < 1:
-            raise DeployError(f"--episodes must be >= 1, got {args.episodes}")
-        if args.delay < 0:
-            raise DeployError(f"--delay must be >= 0, got {args.delay}")
         if args.threads < 1:
             raise DeployError(f"--threads must be >= 1, got {args.threads}")
         from taichi_swarm.files import ensure_writable
@@ -119,25 +113,16 @@ def execute_main(argv: list[str]) -> int:
             from deploy.video import check_video_path
 
             check_video_path(args.video)  # before any episode runs
-        bad = [p for p in args.drop if not 0.0 <= p <= 1.0]
-        if bad:
-            raise DeployError(f"--drop values must be probabilities in [0, 1], got {bad}")
-        if args.comm_radius is not None and not args.comm_radius >= 0:
-            raise DeployError(f"--comm-radius must be >= 0, got {args.comm_radius}")
         model = ExportedModel(args.directory)
-        rows = []
-        for k, p in enumerate(args.drop):
-            s = resolve_settings(
-                model,
-                args.task,
-                args.agents,
-                args.comm,
-                args.comm_radius,
-                episodes=args.episodes,
-                drop=p,
-                delay=args.delay,
-                seed=args.seed,
+        settings = [  # every setting checked (ExecuteSettings) before any episode runs
+            resolve_settings(
+                model, args.task, args.agents, args.comm, args.comm_radius,
+                episodes=args.episodes, drop=p, delay=args.delay, seed=args.seed,
             )
+            for p in args.drop
+        ]  # fmt: skip
+        rows = []
+        for k, s in enumerate(settings):
             recorder = open_recorders(args, s.task, s.episodes, s.agents, s.comm, s.comm_radius) if k == 0 else None
             try:
                 rows.append(run_episodes(model, s, recorder=recorder, threads=args.threads))
