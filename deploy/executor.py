@@ -269,19 +269,14 @@ class ExecuteSettings:
 
     def __post_init__(self):
         """Every setting checked here, once (``swarm execute`` and ``run_episodes`` alike)."""
-        import taichi_swarm
+        from taichi_swarm import TaskSetting
 
-        if self.task not in taichi_swarm.TASK_SPECS:
-            raise DeployError(f"--task must be one of {tuple(taichi_swarm.TASK_SPECS)}, got {self.task!r}")
-        if self.comm not in taichi_swarm.COMMS:
-            raise DeployError(f"--comm must be one of {taichi_swarm.COMMS}, got {self.comm!r}")
-        for name, low in (("agents", 1), ("episodes", 1), ("delay", 0)):
+        TaskSetting(self.task, self.agents, self.comm, self.comm_radius)  # task, team size, comm
+        for name, low in (("episodes", 1), ("delay", 0)):
             if getattr(self, name) < low:
                 raise DeployError(f"--{name} must be >= {low}, got {getattr(self, name)}")
         if not 0.0 <= self.drop <= 1.0:
             raise DeployError(f"--drop values must be probabilities in [0, 1], got {self.drop}")
-        if not self.comm_radius >= 0:
-            raise DeployError(f"--comm-radius must be >= 0, got {self.comm_radius}")
 
 
 def resolve_settings(
@@ -292,19 +287,17 @@ def resolve_settings(
     comm_radius: float | None = None,
     **rest,
 ) -> ExecuteSettings:
-    """Fill unset options from the manifest's training setting."""
-    trained = model.task
-    task = task or trained.get("task")
-    agents = agents if agents is not None else trained.get("agents")
-    if task is None:
-        raise DeployError("the manifest does not say its task: pass --task")
-    if agents is None:
-        raise DeployError("the manifest does not say its team size: pass --agents")
+    """Fill unset options from the manifest's training setting (``taichi_swarm.TaskSetting``)."""
+    from taichi_swarm import TaskSetting
+
+    setting = TaskSetting.resolve(
+        model.task, "the manifest", task=task, agents=agents, comm=comm, comm_radius=comm_radius
+    )
     return ExecuteSettings(
-        task=task,
-        agents=int(agents),
-        comm=comm or trained.get("comm", "uc"),
-        comm_radius=float(comm_radius if comm_radius is not None else trained.get("comm_radius", 1.0)),
+        task=setting.task,
+        agents=setting.team_size("the manifest"),
+        comm=setting.comm,
+        comm_radius=setting.comm_radius,
         **rest,
     )
 

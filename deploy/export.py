@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, seal
+from taichi_swarm import TaskSetting
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
 from trainer.checkpoint import CheckpointError, load_policy
@@ -179,17 +180,18 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
     """Export ``checkpoint`` (file or run dir) into ``out_dir``; returns the manifest.
 
     ``task`` overrides/complements the checkpoint's ``payload["task"]``
-    ({"task", "agents", "comm", "comm_radius"}).
+    ({"task", "agents", "comm", "comm_radius"}; None values keep the checkpoint's): one
+    ``taichi_swarm.TaskSetting``, checked.
     """
     import onnx
 
     policy, payload = load_policy(checkpoint)
     policy = policy.float().eval()
     cfg = policy.config
-    trained = dict(payload.get("task") or {})
-    trained.update({k: v for k, v in (task or {}).items() if v is not None})
-    if "task" not in trained:
-        raise CheckpointError("the checkpoint does not say its task: pass --task")
+    try:
+        setting = TaskSetting.resolve(payload.get("task"), "the checkpoint", **(task or {}))
+    except ValueError as exc:
+        raise CheckpointError(str(exc)) from None
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise FileExistsError(f"--out {out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)
@@ -209,12 +211,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
     manifest = {
         "format": FORMAT,
         "version": VERSION,
-        "task": {
-            "task": trained["task"],
-            "agents": trained.get("agents"),
-            "comm": trained.get("comm", "uc"),
-            "comm_radius": float(trained.get("comm_radius", 1.0)),
-        },
+        "task": setting.to_dict(),
         "model_config": cfg.to_dict(),
         "rounds": cfg.rounds,
         "hidden": H,

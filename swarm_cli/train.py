@@ -93,16 +93,15 @@ def _eval_parser(prog: str, sizes: bool) -> argparse.ArgumentParser:
     return ap
 
 
-def _eval_settings(args, payload: dict) -> dict:
-    trained = payload.get("task", {})
-    task = args.task or trained.get("task")
-    if task is None:
-        raise ValueError("this checkpoint does not say its task: pass --task")
-    return {
-        "task": task,
-        "comm": args.comm or trained.get("comm", "uc"),
-        "comm_radius": args.comm_radius if args.comm_radius is not None else trained.get("comm_radius", 1.0),
-    }
+def _eval_settings(args, payload: dict, agents: int | None = None):
+    """The checkpoint's task setting with the command's --task/--comm/--comm-radius (and
+    --agents) over it (taichi_swarm.TaskSetting)."""
+    from taichi_swarm import TaskSetting
+
+    return TaskSetting.resolve(
+        payload.get("task"), "this checkpoint", task=args.task, agents=agents, comm=args.comm,
+        comm_radius=args.comm_radius,
+    )  # fmt: skip
 
 
 def eval_main(argv: list[str]) -> int:
@@ -120,21 +119,17 @@ def eval_main(argv: list[str]) -> int:
                 ensure_writable(out, what)
         torch.set_num_threads(1)
         policy, payload = load_policy(args.checkpoint)
-        s = _eval_settings(args, payload)
-        agents = args.agents if args.agents is not None else payload.get("task", {}).get("agents")
-        if agents is None:
-            raise ValueError("this checkpoint does not say its team size: pass --agents")
-        if agents < 1:
-            raise ValueError(f"--agents must be >= 1, got {agents}")
+        s = _eval_settings(args, payload, args.agents)
+        agents = s.team_size("this checkpoint")
         from deploy.video import open_recorders
 
-        recorder = open_recorders(args, s["task"], args.episodes, agents, s["comm"], s["comm_radius"])
+        recorder = open_recorders(args, s.task, args.episodes, agents, s.comm, s.comm_radius)
         result = evaluate(
             policy,
-            s["task"],
+            s.task,
             agents,
-            s["comm"],
-            s["comm_radius"],
+            s.comm,
+            s.comm_radius,
             args.episodes,
             args.seed,
             arch=args.arch,
@@ -169,9 +164,7 @@ def zero_shot_main(argv: list[str]) -> int:
         s = _eval_settings(args, payload)
         rows = []
         for M in sizes:
-            rows.append(
-                evaluate(policy, s["task"], M, s["comm"], s["comm_radius"], args.episodes, args.seed, arch=args.arch)
-            )
+            rows.append(evaluate(policy, s.task, M, s.comm, s.comm_radius, args.episodes, args.seed, arch=args.arch))
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return _fail("zero-shot", exc)

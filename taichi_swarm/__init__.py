@@ -14,6 +14,7 @@ at import.
 from .env import ARRAYS, COMMS, SwarmEnv, make
 from .physics import ACTION_DIM, ACTION_MEANINGS, ACTION_SPACES, NUM_ACTIONS
 from .runtime import init
+from .setting import TaskSetting
 from .tasks import TASK_SPECS, TASKS
 
 __all__ = [
@@ -25,6 +26,7 @@ __all__ = [
     "NUM_ACTIONS",
     "TASKS",
     "TASK_SPECS",
+    "TaskSetting",
     "SwarmEnv",
     "init",
     "make",

@@ -24,6 +24,7 @@ import os
 
 import torch
 
+from taichi_swarm import TaskSetting
 from trainer.checkpoint import CheckpointError, save
 from trainer.model import SELF_DIM, ModelConfig, SwarmPolicy
 
@@ -116,7 +117,7 @@ def import_published(path: str, task: str | None = None, comm: str = "uc", comm_
     return {
         "model_config": config.to_dict(),
         "model": state,
-        "task": {"task": task, "agents": len(models), "comm": comm, "comm_radius": comm_radius},
+        "task": TaskSetting(task, len(models), comm, comm_radius).to_dict(),
         "counters": {"update": 0, "env_steps": 0, "wall_time": 0.0},
         "evals": [],
         "source": {"published": os.path.abspath(path)},

@@ -457,7 +457,7 @@ def save_checkpoint(run: Run, state: TrainingState, cfg: TrainConfig) -> None:
     payload = {
         "model_config": state.policy.config.to_dict(),
         "model": state.policy.state_dict(),
-        "task": {"task": cfg.task, "agents": cfg.agents, "comm": cfg.comm, "comm_radius": cfg.comm_radius},
+        "task": taichi_swarm.TaskSetting(cfg.task, cfg.agents, cfg.comm, cfg.comm_radius).to_dict(),
         "counters": dict(state.counters),
         "evals": list(state.evals),
         "optimizer": state.optimizer.state_dict(),
