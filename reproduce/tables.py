@@ -119,9 +119,17 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
     return "\n".join(lines)
 
 
-def render_all(cells: list[Cell], seeds: list[int], root: str, spec_name: str, link_from: str | None = None) -> str:
+def render_all(
+    cells: list[Cell],
+    seeds: list[int],
+    root: str,
+    spec_name: str,
+    link_from: str | None = None,
+    figure_dir: str | None = None,
+) -> str:
     """Markdown of every table of ``cells``, and the learning-curve figures (written to
-    ROOT/curves-table-N.png, linked relative to ``link_from``: where the Markdown goes)."""
+    ``figure_dir``/curves-table-N.png, default ROOT, linked relative to ``link_from``:
+    where the Markdown goes)."""
     tables = sorted({c.table for c in cells})
     n_eps = sorted({c.final_episodes for c in cells})
     parts = [
@@ -133,7 +141,7 @@ def render_all(cells: list[Cell], seeds: list[int], root: str, spec_name: str, l
     ]
     for t in tables:
         parts.append(render_table(t, cells, seeds, root))
-        figure = plot_curves(t, cells, seeds, root, root)
+        figure = plot_curves(t, cells, seeds, root, figure_dir or root)
         if figure:
             rel = os.path.relpath(figure, link_from or root)
             parts += [f"![learning curves, table {t}]({rel})", ""]

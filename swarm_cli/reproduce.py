@@ -48,6 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--update-doc", default=None, metavar="FILE", help="also write the tables into FILE between its markers"
     )
+    ap.add_argument(
+        "--figures", default=None, metavar="DIR", help="where the learning-curve figures go (default: ROOT)"
+    )
     return ap
 
 
@@ -107,12 +110,13 @@ def reproduce_main(argv: list[str]) -> int:
 
         os.makedirs(root, exist_ok=True)
         tables_md = os.path.join(root, "tables.md")
-        text = render_all(cells, seeds, root, spec.name)
+        text = render_all(cells, seeds, root, spec.name, figure_dir=args.figures)
         atomic_write_bytes(tables_md, lambda f: f.write(text.encode()))
         print(text)
         print(f"(tables: {tables_md})")
         if args.update_doc:
-            update_doc(args.update_doc, render_all(cells, seeds, root, spec.name, os.path.dirname(args.update_doc)))
+            doc_dir = os.path.dirname(os.path.abspath(args.update_doc))
+            update_doc(args.update_doc, render_all(cells, seeds, root, spec.name, doc_dir, args.figures))
             print(f"(written into {args.update_doc})")
     except KeyboardInterrupt:
         return 130
