@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 
 from reproduce.spec import SpecError
@@ -110,13 +111,14 @@ def reproduce_main(argv: list[str]) -> int:
 
         os.makedirs(root, exist_ok=True)
         tables_md = os.path.join(root, "tables.md")
-        text = render_all(cells, seeds, root, spec.name, figure_dir=args.figures)
+        command = "swarm reproduce " + shlex.join(argv)
+        text = render_all(cells, seeds, root, spec.name, figure_dir=args.figures, command=command)
         atomic_write_bytes(tables_md, lambda f: f.write(text.encode()))
         print(text)
         print(f"(tables: {tables_md})")
         if args.update_doc:
             doc_dir = os.path.dirname(os.path.abspath(args.update_doc))
-            update_doc(args.update_doc, render_all(cells, seeds, root, spec.name, doc_dir, args.figures))
+            update_doc(args.update_doc, render_all(cells, seeds, root, spec.name, doc_dir, args.figures, command))
             print(f"(written into {args.update_doc})")
     except KeyboardInterrupt:
         return 130
