@@ -301,7 +301,7 @@ def plot_curves(out_dir: str) -> str | None:
     import csv
     import glob
 
-    found = sorted(glob.glob(os.path.join(out_dir, "*", "*", "scalars")))
+    found = sorted(glob.glob(os.path.join(out_dir, "*", "*", "scalars")), key=os.path.getmtime)
     if not found:
         return None
     scalars = found[-1]  # the latest experiment in the folder

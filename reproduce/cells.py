@@ -31,21 +31,27 @@ from taichi_swarm.files import atomic_write_json
 
 RESULT = "result.json"
 ATTEMPTS = "attempts.json"
+DEFINITION = "definition.json"  # written at the first start: a changed cell never mixes with old runs
 
 
 def cell_dir(root: str, cell: Cell, seed: int) -> str:
     return os.path.join(root, cell.id, f"s{seed}")
 
 
-def read_result(root: str, cell: Cell, seed: int) -> dict | None:
+def read_result(root: str, cell: Cell, seed: int, source: Cell | None = None) -> dict | None:
     """The cell's result if it finished, None otherwise; an error if the result on disk
-    was made by a different definition of the cell (changed budget, preset, ...)."""
+    was made by a different definition of the cell (changed budget, preset, ...). A
+    zero-shot row whose ``source`` finished again since (a new policy) reads as None."""
     path = os.path.join(cell_dir(root, cell, seed), RESULT)
     if not os.path.exists(path):
         return None
     with open(path) as f:
         result = json.load(f)
     check_same_definition(path, cell, result.get("definition", {}))
+    if cell.kind == "zero-shot" and source is not None:
+        source_result = read_result(root, source, seed)
+        if source_result is None or source_result["finished"] != result.get("source_finished"):
+            return None  # stale: evaluated a policy that is no longer the source's
     return result
 
 
@@ -148,11 +154,24 @@ def run_cell(
     definition: the same cell on a GPU is the same experiment)."""
     import torch
 
-    done = read_result(root, cell, seed)
+    done = read_result(root, cell, seed, source)
     if done is not None:
         return done
+    source_result = None
+    if cell.kind == "zero-shot":
+        if source is None or source.id != cell.source:
+            raise SpecError(f"cell {cell.id!r} needs its source cell {cell.source!r}")
+        source_result = read_result(root, source, seed)
+        if source_result is None:
+            raise SpecError(f"cell {cell.id!r}: its source {source.id!r} (seed {seed}) has not finished")
     directory = cell_dir(root, cell, seed)
     os.makedirs(directory, exist_ok=True)
+    definition_path = os.path.join(directory, DEFINITION)
+    if os.path.exists(definition_path):  # started before: by the same definition?
+        with open(definition_path) as f:
+            check_same_definition(definition_path, cell, json.load(f))
+    else:
+        atomic_write_json(definition_path, cell.definition())
     attempt = _note_attempt(directory)
     torch.set_num_threads(1)
     start = time.time()
@@ -180,10 +199,6 @@ def run_cell(
     elif cell.kind == "baseline":
         rows = [run_baseline(cell, seed, directory, device)]
     else:
-        if source is None or source.id != cell.source:
-            raise SpecError(f"cell {cell.id!r} needs its source cell {cell.source!r}")
-        if read_result(root, source, seed) is None:
-            raise SpecError(f"cell {cell.id!r}: its source {source.id!r} (seed {seed}) has not finished")
         path = policy_path(root, source, seed, cell.source_agents)
         rows = [final_eval(path, cell, M, arch) for M in cell.sizes]
     result = {
@@ -195,6 +210,7 @@ def run_cell(
         "definition": cell.definition(),
         "rows": rows,
         "attempts": attempt,
+        "source_finished": source_result["finished"] if source_result else None,
         "wall_time_last_attempt": time.time() - start,
         "finished": time.time(),
     }
@@ -205,6 +221,8 @@ def run_cell(
 def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> dict:
     """Train and evaluate a stock BenchMARL algorithm (baselines/run.py) into ``directory``;
     the row in this module's format. Not resumable mid-run: a stopped one starts over."""
+    from trainer.train import resolve_device
+
     try:
         from baselines.run import build_parser, run
     except ImportError as exc:
@@ -216,10 +234,11 @@ def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> 
         "--comm", cell.comm, "--comm-radius", str(cell.comm_radius), "--obs-mode", cell.obs_mode,
         "--actions", cell.actions, "--frames", str(cell.frames), "--seed", str(seed),
         "--eval-episodes", str(cell.final_episodes), "--eval-seed", str(cell.eval_seed),
-        "--device", device, "--out", directory,
+        "--device", resolve_device(device), "--out", directory,
     ]  # fmt: skip
     for key, value in cell.baseline_options.items():
-        argv += [f"--{key.replace('_', '-')}", str(value)]
+        for item in value if isinstance(value, list) else [value]:  # a list: the option repeated
+            argv += [f"--{key.replace('_', '-')}", str(item)]
     parser = build_parser()
     parser.exit_on_error = False  # a bad option value raises ArgumentError instead of exiting
     try:
@@ -228,7 +247,9 @@ def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> 
         raise SpecError(f"cell {cell.id!r}: baseline_options: {exc}") from None
     if unknown:
         raise SpecError(f"cell {cell.id!r}: baseline_options has options run_baselines does not know: {unknown}")
-    summary = run(args)
+    summary = _finished_baseline(directory, args)
+    if summary is None:  # (a run killed after BenchMARL's results.json is not trained again)
+        summary = run(args)
     return {
         "agents": cell.agents,
         "success_rate": summary["success_rate"],
@@ -241,6 +262,27 @@ def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> 
         "algorithm": summary["algorithm"],
         "actions": summary["actions"],
     }
+
+
+def _finished_baseline(directory: str, args) -> dict | None:
+    """baselines/run.py's results.json in ``directory`` if it answers these ``args``."""
+    path = os.path.join(directory, "results.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        summary = json.load(f)
+    same = (
+        summary.get("algorithm") == args.algorithm.lower()
+        and summary.get("task") == args.task
+        and summary.get("agents") == args.agents
+        and summary.get("obs_mode") == args.obs_mode
+        and summary.get("train_seed") == args.seed
+        and summary.get("frames", 0) >= args.frames
+        and summary.get("episodes") == args.eval_episodes
+        and summary.get("seed") == args.eval_seed
+        and args.actions in ("any", summary.get("actions"))
+    )
+    return summary if same else None
 
 
 def _training(summary: dict) -> dict:

@@ -44,8 +44,19 @@ def run_on_ray(
     """Run every unfinished (cell, seed); returns {"done": [...], "failed": {key: error}}."""
     import ray
 
+    if not gpus_per_cell and ("cuda" in (arch, device) or "auto" in (arch, device)):
+        raise ValueError(
+            "--arch/--device cuda or auto needs --gpus-per-cell > 0: Ray hides the GPUs from tasks that ask for none"
+        )
     root = os.path.abspath(root)
     by_id = {c.id: c for c in cells}
+    # every result on disk checked before anything starts (a changed cell stops the run here)
+    finished = {
+        (c.id, seed)
+        for c in cells
+        for seed in seeds
+        if read_result(root, c, seed, by_id.get(c.source) if c.source else None) is not None
+    }
     if address is None:
         ray.init(
             num_cpus=workers,
@@ -63,20 +74,22 @@ def run_on_ray(
         refs: dict[tuple[str, int], object] = {}
         for cell in cells:  # spec order: a source is submitted before the rows that read it
             for seed in seeds:
-                if read_result(root, cell, seed) is not None:
+                if (cell.id, seed) in finished:
                     continue
                 source = by_id.get(cell.source) if cell.source else None
                 upstream = [refs[(cell.source, seed)]] if (cell.source, seed) in refs else []
                 refs[(cell.id, seed)] = task.remote(cell, seed, root, source, arch, device, *upstream)
         key_of = {ref: key for key, ref in refs.items()}
+        live = set(refs)  # submitted and not yet returned
         pending = list(refs.values())
         failed: dict[str, str] = {}
         done: list[str] = []
-        print(format_progress(cells, seeds, root, workers, live=set(refs)), file=out, flush=True)
+        print(format_progress(cells, seeds, root, workers, live=live), file=out, flush=True)
         while pending:
             ready, pending = ray.wait(pending, num_returns=1, timeout=progress_every)
             for ref in ready:
                 cell_id, seed = key_of[ref]
+                live.discard((cell_id, seed))
                 try:
                     ray.get(ref)
                     done.append(f"{cell_id}/s{seed}")
@@ -85,7 +98,7 @@ def run_on_ray(
                     failed[f"{cell_id}/s{seed}"] = _short_error(exc)
                     print(f"FAILED: {cell_id} seed {seed}: {failed[f'{cell_id}/s{seed}']}", file=out, flush=True)
             if not ready:
-                print(format_progress(cells, seeds, root, workers, live=set(refs)), file=out, flush=True)
+                print(format_progress(cells, seeds, root, workers, live=live), file=out, flush=True)
         return {"done": done, "failed": failed}
     finally:
         ray.shutdown()

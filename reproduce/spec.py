@@ -38,7 +38,7 @@ else:  # pragma: no cover - Python 3.10
 SPECS_DIR = os.path.join(os.path.dirname(__file__), "specs")
 KINDS = ("train", "curriculum", "zero-shot", "baseline")
 BASELINE_FIELDS = ("algorithm", "frames", "obs_mode", "actions", "baseline_options")
-ENTITY_MODES = ("emp", "concat", "padded")  # trainer.model.ENTITY_MODES (kept import-light: no torch here)
+ENTITY_MODES = ("emp", "concat", "padded")  # trainer.model.ENTITY_MODES
 
 
 class SpecError(ValueError):
@@ -272,6 +272,15 @@ def _check_cell(where: str, c: Cell) -> None:
         bad(f"eval_seed must be in [0, 2**40): training draws its seeds above, got {c.eval_seed}")
     if not isinstance(c.ppo, dict):
         bad("ppo must be a table of PPO options")
+    from trainer.config import PRESETS, PPOConfig  # (torch: imported only to check a spec)
+
+    if c.preset not in PRESETS:
+        bad(f"preset must be one of {tuple(PRESETS)}, got {c.preset!r}")
+    unknown_ppo = sorted(set(c.ppo) - {f.name for f in dataclasses.fields(PPOConfig)})
+    if unknown_ppo:
+        bad(f"ppo has unknown options {unknown_ppo}")
+    if c.entity_mode == "concat" and c.task == "coverage" and c.kind in ("curriculum", "zero-shot"):
+        bad("entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size")
     for size, row in c.paper.items():
         if not str(size).isdigit() or not isinstance(row, dict):
             bad(f"paper must map team sizes to tables of numbers, got {size!r} = {row!r}")
@@ -295,6 +304,9 @@ def _check_references(spec: Spec) -> None:
                     f"{spec.path}: cell {c.id!r}: source_agents must be one of {c.source!r}'s stage sizes "
                     f"{list(src.sizes)}, got {c.source_agents}"
                 )
-            if src.task != c.task:
-                raise SpecError(f"{spec.path}: cell {c.id!r}: task {c.task!r} differs from its source's {src.task!r}")
+            if (src.task, src.comm, src.comm_radius) != (c.task, c.comm, c.comm_radius):
+                raise SpecError(
+                    f"{spec.path}: cell {c.id!r}: task / comm / comm_radius {c.task, c.comm, c.comm_radius} differ "
+                    f"from its source's {src.task, src.comm, src.comm_radius}"
+                )
         seen[c.id] = c

@@ -71,8 +71,12 @@ def reproduce_main(argv: list[str]) -> int:
             raise ValueError(f"--gpus-per-cell must be >= 0, got {args.gpus_per_cell}")
         if args.progress_every <= 0:
             raise ValueError(f"--progress-every must be > 0, got {args.progress_every}")
-        if args.update_doc and not os.path.isfile(args.update_doc):
-            raise ValueError(f"--update-doc {args.update_doc} is not a file")
+        if args.update_doc:
+            if not os.path.isfile(args.update_doc):
+                raise ValueError(f"--update-doc {args.update_doc} is not a file")
+            from reproduce.tables import check_doc_markers
+
+            check_doc_markers(args.update_doc)  # before any cell runs
         spec = load_spec(args.spec)
         cells = spec.select(args.tables, args.cells)
         seeds = list(range(args.seeds))

@@ -99,6 +99,9 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t.replace("name =", "nmae ="), "unknown top-level keys"),
         (lambda t: t + "\n[[cells", "not valid TOML"),
         (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nframes = 9'), "needs algorithm"),
+        (lambda t: t.replace('preset = "fast"', 'preset = "papr"'), "preset must be one of"),
+        (lambda t: t.replace("epochs = 1 }", "epochs = 1, epocs = 2 }"), r"ppo has unknown options \['epocs'\]"),
+        (lambda t: t.replace('source = "train-cov"', 'source = "train-cov"\ncomm = "rc"'), "differ from its source"),
         (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nalgorithm = "mappo"'), "frames must be >= 1"),
     ],
 )
@@ -139,6 +142,10 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
         cells_mod.run_cell(train_cell, 0, root)
     assert cells_mod.cell_state(root, train_cell, 0) == "started"
     monkeypatch.setattr(train_mod, "one_update", real)
+    # a started cell whose definition changed is refused, not resumed under the old one
+    with pytest.raises(SpecError, match=r"differs in \['updates'\]"):
+        cells_mod.run_cell(load_spec(write_spec(tmp_path, updates=6)).cells[0], 0, root)
+    write_spec(tmp_path, updates=4)
 
     result = cells_mod.run_cell(train_cell, 0, root)
     run_dir = cells_mod.cell_dir(root, train_cell, 0)
@@ -155,6 +162,13 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
         cells_mod.run_cell(zs_cell, 0, root)
     zs = cells_mod.run_cell(zs_cell, 0, root, source=train_cell)
     assert [r["agents"] for r in zs["rows"]] == [1, 2, 3]
+    assert cells_mod.read_result(root, zs_cell, 0, train_cell) == zs
+    # the source finished again (a new policy): its zero-shot row is stale and runs again
+    source_json = os.path.join(run_dir, cells_mod.RESULT)
+    redone = json.loads(open(source_json).read()) | {"finished": 1.0}
+    open(source_json, "w").write(json.dumps(redone))
+    assert cells_mod.read_result(root, zs_cell, 0, train_cell) is None
+    assert cells_mod.run_cell(zs_cell, 0, root, source=train_cell)["source_finished"] == 1.0
 
     # a changed definition never mixes with old results
     changed = load_spec(write_spec(tmp_path, updates=5)).cells[0]
@@ -174,9 +188,10 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
     update_doc(str(doc), md)
     text = doc.read_text()
     assert "old" not in text and "before" in text and "after" in text and "| coverage UC | 2 |" in text
-    doc.write_text("no markers")
-    with pytest.raises(ValueError, match="markers"):
-        update_doc(str(doc), md)
+    for bad in ("no markers", f"{DOC_END}\n{DOC_BEGIN}", f"{DOC_BEGIN}{DOC_END}{DOC_BEGIN}{DOC_END}"):
+        doc.write_text(bad)
+        with pytest.raises(ValueError, match="markers"):
+            update_doc(str(doc), md)
 
 
 def test_cli_dry_run_status_and_errors(tmp_path):
@@ -265,3 +280,29 @@ paper = { "2" = { S = 42 } }
     bad = load_spec(write_spec(tmp_path, text=text.replace("frames_per_batch = 128", "bogus = 1"))).cells[0]
     with pytest.raises(SpecError, match="does not know"):
         cells_mod.run_cell(bad, 0, str(tmp_path / "root2"))
+
+
+def test_cuda_cells_need_a_gpu_share():
+    from reproduce.runner import run_on_ray
+
+    with pytest.raises(ValueError, match="--gpus-per-cell"):
+        run_on_ray([], [0], "unused", arch="cuda")
+
+
+def test_a_run_stopped_at_its_target_stays_stopped_after_a_kill(tmp_path, monkeypatch):
+    """Killed between its last checkpoint and summary.json, a stage that had reached its
+    threshold must not train on when resumed (N would be inflated)."""
+    import trainer.train as train_mod
+    from trainer.config import PRESETS, TrainConfig
+
+    def perfect(policy, cfg, update, device):
+        return {"success_rate": 1.0, "mean_length": 5.0, "dist": 0.0, "update": update}
+
+    monkeypatch.setattr(train_mod, "evaluate_during_training", perfect)
+    ppo = PRESETS["fast"].__class__(**{**PRESETS["fast"].__dict__, "num_envs": 4, "num_steps": 8, "minibatches": 1})
+    cfg = TrainConfig(agents=2, updates=6, eval_every=2, target_success=0.5, run_dir=str(tmp_path / "run"),
+                      compile=False, progress=False, transfer_offsets=(), ppo=ppo)  # fmt: skip
+    assert train_mod.train(cfg)["update"] == 2
+    os.unlink(tmp_path / "run" / "summary.json")  # the kill
+    summary = train_mod.train_or_resume(cfg)
+    assert summary["update"] == 2 and summary["reached_target"]

@@ -564,8 +564,10 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
     reporter = Reporter(run, cfg, counters["update"], on_update)
     last_eval = state.evals[-1] if state.evals else None
     start_wall = time.perf_counter() - counters["wall_time"]
+    # a run that stopped at its target and was killed before summary.json stays stopped
+    reached = bool(last_eval and 0 < cfg.target_success <= last_eval["success_rate"])
     try:
-        while counters["update"] < cfg.updates:
+        while counters["update"] < cfg.updates and not reached:
             record = one_update(state, cfg, loss_fn, device, run)
             done = counters["update"] >= cfg.updates
             if counters["update"] % cfg.eval_every == 0 or done:
@@ -590,12 +592,6 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         raise
     reporter.close()
     save_checkpoint(run, state, cfg)
-    try:
-        from trainer.plot import plot_run
-
-        plot_run(run.path)
-    except Exception as exc:  # noqa: BLE001 - a missing plot never loses a run
-        print(f"(could not draw curves: {exc})")
     summary = {
         "run_dir": run.path,
         **counters,
@@ -605,7 +601,13 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
             0 < cfg.target_success and last_eval and last_eval["success_rate"] >= cfg.target_success
         ),
     }
-    checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)
+    checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)  # the run is done
+    try:
+        from trainer.plot import plot_run
+
+        plot_run(run.path)
+    except Exception as exc:  # noqa: BLE001 - a missing plot never loses a run
+        print(f"(could not draw curves: {exc})")
     return summary
 
 
