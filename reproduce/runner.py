@@ -113,7 +113,7 @@ def _short_error(exc: Exception) -> str:
 def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int, live: set | None = None) -> str:
     """Which cells are done, running (``live``: submitted in this run) or waiting, how far
     each is, and the time left at the measured seconds per update."""
-    rows, remaining_updates, remaining_fixed = [], 0, 0.0
+    rows, remaining_updates, remaining_fixed, longest = [], 0, 0.0, 0.0
     per_update = []
     info = {}
     for cell in cells:
@@ -127,8 +127,8 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
         for seed in seeds:
             p = info[(cell.id, seed)]
             state = p["state"]
-            if state == "started":
-                state = "running" if live is not None and (cell.id, seed) in live else "stopped"
+            if state == "started" and live is not None:  # (from the files alone: running or stopped)
+                state = "running" if (cell.id, seed) in live else "stopped"
             if state == "pending" and cell.source and cell_state(root, _find(cells, cell.source), seed) != "done":
                 state = f"waits for {cell.source}"
             budget = p["budget"]
@@ -143,6 +143,7 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
                 else:
                     remaining_updates += max(budget - p["updates"], 0)
                     if rate:
+                        longest = max(longest, max(budget - p["updates"], 0) * rate)
                         left = _minutes(max(budget - p["updates"], 0) * rate)
             rows.append((cell.id, str(seed), state, done_txt, _minutes(p["wall_time"]) if p["wall_time"] else "", left))
     head = ("cell", "seed", "state", "updates", "trained", "left (at most)")
@@ -154,7 +155,8 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
         counts[key] = counts.get(key, 0) + 1
     summary = ", ".join(f"{n} {k}" for k, n in sorted(counts.items()))
     if rate:
-        total = (remaining_updates * rate + remaining_fixed) / max(workers, 1)
+        # the cells share the workers, but no cell goes faster than its own remaining time
+        total = max((remaining_updates * rate + remaining_fixed) / max(workers, 1), longest)
         summary += (
             f"; time left at most {_minutes(total)} on {workers} worker(s) "
             f"({rate:.2f} s/update measured; curricula counted at their full stage budgets)"
