@@ -201,18 +201,10 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
     return path
 
 
-def add_output_options(ap, video_help: str, record_envs: bool = True) -> None:
-    """``--video/--gif/--mp4`` (and ``--record-envs``), as swarm eval / execute / replay take them."""
-    ap.add_argument("--video", "--gif", "--mp4", dest="video", default=None, help=video_help)
-    if record_envs:
-        ap.add_argument(
-            "--record-envs", type=int, default=4, help="environments drawn by --record / --video (default 4)"
-        )
-
-
 def open_recorders(args, task: str, episodes: int, agents: int, comm: str, comm_radius: float):
-    """The recorders ``args.record`` (Rerun) and ``args.video`` ask for, or None; the video
-    path is checked before any episode runs."""
+    """The recorders ``args.record`` (Rerun) and ``args.video`` ask for (``args``: any object
+    with ``record``, ``video`` and ``record_envs``, e.g. swarm_cli.options.OutputOptions), or
+    None; the video path is checked before any episode runs."""
     if args.record_envs < 1:
         raise ValueError(f"--record-envs must be >= 1, got {args.record_envs}")
     if not (args.record or args.video):

@@ -6,9 +6,10 @@ from ``swarm_cli.bench_train`` and ``swarm_cli.bench_deploy`` and get the remain
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
+
+from swarm_cli.options import BenchSimOptions, parse
 
 # name -> (module:function, one-line help); train and deploy import torch, so lazily
 BENCHMARKS = {
@@ -19,80 +20,14 @@ BENCHMARKS = {
 QUICK_SECONDS = 0.25
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text}")
-    return value
-
-
-def sim_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="swarm bench sim",
-        description="Agent-steps/s of the taichi_swarm coverage step vs VMAS simple_spread vs plain NumPy, "
-        "measured side by side in one process; prints a table and the target checks.",
-    )
-    p.add_argument(
-        "--batch-sizes",
-        type=_positive_int,
-        nargs="+",
-        default=[32, 1024, 8192],
-        metavar="B",
-        help="numbers of environments (default: 32 1024 8192)",
-    )
-    p.add_argument(
-        "--agents", type=_positive_int, nargs="+", default=[3, 10], metavar="M", help="team sizes (default: 3 10)"
-    )
-    p.add_argument("--no-vmas", action="store_true", help="leave out VMAS (shown as skipped)")
-    p.add_argument("--no-numpy", action="store_true", help="leave out the NumPy baselines (shown as skipped)")
-    p.add_argument(
-        "--torch-threads",
-        type=_positive_int,
-        default=1,
-        metavar="N",
-        help="torch.set_num_threads during the run (default 1: see docs/BENCHMARKS.md)",
-    )
-    p.add_argument(
-        "--comm",
-        choices=("rc", "uc"),
-        default="rc",
-        help="communication graph of taichi and numpy: rc = from distances every step (default), uc = all",
-    )
-    p.add_argument("--seconds", type=_positive_float, default=1.5, help="timed seconds per cell (default 1.5)")
-    p.add_argument(
-        "--steps", type=_positive_int, default=None, help="a fixed number of timed steps per cell instead (in 5 chunks)"
-    )
-    p.add_argument("--quick", action="store_true", help=f"{QUICK_SECONDS} s per cell instead of --seconds")
-    p.add_argument("--json", default=None, metavar="PATH", help="also write the rows and checks to PATH (JSON)")
-    p.add_argument(
-        "--serial-sweep",
-        action="store_true",
-        help="instead: time the Taichi step with a serial vs parallel env loop over small B",
-    )
-    return p
-
-
 def sim_main(argv: list[str]) -> int:
     """``swarm bench sim``: parse, run, print; returns the exit code."""
-    parser = sim_parser()
-    args = parser.parse_args(argv)
+    args = parse(BenchSimOptions, argv, "swarm bench sim")
     if args.json:
         folder = os.path.dirname(os.path.abspath(args.json))
         if not os.path.isdir(folder):
-            parser.error(f"--json: directory {folder!r} does not exist")
+            print(f"swarm bench sim: error: --json: directory {folder!r} does not exist", file=sys.stderr)
+            return 2
     from swarm_cli import bench_sim
 
     seconds = QUICK_SECONDS if args.quick else args.seconds
@@ -104,8 +39,8 @@ def sim_main(argv: list[str]) -> int:
         team_sizes=tuple(args.agents),
         steps=args.steps,
         seconds=seconds,
-        include_vmas=not args.no_vmas,
-        include_numpy=not args.no_numpy,
+        include_vmas=args.vmas,
+        include_numpy=args.numpy,
         out_json=args.json,
         torch_threads=args.torch_threads,
         comm=args.comm,

@@ -11,7 +11,6 @@ Targets: <= 0.3 ms per agent-step with onnxruntime, >= 3x faster than torch.
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import sys
@@ -19,6 +18,8 @@ import tempfile
 import time
 
 import numpy as np
+
+from swarm_cli.options import BenchDeployOptions, parse
 
 TARGET_MS = 0.3
 TARGET_SPEEDUP = 3.0
@@ -158,19 +159,7 @@ def format_result(r: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """``swarm bench deploy``; returns 0 (the verdicts are printed, not the exit code), 2 on bad options."""
-    ap = argparse.ArgumentParser(prog="swarm bench deploy", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--checkpoint", default=None, help="a checkpoint to time (default: a random-init policy)")
-    ap.add_argument("--agents", type=int, default=5, help="team size M: the agent hears M - 1 others (default 5)")
-    ap.add_argument("--landmarks", type=int, default=None, help="L (default: M, as in coverage)")
-    ap.add_argument("--repeats", type=int, default=3000, help="timed agent-steps per backend (default 3000)")
-    ap.add_argument("--json", default=None, help="also write the result to this JSON file")
-    try:
-        args = ap.parse_args(argv)
-    except SystemExit as exc:
-        return int(exc.code or 0)
-    if args.agents < 1 or args.repeats < 1 or (args.landmarks is not None and args.landmarks < 1):
-        print("swarm bench deploy: error: --agents, --landmarks and --repeats must be >= 1", file=sys.stderr)
-        return 2
+    args = parse(BenchDeployOptions, argv, "swarm bench deploy")
     if args.checkpoint is not None and not os.path.exists(args.checkpoint):
         print(f"swarm bench deploy: error: checkpoint {args.checkpoint} does not exist", file=sys.stderr)
         return 2

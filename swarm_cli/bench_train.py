@@ -8,13 +8,13 @@ the effect of the torch thread count on the update.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import shutil
 import sys
 import tempfile
 
+from swarm_cli.options import BenchTrainOptions, parse
 from trainer.config import PRESETS, TrainConfig
 from trainer.train import train
 
@@ -118,33 +118,19 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="swarm bench train", description=__doc__)
-    ap.add_argument("--task", default="coverage", help="task of the timed updates (default coverage)")
-    ap.add_argument("--agents", type=int, default=3, help="team size M (default 3)")
-    ap.add_argument("--updates", type=int, default=3, help="timed updates per row (after one warm-up)")
-    ap.add_argument(
-        "--presets", nargs="+", default=list(PRESETS), help=f"PPO presets, one row each (default: {' '.join(PRESETS)})"
-    )
-    ap.add_argument("--threads", nargs="+", type=int, default=[1, 2], help="torch threads of the update")
-    ap.add_argument("--device", default="cpu", help="where the network runs: cpu | cuda | auto")
-    ap.add_argument("--arch", default="cpu", help="where the simulator runs: cpu | cuda | auto")
-    ap.add_argument("--num-envs", type=int, default=None, help="override the preset's environments per rollout")
-    ap.add_argument("--no-compile", action="store_true", help="eager update (no torch.compile)")
-    args = ap.parse_args(argv)
+    args = parse(BenchTrainOptions, argv, "swarm bench train", BenchTrainOptions(presets=tuple(PRESETS)), __doc__)
     import taichi_swarm
 
     problems = []
     if [p for p in args.presets if p not in PRESETS]:
-        problems.append(f"--presets must be in {tuple(PRESETS)}")
+        problems.append(f"--presets must be in {tuple(PRESETS)}, got {' '.join(args.presets)}")
     if args.task not in taichi_swarm.TASKS:
         problems.append(f"--task must be one of {taichi_swarm.TASKS}, got {args.task!r}")
-    if args.agents < 1 or args.updates < 1 or min(args.threads) < 1 or (args.num_envs or 1) < 1:
-        problems.append("--agents, --updates, --threads and --num-envs must be >= 1")
     if problems:
         print("swarm bench train: error: " + "; ".join(problems), file=sys.stderr, flush=True)
         return 2
     rows = [
-        measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, not args.no_compile)
+        measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, args.compile)
         for p in args.presets
         for t in args.threads
     ]

@@ -50,6 +50,8 @@ def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
         return int(getattr(module, func_name)(rest) or 0)
     except KeyboardInterrupt:
         return 130
+    except SystemExit as exc:  # an option parser refused the command line (and said why) or printed --help
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     except OSError as exc:  # disk full, read-only file system, permissions: one line, no traceback
         where = f" ({exc.filename})" if exc.filename else ""
         print(f"{prog} {name}: error: {exc.strerror or exc}{where}", file=sys.stderr)

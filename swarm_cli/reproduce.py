@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 import shlex
 import sys
 
 from reproduce.spec import SpecError
+from swarm_cli.options import ReproduceOptions, parse
 
 DESCRIPTION = """\
 Run the cells of the paper's Tables 1-4 (or a selection) on Ray, resumably, and render
@@ -28,49 +28,15 @@ examples:
 """
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="swarm reproduce", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("--spec", default="paper", help="a shipped spec (paper, smoke) or a TOML file (default: paper)")
-    ap.add_argument("--tables", nargs="+", type=int, default=None, help="only these tables (e.g. 2 3)")
-    ap.add_argument("--cells", nargs="+", default=None, help="only these cell ids (and the cells they need)")
-    ap.add_argument("--seeds", type=int, default=1, help="seeds 0..N-1 of every cell (default 1)")
-    ap.add_argument("--root", default=None, help="where the runs and results live (default runs/reproduce/<spec>)")
-    ap.add_argument("--workers", type=int, default=max(1, os.cpu_count() or 1), help="local Ray CPUs = parallel cells")
-    ap.add_argument("--address", default=None, help="join this Ray cluster instead of starting one (e.g. auto)")
-    ap.add_argument("--gpus-per-cell", type=float, default=0.0, help="GPU share of each cell's task (e.g. 0.25)")
-    ap.add_argument("--arch", default="cpu", help="simulator arch of every cell: cpu | cuda | auto")
-    ap.add_argument("--device", default="cpu", help="network device of every cell: cpu | cuda | auto")
-    ap.add_argument("--progress-every", type=float, default=60.0, help="seconds between progress views")
-    ap.add_argument("--dry-run", action="store_true", help="list what would run and what is done; run nothing")
-    ap.add_argument("--status", action="store_true", help="print the progress view from the files; run nothing")
-    ap.add_argument("--render", action="store_true", help="only render the tables from the results on disk")
-    ap.add_argument(
-        "--update-doc", default=None, metavar="FILE", help="also write the tables into FILE between its markers"
-    )
-    ap.add_argument(
-        "--figures", default=None, metavar="DIR", help="where the learning-curve figures go (default: ROOT)"
-    )
-    return ap
-
-
 def reproduce_main(argv: list[str]) -> int:
     from reproduce.cells import cell_state
     from reproduce.runner import format_progress
     from reproduce.spec import load_spec
     from reproduce.tables import render_all, update_doc
 
-    args = build_parser().parse_args(argv)
+    args = parse(ReproduceOptions, argv, "swarm reproduce", description=DESCRIPTION)
+    workers = args.workers or max(1, os.cpu_count() or 1)
     try:
-        if args.seeds < 1:
-            raise ValueError(f"--seeds must be >= 1, got {args.seeds}")
-        if args.workers < 1:
-            raise ValueError(f"--workers must be >= 1, got {args.workers}")
-        if args.gpus_per_cell < 0:
-            raise ValueError(f"--gpus-per-cell must be >= 0, got {args.gpus_per_cell}")
-        if args.progress_every <= 0:
-            raise ValueError(f"--progress-every must be > 0, got {args.progress_every}")
         if args.update_doc:
             if not os.path.isfile(args.update_doc):
                 raise ValueError(f"--update-doc {args.update_doc} is not a file")
@@ -78,14 +44,14 @@ def reproduce_main(argv: list[str]) -> int:
 
             check_doc_markers(args.update_doc)  # before any cell runs
         spec = load_spec(args.spec)
-        cells = spec.select(args.tables, args.cells)
+        cells = spec.select(list(args.tables) if args.tables else None, list(args.cells) if args.cells else None)
         seeds = list(range(args.seeds))
         root = args.root or os.path.join("runs", "reproduce", spec.name)
         if args.dry_run:
             print(_dry_run(cells, seeds, root, spec.name))
             return 0
         if args.status:
-            print(format_progress(cells, seeds, root, args.workers))
+            print(format_progress(cells, seeds, root, workers))
             return 0
         failed: dict = {}
         if not args.render:
@@ -103,7 +69,7 @@ def reproduce_main(argv: list[str]) -> int:
                 cells,
                 seeds,
                 root,
-                workers=args.workers,
+                workers=workers,
                 address=args.address,
                 gpus_per_cell=args.gpus_per_cell,
                 arch=args.arch,

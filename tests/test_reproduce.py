@@ -195,7 +195,10 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
 
 
 def test_cli_dry_run_status_and_errors(tmp_path):
-    from swarm_cli.reproduce import reproduce_main
+    from swarm_cli.main import main
+
+    def reproduce_main(argv):
+        return main(["reproduce", *argv])
 
     path = write_spec(tmp_path)
     root = str(tmp_path / "root")

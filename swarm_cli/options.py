@@ -1,0 +1,394 @@
+"""The options of every ``swarm`` command, as typed dataclasses parsed by tyro.
+
+One config system for the whole CLI: each command's options are one dataclass here
+(train and curriculum take ``trainer.config.TrainConfig`` / ``CurriculumConfig``); a
+field's docstring is its ``--help`` text and its default is shown beside it. Checks
+that need no file or library run in ``__post_init__`` and raise ``OptionError``, which
+``parse`` turns into one ``prog: error: ...`` line and exit status 2, as for a value
+tyro itself refuses. Shared pieces (the task setting a checkpoint is run in, the
+recording and video outputs) are base classes, so each option is declared once.
+
+This module imports neither torch nor Taichi: ``swarm execute`` and ``swarm replay``
+stay torch-free.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+import tyro
+
+Positional = tyro.conf.Positional
+
+
+def Default(meaning: str):
+    """What an unset (None) option means, shown in --help as "(default: meaning)"."""
+    return tyro.conf.arg(help_behavior_hint=f"(default: {meaning})")
+
+
+class OptionError(ValueError):
+    """A command-line value that is out of range or inconsistent with another."""
+
+
+def parse(options_type, argv: list[str], prog: str, default=None, description: str | None = None):
+    """``options_type`` from ``argv`` (tyro). A value tyro refuses, or an ``OptionError``
+    from ``__post_init__``, prints why and raises SystemExit(2), as argparse does;
+    ``swarm_cli.main.dispatch`` turns that into the exit status."""
+    return tyro.cli(options_type, args=argv, prog=prog, default=default, description=description)
+
+
+def fail(prog: str, exc: BaseException | str) -> int:
+    """One error line for a refused input found after parsing (a missing file, a bad
+    checkpoint); returns the exit status 2."""
+    print(f"{prog}: error: {exc}", file=sys.stderr)
+    return 2
+
+
+def at_least(value, low, name: str) -> None:
+    if value is not None and not value >= low:
+        raise OptionError(f"--{name} must be >= {low}, got {value}")
+
+
+def positive(value, name: str) -> None:
+    if value is not None and not (value > 0 and math.isfinite(value)):
+        raise OptionError(f"--{name} must be a positive finite number, got {value}")
+
+
+Comm = Literal["uc", "rc"]
+Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtime.ARCHES)
+
+
+# ----------------------------------------------------------------------------- shared pieces
+@dataclass(kw_only=True)
+class SettingOptions:
+    """The task setting to run a policy in; each unset field keeps the checkpoint's."""
+
+    task: Annotated[str | None, Default("the checkpoint's")] = None
+    """coverage | formation | line"""
+    comm: Annotated[Comm | None, Default("the checkpoint's")] = None
+    """communication graph: uc = all teammates, rc = within --comm-radius"""
+    comm_radius: Annotated[float | None, Default("the checkpoint's")] = None
+    """rc radius"""
+
+    def __post_init__(self):
+        positive(self.comm_radius, "comm-radius")
+
+
+@dataclass(kw_only=True)
+class VideoOption:
+    video: Annotated[str | None, tyro.conf.arg(aliases=("--gif", "--mp4"))] = None
+    """render episodes to a .gif or .mp4 (a path without extension: a directory of PNG frames)"""
+
+
+@dataclass(kw_only=True)
+class OutputOptions(VideoOption):
+    record: str | None = None
+    """write a Rerun recording (.rrd) of the episodes"""
+    record_envs: int = 4
+    """environments drawn by --record / --video"""
+
+    def __post_init__(self):
+        at_least(self.record_envs, 1, "record-envs")
+
+
+# ----------------------------------------------------------------------------- trainer commands
+@dataclass(kw_only=True)
+class ResumeOptions:
+    """Continue a stopped run from its checkpoint.pt (same config, nothing repeated)."""
+
+    resume: str
+    """run directory of the stopped run"""
+    updates: Annotated[int | None, Default("keep it")] = None
+    """raise the run's total update budget to this"""
+
+    def __post_init__(self):
+        at_least(self.updates, 1, "updates")
+
+
+@dataclass(kw_only=True)
+class EvalOptions(SettingOptions, OutputOptions):
+    """Evaluate a checkpoint greedily: S% (success rate), T (mean episode length), DIST."""
+
+    checkpoint: Annotated[str, Positional, tyro.conf.arg(metavar="CHECKPOINT")]
+    """checkpoint file or run directory"""
+    agents: Annotated[int | None, Default("the training size")] = None
+    """team size M"""
+    episodes: int = 100
+    """episodes, one per environment"""
+    seed: int = 12345
+    """seed of the evaluation episodes (the documented numbers use 777, which training never uses)"""
+    arch: Arch = "cpu"
+    """simulator arch"""
+    json: str | None = None
+    """also write the results to this JSON file"""
+
+    def __post_init__(self):
+        SettingOptions.__post_init__(self)
+        OutputOptions.__post_init__(self)
+        at_least(self.agents, 1, "agents")
+        at_least(self.episodes, 1, "episodes")
+
+
+@dataclass(kw_only=True)
+class ZeroShotOptions(SettingOptions):
+    """Evaluate one checkpoint at many team sizes without fine-tuning."""
+
+    checkpoint: Annotated[str, Positional, tyro.conf.arg(metavar="CHECKPOINT")]
+    """checkpoint file or run directory"""
+    sizes: tuple[str, ...] = ("2-8",)
+    """team sizes, e.g. 2-8 or 3 5 7"""
+    episodes: int = 100
+    """episodes per size, one per environment"""
+    seed: int = 12345
+    """seed of the evaluation episodes"""
+    arch: Arch = "cpu"
+    """simulator arch"""
+    json: str | None = None
+    """also write the rows to this JSON file"""
+
+    def __post_init__(self):
+        SettingOptions.__post_init__(self)
+        at_least(self.episodes, 1, "episodes")
+
+
+@dataclass(kw_only=True)
+class PlotOptions:
+    """Learning curves of a run, or zero-shot S% against M from `swarm zero-shot --json` files."""
+
+    run_dir: Annotated[str | None, Positional, tyro.conf.arg(metavar="RUN_DIR")] = None
+    """run directory (learning curves)"""
+    out: Annotated[str | None, Default("RUN_DIR/curves.png; required with --zero-shot")] = None
+    """PNG path"""
+    zero_shot: tuple[str, ...] | None = None
+    """`swarm zero-shot --json` files to plot instead"""
+    labels: tuple[str, ...] | None = None
+    """legend labels of the --zero-shot files"""
+
+    def __post_init__(self):
+        if self.zero_shot and not self.out:
+            raise OptionError("--zero-shot needs --out FILE.png")
+        if not self.zero_shot and not self.run_dir:
+            raise OptionError("pass a run directory, or --zero-shot JSON files with --out")
+        if self.labels and len(self.labels) != len(self.zero_shot or ()):
+            raise OptionError(f"--labels gives {len(self.labels)} labels for {len(self.zero_shot or ())} files")
+
+
+@dataclass(kw_only=True)
+class ImportOptions:
+    """Convert a checkpoint in the paper authors' published format (marl_transfer
+    models/naM_uc.pt) into this project's policy format, for eval, zero-shot, export,
+    execute and --init-from."""
+
+    published: Annotated[str, Positional, tyro.conf.arg(metavar="PUBLISHED")]
+    """the published .pt file"""
+    out: str
+    """where to write the converted policy (.pt)"""
+    task: Annotated[str | None, Default("from the input width")] = None
+    """coverage | formation | line"""
+    comm: Comm = "uc"
+    """communication it is to run with"""
+    comm_radius: float = 1.0
+    """rc radius"""
+
+    def __post_init__(self):
+        positive(self.comm_radius, "comm-radius")
+
+
+# ----------------------------------------------------------------------------- deploy commands
+@dataclass(kw_only=True)
+class ExportOptions(SettingOptions):
+    """Export a checkpoint to per-agent ONNX pieces (encode, round, heads) and a manifest.json;
+    the task setting given here is what the manifest records."""
+
+    checkpoint: Annotated[str, Positional, tyro.conf.arg(metavar="CHECKPOINT")]
+    """checkpoint file or run directory"""
+    out: str
+    """output directory (created)"""
+    agents: Annotated[int | None, Default("the training size")] = None
+    """team size to record"""
+
+    def __post_init__(self):
+        SettingOptions.__post_init__(self)
+        at_least(self.agents, 1, "agents")
+
+
+@dataclass(kw_only=True)
+class ExecuteOptions(SettingOptions, OutputOptions):
+    """Run exported models decentralised: one onnxruntime agent per agent, messages only
+    along the communication graph; prints S%, T, DIST per drop rate."""
+
+    directory: Annotated[str, Positional, tyro.conf.arg(metavar="DIRECTORY")]
+    """directory written by `swarm export`"""
+    agents: Annotated[int | None, Default("the manifest's")] = None
+    """team size M"""
+    episodes: int = 10
+    """episodes, one per environment"""
+    drop: tuple[float, ...] = (0.0,)
+    """message drop probabilities, one row each (e.g. --drop 0 0.1 0.3); --record/--video draw the first"""
+    delay: int = 0
+    """deliver messages this many steps late"""
+    seed: int = 12345
+    """seed of the episodes and of the drops"""
+    threads: int = 1
+    """onnxruntime intra-op threads per session"""
+    json: str | None = None
+    """also write the rows to this JSON file"""
+
+    def __post_init__(self):
+        SettingOptions.__post_init__(self)
+        OutputOptions.__post_init__(self)
+        at_least(self.threads, 1, "threads")
+
+
+@dataclass(kw_only=True)
+class ReplayOptions(VideoOption):
+    """Inspect a Rerun recording (--stats), render it (--video) or open it in a viewer."""
+
+    file: Annotated[str, Positional, tyro.conf.arg(metavar="FILE")]
+    """a .rrd file written by --record"""
+    stats: bool = False
+    """print a summary (entity paths, rows, steps) and exit"""
+    serve_web: bool = False
+    """serve the web viewer on 127.0.0.1 (no GPU needed)"""
+    port: int | None = None
+    """web viewer port (with --serve-web)"""
+
+    def __post_init__(self):
+        if self.port is not None and not 0 < self.port < 65536:
+            raise OptionError(f"--port must be in 1..65535, got {self.port}")
+
+
+# ----------------------------------------------------------------------------- reproduce
+@dataclass(kw_only=True)
+class ReproduceOptions:
+    spec: str = "paper"
+    """a shipped spec (paper, quick, smoke) or a TOML file"""
+    tables: tuple[int, ...] | None = None
+    """only these tables (e.g. 2 3)"""
+    cells: tuple[str, ...] | None = None
+    """only these cell ids (and the cells they need)"""
+    seeds: int = 1
+    """seeds 0..N-1 of every cell"""
+    root: Annotated[str | None, Default("runs/reproduce/<spec>")] = None
+    """where the runs and results live"""
+    workers: int = 0
+    """local Ray CPUs = parallel cells (0: this machine's CPU count)"""
+    address: str | None = None
+    """join this Ray cluster instead of starting one (e.g. auto)"""
+    gpus_per_cell: float = 0.0
+    """GPU share of each cell's task (e.g. 0.25)"""
+    arch: Arch = "cpu"
+    """simulator arch of every cell"""
+    device: str = "cpu"
+    """network (torch) device of every cell: cpu | cuda | auto"""
+    progress_every: float = 60.0
+    """seconds between progress views"""
+    dry_run: bool = False
+    """list what would run and what is done; run nothing"""
+    status: bool = False
+    """print the progress view from the files; run nothing"""
+    render: bool = False
+    """only render the tables from the results on disk"""
+    update_doc: Annotated[str | None, tyro.conf.arg(metavar="FILE")] = None
+    """also write the tables into FILE between its markers"""
+    figures: Annotated[str | None, tyro.conf.arg(metavar="DIR", help_behavior_hint="(default: ROOT)")] = None
+    """where the learning-curve figures go"""
+
+    def __post_init__(self):
+        at_least(self.seeds, 1, "seeds")
+        at_least(self.workers, 0, "workers")
+        at_least(self.gpus_per_cell, 0, "gpus-per-cell")
+        positive(self.progress_every, "progress-every")
+
+
+# ----------------------------------------------------------------------------- benchmarks
+@dataclass(kw_only=True)
+class BenchSimOptions:
+    """Agent-steps/s of the taichi_swarm coverage step vs VMAS simple_spread vs plain NumPy,
+    measured side by side in one process; prints a table and the target checks."""
+
+    batch_sizes: tuple[int, ...] = (32, 1024, 8192)
+    """numbers of environments"""
+    agents: tuple[int, ...] = (3, 10)
+    """team sizes"""
+    vmas: bool = True
+    """time VMAS too (--no-vmas: leave it out, shown as skipped)"""
+    numpy: bool = True
+    """time the NumPy baselines too (--no-numpy: leave them out, shown as skipped)"""
+    torch_threads: int = 1
+    """torch.set_num_threads during the run (1: see docs/BENCHMARKS.md)"""
+    comm: Comm = "rc"
+    """communication graph of taichi and numpy: rc = from distances every step, uc = all"""
+    seconds: float = 1.5
+    """timed seconds per cell"""
+    steps: int | None = None
+    """a fixed number of timed steps per cell instead (in 5 chunks)"""
+    quick: bool = False
+    """0.25 s per cell instead of --seconds"""
+    json: str | None = None
+    """also write the rows and checks to this JSON file"""
+    serial_sweep: bool = False
+    """instead: time the Taichi step with a serial vs parallel env loop over small B"""
+
+    def __post_init__(self):
+        for b in self.batch_sizes:
+            at_least(b, 1, "batch-sizes")
+        for m in self.agents:
+            at_least(m, 1, "agents")
+        at_least(self.torch_threads, 1, "torch-threads")
+        positive(self.seconds, "seconds")
+        at_least(self.steps, 1, "steps")
+
+
+@dataclass(kw_only=True)
+class BenchTrainOptions:
+    """env steps/s of the whole PPO cycle and where the time goes, for each preset and
+    thread count side by side in one process."""
+
+    task: str = "coverage"
+    """task of the timed updates"""
+    agents: int = 3
+    """team size M"""
+    updates: int = 3
+    """timed updates per row (after one warm-up)"""
+    presets: tuple[str, ...] = ("paper", "fast", "gpu")
+    """PPO presets (trainer.config.PRESETS), one row each"""
+    threads: tuple[int, ...] = (1, 2)
+    """torch threads of the update, one row each"""
+    device: str = "cpu"
+    """where the network runs: cpu | cuda | auto"""
+    arch: Arch = "cpu"
+    """where the simulator runs"""
+    num_envs: int | None = None
+    """override the preset's environments per rollout"""
+    compile: bool = True
+    """torch.compile the update (--no-compile: eager)"""
+
+    def __post_init__(self):
+        for name in ("agents", "updates", "num_envs"):
+            at_least(getattr(self, name), 1, name.replace("_", "-"))
+        for t in self.threads:
+            at_least(t, 1, "threads")
+
+
+@dataclass(kw_only=True)
+class BenchDeployOptions:
+    """Per-agent decentralised execution latency: onnxruntime against torch eager."""
+
+    checkpoint: Annotated[str | None, Default("a random-init policy")] = None
+    """a checkpoint to time"""
+    agents: int = 5
+    """team size M: the agent hears M - 1 others"""
+    landmarks: Annotated[int | None, Default("M, as in coverage")] = None
+    """L"""
+    repeats: int = 3000
+    """timed agent-steps per backend"""
+    json: str | None = None
+    """also write the result to this JSON file"""
+
+    def __post_init__(self):
+        for name in ("agents", "landmarks", "repeats"):
+            at_least(getattr(self, name), 1, name)
