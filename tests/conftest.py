@@ -11,6 +11,6 @@ os.environ.setdefault("TAICHI_SWARM_CACHE", os.path.join(os.path.dirname(__file_
 def taichi_cpu():
     import taichi_swarm
 
-    # TAICHI_SWARM_TEST_ARCH=cuda runs the whole suite on a GPU (tests/test_cuda.py checks it)
+    # TAICHI_SWARM_TEST_ARCH=cuda runs the whole suite on a GPU (tests/test_taichi_swarm/test_cuda.py checks it)
     taichi_swarm.init(os.environ.get("TAICHI_SWARM_TEST_ARCH", "cpu"))
     yield

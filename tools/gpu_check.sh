@@ -35,7 +35,7 @@ run() {
     if [ "$dry_run" = 0 ]; then "$@"; fi
 }
 run nvidia-smi --query-gpu=name,memory.total --format=csv,noheader
-run env TAICHI_SWARM_TEST_ARCH=cuda python -m pytest -q -p no:cacheprovider tests/test_cuda.py
+run env TAICHI_SWARM_TEST_ARCH=cuda python -m pytest -q -p no:cacheprovider tests/test_taichi_swarm/test_cuda.py
 for m in $agents; do
     run swarm bench train --device cuda --arch cuda --presets gpu --threads 1 --agents "$m" \
         --updates "$updates" --num-envs "$num_envs"

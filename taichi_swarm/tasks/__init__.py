@@ -8,7 +8,7 @@ never a default branch.
 
 Adding a task (docs/ARCHITECTURE.md "How to add a task"): write ``mytask.py`` like
 ``formation.py`` (parameters dataclass, four Taichi functions, ``TASK``), and
-``register(mytask.TASK)``; tests/test_task_registry.py does it for a toy task.
+``register(mytask.TASK)``; tests/test_taichi_swarm/test_task_registry.py does it for a toy task.
 """
 
 import taichi as ti

@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-ROOT = os.path.join(os.path.dirname(__file__), "..")
+ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 PACKAGES = ("taichi_swarm", "trainer", "deploy", "baselines", "reproduce", "swarm_cli")
 # what each package may import from this project (itself always)
 ALLOWED = {
@@ -43,6 +43,17 @@ def modules():
 def test_imports_point_downwards(package, path):
     upward = imported_packages(os.path.join(ROOT, path)) - ALLOWED[package] - {package}
     assert not upward, f"{path} imports {sorted(upward)}: {package} may use only {sorted(ALLOWED[package])}"
+
+
+def test_test_folders_mirror_the_packages():
+    """tests/test_<package>/ holds the tests of <package>, one folder per package and no
+    test file loose in tests/ (the folder is not named <package> itself, which would
+    shadow the package on sys.path)."""
+    tests = os.path.join(ROOT, "tests")
+    folders = {d for d in os.listdir(tests) if os.path.isdir(os.path.join(tests, d)) and d.startswith("test_")}
+    assert folders == {f"test_{p}" for p in PACKAGES}
+    loose = [f for f in os.listdir(tests) if f.startswith("test_") and f.endswith(".py")]
+    assert not loose, f"test files outside a package folder: {loose}"
 
 
 def test_the_checker_sees_an_upward_import(tmp_path):

@@ -15,7 +15,7 @@ from trainer.evaluate import evaluate
 from trainer.model import ModelConfig, SwarmPolicy
 from trainer.published import convert_state_dict, import_published
 
-PUBLISHED = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "published-models")
+PUBLISHED = os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "published-models")
 
 
 def published_layout(policy: SwarmPolicy) -> dict:

@@ -109,7 +109,7 @@ def test_config_validation_names_the_option(tmp_path):
 
 
 def swarm(*args, cwd):
-    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
     return subprocess.run(
         [sys.executable, "-m", "swarm_cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
     )
@@ -269,7 +269,7 @@ def test_second_process_on_a_run_dir_is_refused_and_a_dead_holder_is_taken_over(
         ],
         stdout=subprocess.PIPE,
         text=True,
-        cwd=os.path.join(os.path.dirname(__file__), ".."),
+        cwd=os.path.join(os.path.dirname(__file__), "..", ".."),
     )
     try:
         assert holder.stdout.readline().strip() == "locked"
@@ -367,7 +367,7 @@ def test_kill_9_during_training_then_resume_equals_an_uninterrupted_run(tmp_path
         "from test_train_cli import tiny; from trainer.train import train; import pathlib\n"
         "train(tiny(pathlib.Path({tmp!r}), updates=8, eval_every=100, run_dir={run!r}))\n"
     ).format(
-        root=os.path.join(os.path.dirname(__file__), ".."),
+        root=os.path.join(os.path.dirname(__file__), "..", ".."),
         tests=os.path.dirname(__file__),
         tmp=str(tmp_path),
         run=run,

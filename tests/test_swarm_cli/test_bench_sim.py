@@ -138,11 +138,11 @@ def test_numpy_env_resets_at_the_time_limit():
 def test_gpu_check_script_arguments():
     import subprocess
 
-    script = os.path.join(os.path.dirname(__file__), "..", "tools", "gpu_check.sh")
+    script = os.path.join(os.path.dirname(__file__), "..", "..", "tools", "gpu_check.sh")
     r = subprocess.run([script, "--dry-run", "--agents", "3 5", "--updates", "2"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
-    assert any("tests/test_cuda.py" in x for x in lines)
+    assert any("tests/test_taichi_swarm/test_cuda.py" in x for x in lines)
     bench = [x for x in lines if "bench train" in x]
     assert len(bench) == 2 and "--agents 3" in bench[0] and "--agents 5" in bench[1] and "--device cuda" in bench[0]
     for bad in (["--agents", "0"], ["--bogus"], ["--updates", "x"]):

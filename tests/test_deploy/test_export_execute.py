@@ -27,7 +27,7 @@ from swarm_cli.deploy import execute_main, export_main
 from trainer import checkpoint
 from trainer.model import ModelConfig, SwarmPolicy
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 @pytest.fixture(scope="module", autouse=True)

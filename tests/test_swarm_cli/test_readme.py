@@ -11,7 +11,7 @@ import pytest
 
 from swarm_cli.main import COMMANDS
 
-ROOT = os.path.join(os.path.dirname(__file__), "..")
+ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 README = open(os.path.join(ROOT, "README.md")).read()
 
 
