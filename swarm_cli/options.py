@@ -109,15 +109,13 @@ class ResumeOptions:
 
 
 @dataclass(kw_only=True)
-class EvalOptions(SettingOptions, OutputOptions):
-    """Evaluate a checkpoint greedily: S% (success rate), T (mean episode length), DIST."""
+class EvaluationOptions(SettingOptions):
+    """What every greedy evaluation of a checkpoint takes (swarm eval, swarm zero-shot)."""
 
     checkpoint: Annotated[str, Positional, tyro.conf.arg(metavar="CHECKPOINT")]
     """checkpoint file or run directory"""
-    agents: Annotated[int | None, Default("the training size")] = None
-    """team size M"""
     episodes: int = 100
-    """episodes, one per environment"""
+    """episodes (per team size), one per environment"""
     seed: int = 12345
     """seed of the evaluation episodes (the documented numbers use 777, which training never uses)"""
     arch: Arch = "cpu"
@@ -127,31 +125,28 @@ class EvalOptions(SettingOptions, OutputOptions):
 
     def __post_init__(self):
         SettingOptions.__post_init__(self)
-        OutputOptions.__post_init__(self)
-        at_least(self.agents, 1, "agents")
         at_least(self.episodes, 1, "episodes")
 
 
 @dataclass(kw_only=True)
-class ZeroShotOptions(SettingOptions):
-    """Evaluate one checkpoint at many team sizes without fine-tuning."""
+class EvalOptions(EvaluationOptions, OutputOptions):
+    """Evaluate a checkpoint greedily: S% (success rate), T (mean episode length), DIST."""
 
-    checkpoint: Annotated[str, Positional, tyro.conf.arg(metavar="CHECKPOINT")]
-    """checkpoint file or run directory"""
-    sizes: tuple[str, ...] = ("2-8",)
-    """team sizes, e.g. 2-8 or 3 5 7"""
-    episodes: int = 100
-    """episodes per size, one per environment"""
-    seed: int = 12345
-    """seed of the evaluation episodes"""
-    arch: Arch = "cpu"
-    """simulator arch"""
-    json: str | None = None
-    """also write the rows to this JSON file"""
+    agents: Annotated[int | None, Default("the training size")] = None
+    """team size M"""
 
     def __post_init__(self):
-        SettingOptions.__post_init__(self)
-        at_least(self.episodes, 1, "episodes")
+        EvaluationOptions.__post_init__(self)
+        OutputOptions.__post_init__(self)
+        at_least(self.agents, 1, "agents")
+
+
+@dataclass(kw_only=True)
+class ZeroShotOptions(EvaluationOptions):
+    """Evaluate one checkpoint at many team sizes without fine-tuning."""
+
+    sizes: tuple[str, ...] = ("2-8",)
+    """team sizes, e.g. 2-8 or 3 5 7"""
 
 
 @dataclass(kw_only=True)
