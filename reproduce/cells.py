@@ -184,7 +184,9 @@ def run_cell(
         from trainer.curriculum import run_curriculum
 
         base = train_config(cell, seed, directory, cell.sizes[0], cell.max_updates_per_stage, arch, device)
-        stages = run_curriculum(base, list(cell.sizes), cell.threshold, cell.max_updates_per_stage, directory)
+        stages = run_curriculum(
+            base, list(cell.sizes), cell.threshold, cell.max_updates_per_stage, directory, cell.min_updates_per_stage
+        )
         rows = []
         for stage in stages:
             row = final_eval(policy_path(root, cell, seed, stage["agents"]), cell, stage["agents"], arch)

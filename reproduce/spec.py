@@ -67,6 +67,8 @@ class Cell:
     """curriculum: the stages' team sizes; zero-shot: the sizes evaluated."""
     threshold: float = 0.85
     max_updates_per_stage: int = 4000
+    min_updates_per_stage: int = 0
+    """curriculum: a stage trains at least this many updates, past the threshold."""
     source: str = ""
     """zero-shot: the id of the cell whose policy is evaluated."""
     source_agents: int = 0
@@ -101,6 +103,8 @@ class Cell:
         if self.kind != "baseline":  # fields only a baseline reads (older results lack them)
             for key in BASELINE_FIELDS:
                 d.pop(key)
+        if not self.min_updates_per_stage:  # added later: older definitions lack it
+            d.pop("min_updates_per_stage")
         d["sizes"] = list(self.sizes)
         return d
 
@@ -261,6 +265,8 @@ def _check_cell(where: str, c: Cell) -> None:
             bad(f"threshold must be in (0, 1], got {c.threshold}")
         if c.max_updates_per_stage < 1:
             bad(f"max_updates_per_stage must be >= 1, got {c.max_updates_per_stage}")
+        if not 0 <= c.min_updates_per_stage <= c.max_updates_per_stage:
+            bad(f"min_updates_per_stage must be in [0, max_updates_per_stage], got {c.min_updates_per_stage}")
     if c.kind == "zero-shot" and not c.source:
         bad("a zero-shot cell needs source (the id of the cell whose policy it evaluates)")
     if c.kind != "zero-shot" and c.source:

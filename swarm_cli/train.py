@@ -148,7 +148,9 @@ def curriculum_main(argv: list[str]) -> int:
             raise ValueError(f"--max-updates-per-stage must be >= 1, got {cfg.max_updates_per_stage}")
         run_dir = cfg.default_run_dir()
         base = dataclasses.replace(cfg.train_config(), run_dir=run_dir)
-        stages = run_curriculum(base, list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, run_dir)
+        stages = run_curriculum(
+            base, list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, run_dir, cfg.min_updates_per_stage
+        )
     except KeyboardInterrupt:
         return 130
     except USER_ERRORS as exc:

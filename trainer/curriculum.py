@@ -18,12 +18,22 @@ MIN_STAGE_EVAL_EPISODES = 200
 
 
 def run_curriculum(
-    base: TrainConfig, sizes: list[int], threshold: float, max_updates_per_stage: int, run_dir: str
+    base: TrainConfig,
+    sizes: list[int],
+    threshold: float,
+    max_updates_per_stage: int,
+    run_dir: str,
+    min_updates_per_stage: int = 0,
 ) -> list[dict]:
     if not sizes:
         raise ValueError("--sizes must name at least one team size")
     if not 0 < threshold <= 1:
         raise ValueError(f"--threshold must be in (0, 1], got {threshold}")
+    if not 0 <= min_updates_per_stage <= max_updates_per_stage:
+        raise ValueError(
+            f"--min-updates-per-stage must be in [0, --max-updates-per-stage={max_updates_per_stage}], "
+            f"got {min_updates_per_stage}"
+        )
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []
@@ -38,6 +48,7 @@ def run_curriculum(
                 init_from=previous_ckpt,
                 updates=max_updates_per_stage,
                 target_success=threshold,
+                min_updates=min_updates_per_stage,
                 # a stage advances on an evaluation of at least 200 episodes: 100 overstated
                 # stages by up to 10 points (docs/RESULTS.md)
                 eval_episodes=max(base.eval_episodes, MIN_STAGE_EVAL_EPISODES),

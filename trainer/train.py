@@ -555,6 +555,13 @@ class Reporter:
             self.tensorboard.close()
 
 
+def reached_target(cfg, last_eval: dict | None, update: int) -> bool:
+    """Whether the run stops at its target: ``last_eval`` reached ``cfg.target_success``
+    (when set) and ``update`` is at least ``cfg.min_updates``."""
+    hit = bool(last_eval) and 0 < cfg.target_success <= last_eval["success_rate"]
+    return hit and update >= cfg.min_updates
+
+
 def _train_locked(cfg, resume, on_update, updates) -> dict:
     run, cfg, payload = open_run(cfg, resume, updates)
     device = resolve_device(cfg.device)
@@ -565,7 +572,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
     last_eval = state.evals[-1] if state.evals else None
     start_wall = time.perf_counter() - counters["wall_time"]
     # a run that stopped at its target and was killed before summary.json stays stopped
-    reached = bool(last_eval and 0 < cfg.target_success <= last_eval["success_rate"])
+    reached = reached_target(cfg, last_eval, counters["update"])
     try:
         while counters["update"] < cfg.updates and not reached:
             record = one_update(state, cfg, loss_fn, device, run)
@@ -574,7 +581,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
                 last_eval = evaluate_during_training(state.policy, cfg, counters["update"], device)
                 state.evals.append(last_eval)
                 record.update({f"eval_{k}": v for k, v in last_eval.items() if k != "update"})
-                done = done or 0 < cfg.target_success <= last_eval["success_rate"]
+                done = done or reached_target(cfg, last_eval, counters["update"])
             counters["wall_time"] = record["wall_time"] = time.perf_counter() - start_wall
             reporter.report(record, last_eval)
             if counters["update"] % cfg.checkpoint_every == 0 or done:
@@ -597,9 +604,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
         **counters,
         "last_eval": last_eval,
         "evals": state.evals,
-        "reached_target": bool(
-            0 < cfg.target_success and last_eval and last_eval["success_rate"] >= cfg.target_success
-        ),
+        "reached_target": reached_target(cfg, last_eval, cfg.updates),
     }
     checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)  # the run is done
     try:

@@ -3,6 +3,7 @@ rendered from results, and (through local Ray) a killed worker that loses nothin
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -290,6 +291,34 @@ def test_cuda_cells_need_a_gpu_share():
 
     with pytest.raises(ValueError, match="--gpus-per-cell"):
         run_on_ray([], [0], "unused", arch="cuda")
+
+
+def test_min_updates_holds_a_run_past_its_target(tmp_path, monkeypatch):
+    """With min_updates, a run (and a curriculum stage) that reaches its target early
+    trains on to min_updates, then stops at the next evaluation."""
+    import trainer.train as train_mod
+    from trainer.config import PRESETS, TrainConfig
+    from trainer.curriculum import run_curriculum
+
+    def perfect(policy, cfg, update, device):
+        return {"success_rate": 1.0, "mean_length": 5.0, "dist": 0.0, "update": update}
+
+    monkeypatch.setattr(train_mod, "evaluate_during_training", perfect)
+    ppo = PRESETS["fast"].__class__(**{**PRESETS["fast"].__dict__, "num_envs": 4, "num_steps": 8, "minibatches": 1})
+    cfg = TrainConfig(
+        agents=2, updates=8, eval_every=2, target_success=0.5, min_updates=3, run_dir=str(tmp_path / "run"),
+        compile=False, progress=False, transfer_offsets=(), ppo=ppo,
+    )  # fmt: skip
+    summary = train_mod.train(cfg)
+    assert summary["update"] == 4 and summary["reached_target"]  # evaluations at 2 (too early) and 4
+    stages = run_curriculum(
+        dataclasses.replace(cfg, run_dir=str(tmp_path / "cur"), min_updates=0), [2, 3], 0.5, 8, str(tmp_path / "cur"), 5
+    )
+    assert [s["updates"] for s in stages] == [6, 6]
+    with pytest.raises(ValueError, match="min_updates"):
+        dataclasses.replace(cfg, min_updates=9).validate()
+    with pytest.raises(ValueError, match="min-updates-per-stage"):
+        run_curriculum(cfg, [2], 0.5, 4, str(tmp_path / "bad"), 5)
 
 
 def test_a_run_stopped_at_its_target_stays_stopped_after_a_kill(tmp_path, monkeypatch):
