@@ -158,7 +158,8 @@ def format_result(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``swarm bench deploy``; returns 0 (the verdicts are printed, not the exit code), 2 on bad options."""
+    """``swarm bench deploy``; returns 0 (the verdicts are printed, not the exit code); a
+    refused option raises SystemExit(2)."""
     args = parse(BenchDeployOptions, argv, "swarm bench deploy")
     if args.checkpoint is not None and not os.path.exists(args.checkpoint):
         print(f"swarm bench deploy: error: checkpoint {args.checkpoint} does not exist", file=sys.stderr)

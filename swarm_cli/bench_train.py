@@ -118,12 +118,13 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse(BenchTrainOptions, argv, "swarm bench train", BenchTrainOptions(presets=tuple(PRESETS)), __doc__)
+    args = parse(BenchTrainOptions, argv, "swarm bench train", description=__doc__)
+    presets = args.presets or tuple(PRESETS)
     import taichi_swarm
 
     problems = []
-    if [p for p in args.presets if p not in PRESETS]:
-        problems.append(f"--presets must be in {tuple(PRESETS)}, got {' '.join(args.presets)}")
+    if [p for p in presets if p not in PRESETS]:
+        problems.append(f"--presets must be in {tuple(PRESETS)}, got {' '.join(presets)}")
     if args.task not in taichi_swarm.TASKS:
         problems.append(f"--task must be one of {taichi_swarm.TASKS}, got {args.task!r}")
     if problems:
@@ -131,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rows = [
         measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, args.compile)
-        for p in args.presets
+        for p in presets
         for t in args.threads
     ]
     peak = {t: sgemm_peak(t) for t in sorted(set(args.threads))}
@@ -153,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         "second of update; sgemm peak measured here (1024^3): "
         + ", ".join(f"{t} thread(s) {g:.0f} GFLOP/s" for t, g in peak.items())
     )
-    base = {p: min((r for r in rows if r["preset"] == p), key=lambda r: r["threads"]) for p in args.presets}
+    base = {p: min((r for r in rows if r["preset"] == p), key=lambda r: r["threads"]) for p in presets}
     for r in rows:
         b = base[r["preset"]]
         if r is not b:

@@ -3,9 +3,10 @@
 One config system for the whole CLI: each command's options are one dataclass here
 (train and curriculum take ``trainer.config.TrainConfig`` / ``CurriculumConfig``); a
 field's docstring is its ``--help`` text and its default is shown beside it. Checks
-that need no file or library run in ``__post_init__`` and raise ``OptionError``, which
-``parse`` turns into one ``prog: error: ...`` line and exit status 2, as for a value
-tyro itself refuses. Shared pieces (the task setting a checkpoint is run in, the
+that need no file or library run in ``__post_init__`` and raise ``OptionError``; tyro
+reports those like a value it refuses itself (a message naming the option, then
+SystemExit(2), which ``swarm_cli.main.dispatch`` returns as the exit status). A list
+option given with no value is refused too. Shared pieces (the task setting a checkpoint is run in, the
 recording and video outputs) are base classes, so each option is declared once.
 
 This module imports neither torch nor Taichi: ``swarm execute`` and ``swarm replay``
@@ -14,6 +15,7 @@ stay torch-free.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from dataclasses import dataclass
@@ -34,10 +36,15 @@ class OptionError(ValueError):
 
 
 def parse(options_type, argv: list[str], prog: str, default=None, description: str | None = None):
-    """``options_type`` from ``argv`` (tyro). A value tyro refuses, or an ``OptionError``
-    from ``__post_init__``, prints why and raises SystemExit(2), as argparse does;
-    ``swarm_cli.main.dispatch`` turns that into the exit status."""
-    return tyro.cli(options_type, args=argv, prog=prog, default=default, description=description)
+    """``options_type`` from ``argv`` (tyro). A refused value prints why and raises
+    SystemExit(2), as argparse does; so does a list option given no value (tyro accepts
+    ``--drop`` alone as an empty list, which no option here means)."""
+    options = tyro.cli(options_type, args=argv, prog=prog, default=default, description=description)
+    for f in dataclasses.fields(options):
+        if getattr(options, f.name) == ():
+            print(f"{prog}: error: --{f.name.replace('_', '-')} needs at least one value", file=sys.stderr)
+            raise SystemExit(2)
+    return options
 
 
 def fail(prog: str, exc: BaseException | str) -> int:
@@ -58,6 +65,7 @@ def positive(value, name: str) -> None:
 
 
 Comm = Literal["uc", "rc"]
+OWN = "the policy's own"
 Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtime.ARCHES)
 
 
@@ -66,21 +74,21 @@ Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtim
 class SettingOptions:
     """The task setting to run a policy in; each unset field keeps the checkpoint's."""
 
-    task: Annotated[str | None, Default("the checkpoint's")] = None
+    task: Annotated[str | None, tyro.conf.arg(metavar="TASK", help_behavior_hint=f"(default: {OWN})")] = None
     """coverage | formation | line"""
-    comm: Annotated[Comm | None, Default("the checkpoint's")] = None
+    comm: Annotated[Comm | None, tyro.conf.arg(metavar="{uc,rc}", help_behavior_hint=f"(default: {OWN})")] = None
     """communication graph: uc = all teammates, rc = within --comm-radius"""
-    comm_radius: Annotated[float | None, Default("the checkpoint's")] = None
+    comm_radius: Annotated[float | None, tyro.conf.arg(metavar="R", help_behavior_hint=f"(default: {OWN})")] = None
     """rc radius"""
 
     def __post_init__(self):
-        positive(self.comm_radius, "comm-radius")
+        at_least(self.comm_radius, 0, "comm-radius")
 
 
 @dataclass(kw_only=True)
 class VideoOption:
     video: Annotated[str | None, tyro.conf.arg(aliases=("--gif", "--mp4"))] = None
-    """render episodes to a .gif or .mp4 (a path without extension: a directory of PNG frames)"""
+    """render to a .gif or .mp4 (a path without extension: a directory of PNG frames)"""
 
 
 @dataclass(kw_only=True)
@@ -153,7 +161,9 @@ class ZeroShotOptions(EvaluationOptions):
 class PlotOptions:
     """Learning curves of a run, or zero-shot S% against M from `swarm zero-shot --json` files."""
 
-    run_dir: Annotated[str | None, Positional, tyro.conf.arg(metavar="RUN_DIR")] = None
+    run_dir: Annotated[
+        str | None, Positional, tyro.conf.arg(metavar="RUN_DIR", help_behavior_hint="(optional with --zero-shot)")
+    ] = None
     """run directory (learning curves)"""
     out: Annotated[str | None, Default("RUN_DIR/curves.png; required with --zero-shot")] = None
     """PNG path"""
@@ -189,7 +199,7 @@ class ImportOptions:
     """rc radius"""
 
     def __post_init__(self):
-        positive(self.comm_radius, "comm-radius")
+        at_least(self.comm_radius, 0, "comm-radius")
 
 
 # ----------------------------------------------------------------------------- deploy commands
@@ -349,8 +359,8 @@ class BenchTrainOptions:
     """team size M"""
     updates: int = 3
     """timed updates per row (after one warm-up)"""
-    presets: tuple[str, ...] = ("paper", "fast", "gpu")
-    """PPO presets (trainer.config.PRESETS), one row each"""
+    presets: Annotated[tuple[str, ...] | None, Default("every preset of trainer.config.PRESETS")] = None
+    """PPO presets, one row each"""
     threads: tuple[int, ...] = (1, 2)
     """torch threads of the update, one row each"""
     device: str = "cpu"
