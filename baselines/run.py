@@ -315,7 +315,7 @@ def plot_curves(out_dir: str) -> str | None:
 
     frames = series("counters_total_frames")
     panels = [
-        ("collection_success_rate", "sampled success rate (training)", 100.0),
+        ("collection_success_rate", "sampled success rate, % (training)", 100.0),
         ("collection_reward_episode_reward_mean", "mean episode return (team)", 1.0),
         ("collection_episode_length", "episode length", 1.0),
     ]
