@@ -284,7 +284,7 @@ def run(args: argparse.Namespace) -> dict:
         **result,
         "train_seconds": round(train_s, 1),
         "eval_seconds": round(eval_s, 1),
-        "experiment_folder": str(experiment.folder_name),
+        "experiment_folder": os.path.relpath(str(experiment.folder_name)),  # relative: results.json is committed
         "versions": _versions(),
     }
     atomic_write_json(out_json, summary)
