@@ -66,6 +66,7 @@ def measure(
     arch: str = "cpu",
     num_envs: int | None = None,
     compile: bool = True,
+    precision: str = "fp32",
 ) -> dict:
     tmp = tempfile.mkdtemp(prefix="swarm-bench-")
     try:
@@ -77,6 +78,7 @@ def measure(
             device=device,
             arch=arch,
             compile=compile,
+            precision=precision,
             updates=updates + 1,
             eval_every=10**6,
             eval_episodes=1,
@@ -108,6 +110,7 @@ def measure(
         "gflops": step_flops * p.epochs * p.minibatches * len(rows) / upd / 1e9,
         "preset": preset,
         "threads": threads,
+        "precision": precision,
         "env_steps_per_s": steps / wall,
         "agent_samples_per_update": cfg.ppo.num_envs * cfg.ppo.num_steps * agents,
         "share_sim": sim / wall,
@@ -131,20 +134,23 @@ def main(argv: list[str] | None = None) -> int:
         print("swarm bench train: error: " + "; ".join(problems), file=sys.stderr, flush=True)
         return 2
     rows = [
-        measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, args.compile)
+        measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, args.compile, x)
         for p in presets
         for t in args.threads
+        for x in args.precisions
     ]
     peak = {t: sgemm_peak(t) for t in sorted(set(args.threads))}
     print(f"\nPPO cycle, {args.task} M={args.agents}, {args.updates} timed updates per row")
     head = (
-        f"{'preset':<7} {'threads':>7} {'env steps/s':>12} {'s/update':>9} {'sim':>6} {'policy fwd':>10} {'update':>7}"
+        f"{'preset':<7} {'threads':>7} {'prec':>5} {'env steps/s':>12} {'s/update':>9} {'sim':>6}"
+        f" {'policy fwd':>10} {'update':>7}"
         f" {'agent-samples/s':>15} {'GFLOP/s':>8} {'of sgemm':>8}"
     )
     print(head + "\n" + "-" * len(head))
     for r in rows:
         print(
-            f"{r['preset']:<7} {r['threads']:>7} {r['env_steps_per_s']:>12.0f} {r['seconds_per_update']:>9.2f} "
+            f"{r['preset']:<7} {r['threads']:>7} {r['precision']:>5} {r['env_steps_per_s']:>12.0f}"
+            f" {r['seconds_per_update']:>9.2f} "
             f"{100 * r['share_sim']:>5.1f}% {100 * r['share_policy']:>9.1f}% {100 * r['share_update']:>6.1f}%"
             f" {r['agent_samples_per_s']:>15.0f} {r['gflops']:>8.1f} {100 * r['gflops'] / peak[r['threads']]:>7.0f}%"
         )
@@ -154,12 +160,12 @@ def main(argv: list[str] | None = None) -> int:
         "second of update; sgemm peak measured here (1024^3): "
         + ", ".join(f"{t} thread(s) {g:.0f} GFLOP/s" for t, g in peak.items())
     )
-    base = {p: min((r for r in rows if r["preset"] == p), key=lambda r: r["threads"]) for p in presets}
+    base = {p: rows[[r["preset"] for r in rows].index(p)] for p in presets}  # fewest threads, first precision
     for r in rows:
         b = base[r["preset"]]
         if r is not b:
             print(
-                f"{r['preset']}: {r['threads']} threads / {b['threads']} thread: "
+                f"{r['preset']}: {r['threads']} threads {r['precision']} / {b['threads']} thread {b['precision']}: "
                 f"{r['env_steps_per_s'] / b['env_steps_per_s']:.2f}x env steps/s"
             )
     return 0

@@ -371,6 +371,8 @@ class BenchTrainOptions:
     """override the preset's environments per rollout"""
     compile: bool = True
     """torch.compile the update (--no-compile: eager)"""
+    precisions: tuple[Literal["fp32", "bf16"], ...] = ("fp32",)
+    """arithmetic of the update, one row each (bf16: autocast, TrainConfig.precision)"""
 
     def __post_init__(self):
         for name in ("agents", "updates", "num_envs"):

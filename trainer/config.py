@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from trainer.model import ENTITY_MODES, ModelConfig
@@ -156,6 +157,11 @@ class TrainConfig:
     compile: bool = True
     """Compile the policy forward and PPO loss of the update with torch.compile (needs a
     C++ compiler; ~30 s once per team size, then faster updates: docs/BENCHMARKS.md)."""
+    precision: Literal["fp32", "bf16"] = "fp32"
+    """Arithmetic of the update's forward and backward: fp32, or bf16 autocast (GEMMs in
+    bfloat16, parameters, optimiser and loss reductions in fp32). bf16 is faster on CPUs
+    with AVX-512 BF16 / AMX and on GPUs (1.2x at M = 3, 1.6x at M = 10 per minibatch here:
+    docs/BENCHMARKS.md); its effect on learning has not been measured yet."""
     tensorboard: bool = False
     """Also write every scalar of metrics.jsonl as TensorBoard events under
     RUN_DIR/tensorboard (needs the tensorboard package: pip install -e ".[tensorboard]")."""
@@ -194,6 +200,8 @@ class TrainConfig:
             raise ValueError("entity_mode='concat' has a fixed number of landmarks: coverage's L changes with M")
         if self.torch_threads < 1:
             raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
+        if self.precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         if any(abs(d) > 1000 for d in self.transfer_offsets):

@@ -225,14 +225,19 @@ def rollout_stats(rollouts: list[RolloutResult]) -> dict:
     }
 
 
-def make_loss_fn(policy, p, compile: bool = False):
+def make_loss_fn(policy, p, compile: bool = False, precision: str = "fp32"):
     """``loss_fn(batch) -> (loss, stats [5])``: the policy's forward and the clipped PPO
     loss on one minibatch of whole teams; with ``compile``, through torch.compile (fused
     elementwise loops around the GEMMs: 1.3-1.7x per minibatch on this CPU), falling back
-    to eager with a warning where compilation fails (no C++ compiler, say)."""
+    to eager with a warning where compilation fails (no C++ compiler, say). ``precision``
+    "bf16": the forward under bfloat16 autocast (the loss itself in fp32)."""
+    if precision not in ("fp32", "bf16"):
+        raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
 
     def loss_fn(self_obs, entities, adj, *batch):  # batch: actions, old log-probs and values, advantages, returns
-        logits, values = policy(self_obs, entities, adj)
+        with torch.autocast(self_obs.device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
+            logits, values = policy(self_obs, entities, adj)
+        logits, values = logits.float(), values.float()
         loss, info = ppo_loss(logits, values, *batch, p.clip, p.value_coef, p.entropy_coef)
         return loss, torch.stack([info.policy, info.value, info.entropy, info.approx_kl, info.clipfrac])
 
@@ -566,7 +571,7 @@ def _train_locked(cfg, resume, on_update, updates) -> dict:
     run, cfg, payload = open_run(cfg, resume, updates)
     device = resolve_device(cfg.device)
     state = build_state(cfg, payload, device)
-    loss_fn = make_loss_fn(state.policy, cfg.ppo, compile=cfg.compile)
+    loss_fn = make_loss_fn(state.policy, cfg.ppo, compile=cfg.compile, precision=cfg.precision)
     counters = state.counters
     reporter = Reporter(run, cfg, counters["update"], on_update)
     last_eval = state.evals[-1] if state.evals else None

@@ -111,3 +111,36 @@ def test_sampled_actions_and_log_probs():
     probs = logits[0].softmax(-1)
     torch.testing.assert_close(freq, probs, atol=0.01, rtol=0)
     torch.testing.assert_close(logp, probs.log()[actions], atol=1e-6, rtol=0)
+
+
+def test_bf16_update_is_the_fp32_update_to_bf16_tolerance():
+    """precision="bf16" (autocast) computes the same loss and gradient as fp32, to the
+    precision of bfloat16; fp32 stays exact."""
+    from types import SimpleNamespace
+
+    from trainer.model import ModelConfig, SwarmPolicy
+    from trainer.train import make_loss_fn
+
+    torch.manual_seed(0)
+    N, M = 64, 4
+    policy = SwarmPolicy(ModelConfig(hidden=64))
+    p = SimpleNamespace(clip=0.2, value_coef=0.5, entropy_coef=0.01)
+    batch = (
+        torch.randn(N, M, 4), torch.randn(N, M, M, 2), torch.rand(N, M, M) < 0.7,
+        torch.randint(0, 5, (N, M)), -1.6 + 0.1 * torch.randn(N, M), torch.randn(N, M), torch.randn(N, M),
+        torch.randn(N, M),
+    )  # fmt: skip
+    results = {}
+    for precision in ("fp32", "bf16"):
+        policy.zero_grad()
+        loss, stats = make_loss_fn(policy, p, precision=precision)(*batch)
+        loss.backward()
+        grad = torch.cat([q.grad.flatten() for q in policy.parameters()])
+        results[precision] = loss.detach(), stats, grad
+    (l32, s32, g32), (l16, s16, g16) = results["fp32"], results["bf16"]
+    assert l16.dtype == torch.float32 and torch.isfinite(g16).all()
+    assert abs(float(l16 - l32)) < 0.02 * (1 + abs(float(l32)))
+    assert torch.allclose(s16, s32, rtol=0.05, atol=0.02)
+    assert torch.nn.functional.cosine_similarity(g16, g32, dim=0) > 0.99
+    with pytest.raises(ValueError, match="precision"):
+        make_loss_fn(policy, p, precision="fp16")
