@@ -37,7 +37,18 @@ def _cell(text: str) -> tuple[str, int]:
     return preset, agents
 
 
-def worker(tree: str, preset: str, agents: int, task: str, threads: int | None) -> None:
+def _override(text: str) -> tuple[str, object]:
+    """FIELD=VALUE, the value read as JSON where it is (numbers, true/false), else a string."""
+    field, sep, value = text.partition("=")
+    if not sep or not field:
+        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+    try:
+        return field, json.loads(value)
+    except json.JSONDecodeError:
+        return field, value
+
+
+def worker(tree: str, preset: str, agents: int, task: str, threads: int | None, overrides: dict) -> None:
     """Runs inside the worker process: trains, reporting each update on stdout and
     waiting for a line on stdin before the next one."""
     out = os.fdopen(os.dup(1), "w")  # the protocol channel
@@ -55,7 +66,7 @@ def worker(tree: str, preset: str, agents: int, task: str, threads: int | None) 
         if not sys.stdin.readline():
             raise SystemExit(0)
 
-    kwargs = {} if threads is None else {"torch_threads": threads}
+    kwargs = ({} if threads is None else {"torch_threads": threads}) | overrides
     with tempfile.TemporaryDirectory(prefix="bench-train-ab-") as tmp:
         cfg = TrainConfig(
             task=task,
@@ -75,9 +86,9 @@ def worker(tree: str, preset: str, agents: int, task: str, threads: int | None) 
 
 
 class Worker:
-    def __init__(self, tree: str, preset: str, agents: int, task: str, threads: int | None):
+    def __init__(self, tree: str, preset: str, agents: int, task: str, threads: int | None, overrides: dict):
         cmd = [sys.executable, os.path.abspath(__file__), "--worker", tree, preset, str(agents), task]
-        cmd.append("default" if threads is None else str(threads))
+        cmd += ["default" if threads is None else str(threads), json.dumps(overrides)]
         env = dict(os.environ, PYTHONPATH=tree)
         self.proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env
@@ -102,8 +113,8 @@ class Worker:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--worker"]:
-        tree, preset, agents, task, threads = argv[1:6]
-        worker(tree, preset, int(agents), task, None if threads == "default" else int(threads))
+        tree, preset, agents, task, threads, overrides = argv[1:7]
+        worker(tree, preset, int(agents), task, None if threads == "default" else int(threads), json.loads(overrides))
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("a", help="directory holding version A's trainer/ and taichi_swarm/")
@@ -113,19 +124,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=4, help="timed updates per version and cell (after 1 warm-up)")
     ap.add_argument("--threads-a", type=int, default=None, help="A's torch threads (default: A's own default)")
     ap.add_argument("--threads-b", type=int, default=None, help="B's torch threads (default: B's own default)")
+    for v in ("a", "b"):
+        ap.add_argument(
+            f"--set-{v}",
+            type=_override,
+            action="append",
+            default=[],
+            metavar="FIELD=VALUE",
+            help=f"a TrainConfig field of {v.upper()}'s runs, e.g. precision=bf16 (repeatable)",
+        )
     args = ap.parse_args(argv)
     for d in (args.a, args.b):
         if not os.path.isfile(os.path.join(d, "trainer", "train.py")):
             ap.error(f"{d!r} holds no trainer package")
     if args.rounds < 1:
         ap.error("--rounds must be >= 1")
-    print(f"A = {args.a}, B = {args.b}; {args.task}; {args.rounds} paired updates per cell", flush=True)
+    sets = "".join(f"; {v} sets {dict(o)}" for v, o in (("A", args.set_a), ("B", args.set_b)) if o)
+    print(f"A = {args.a}, B = {args.b}; {args.task}; {args.rounds} paired updates per cell{sets}", flush=True)
     head = f"{'cell':<10} {'A env steps/s':>13} {'B env steps/s':>13} {'B/A':>6} {'rounds':>13} {'B update':>9}"
     print(head + "\n" + "-" * len(head), flush=True)
     for preset, agents in args.cells:
         workers = [
-            Worker(os.path.abspath(args.a), preset, agents, args.task, args.threads_a),
-            Worker(os.path.abspath(args.b), preset, agents, args.task, args.threads_b),
+            Worker(os.path.abspath(args.a), preset, agents, args.task, args.threads_a, dict(args.set_a)),
+            Worker(os.path.abspath(args.b), preset, agents, args.task, args.threads_b, dict(args.set_b)),
         ]
         try:
             for w in workers:  # warm-up: kernel compilation, first allocations
