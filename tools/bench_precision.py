@@ -1,8 +1,8 @@
 """One PPO minibatch step (forward + loss + backward + fused Adam, torch.compile'd, 1 thread)
 in fp32 against the same step under CPU bf16 autocast, timed in alternation.
 
-A lead for the training-throughput work, not a change of the trainer: bf16 changes the
-numerics, so it would need a learning check before it could become an option.
+The measurement behind `swarm train --precision bf16` (TrainConfig.precision): bf16 changes the
+numerics; docs/RESULTS.md checks the learning.
 
     python tools/bench_precision.py --agents 3 10
 """
