@@ -25,7 +25,8 @@ def time_step(agents: int, teams: int, rounds: int, steps: int) -> tuple[float, 
     torch.manual_seed(0)
     M, N = agents, teams
     policy = SwarmPolicy(ModelConfig())
-    loss_fn = make_loss_fn(policy, SimpleNamespace(clip=0.2, value_coef=0.5, entropy_coef=0.01), compile=True)
+    ppo = SimpleNamespace(clip=0.2, value_coef=0.5, entropy_coef=0.01)
+    loss_fns = {bf16: make_loss_fn(policy, ppo, compile=True, precision="bf16" if bf16 else "fp32") for bf16 in (0, 1)}
     optimizer = torch.optim.Adam(policy.parameters(), lr=1e-4, fused=True)
     batch = (
         torch.randn(N, M, 4),  # self observation
@@ -39,8 +40,7 @@ def time_step(agents: int, teams: int, rounds: int, steps: int) -> tuple[float, 
     )
 
     def step(bf16: bool) -> None:
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            loss, _ = loss_fn(*batch)
+        loss, _ = loss_fns[bf16](*batch)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
