@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 import sys
 
-from swarm_cli.options import BenchSimOptions, parse
+from swarm_cli.options import BenchSimOptions, fail, parse
 
 # name -> (module:function, one-line help); train and deploy import torch, so lazily
 BENCHMARKS = {
@@ -26,8 +26,7 @@ def sim_main(argv: list[str]) -> int:
     if args.json:
         folder = os.path.dirname(os.path.abspath(args.json))
         if not os.path.isdir(folder):
-            print(f"swarm bench sim: error: --json: directory {folder!r} does not exist", file=sys.stderr)
-            return 2
+            return fail("swarm bench sim", f"--json: directory {folder!r} does not exist")
     from swarm_cli import bench_sim
 
     seconds = QUICK_SECONDS if args.quick else args.seconds

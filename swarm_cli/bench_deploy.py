@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from swarm_cli.options import BenchDeployOptions, parse
+from swarm_cli.options import BenchDeployOptions, fail, parse
 
 TARGET_MS = 0.3
 TARGET_SPEEDUP = 3.0
@@ -162,15 +162,13 @@ def main(argv: list[str] | None = None) -> int:
     refused option raises SystemExit(2)."""
     args = parse(BenchDeployOptions, argv, "swarm bench deploy")
     if args.checkpoint is not None and not os.path.exists(args.checkpoint):
-        print(f"swarm bench deploy: error: checkpoint {args.checkpoint} does not exist", file=sys.stderr)
-        return 2
+        return fail("swarm bench deploy", f"checkpoint {args.checkpoint} does not exist")
     from trainer.checkpoint import CheckpointError
 
     try:
         result = run(args.checkpoint, args.agents, args.landmarks, args.repeats, warmup=max(10, args.repeats // 10))
     except (CheckpointError, ValueError) as exc:
-        print(f"swarm bench deploy: error: {exc}", file=sys.stderr)
-        return 2
+        return fail("swarm bench deploy", exc)
     print(format_result(result))
     if args.json:
         from taichi_swarm.files import atomic_write_json

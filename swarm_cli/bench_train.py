@@ -11,10 +11,9 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
-import sys
 import tempfile
 
-from swarm_cli.options import BenchTrainOptions, parse
+from swarm_cli.options import BenchTrainOptions, fail, parse
 from trainer.config import PRESETS, TrainConfig
 from trainer.train import train
 
@@ -131,8 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.task not in taichi_swarm.TASKS:
         problems.append(f"--task must be one of {taichi_swarm.TASKS}, got {args.task!r}")
     if problems:
-        print("swarm bench train: error: " + "; ".join(problems), file=sys.stderr, flush=True)
-        return 2
+        return fail("swarm bench train", "; ".join(problems))
     rows = [
         measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, args.compile, x)
         for p in presets

@@ -26,9 +26,9 @@ import tyro
 Positional = tyro.conf.Positional
 
 
-def Default(meaning: str):
+def Default(meaning: str, metavar: str | None = None):
     """What an unset (None) option means, shown in --help as "(default: meaning)"."""
-    return tyro.conf.arg(help_behavior_hint=f"(default: {meaning})")
+    return tyro.conf.arg(metavar=metavar, help_behavior_hint=f"(default: {meaning})")
 
 
 class OptionError(ValueError):
@@ -74,11 +74,11 @@ Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtim
 class SettingOptions:
     """The task setting to run a policy in; each unset field keeps the checkpoint's."""
 
-    task: Annotated[str | None, tyro.conf.arg(metavar="TASK", help_behavior_hint=f"(default: {OWN})")] = None
+    task: Annotated[str | None, Default(OWN, "TASK")] = None
     """coverage | formation | line"""
-    comm: Annotated[Comm | None, tyro.conf.arg(metavar="{uc,rc}", help_behavior_hint=f"(default: {OWN})")] = None
+    comm: Annotated[Comm | None, Default(OWN, "{uc,rc}")] = None
     """communication graph: uc = all teammates, rc = within --comm-radius"""
-    comm_radius: Annotated[float | None, tyro.conf.arg(metavar="R", help_behavior_hint=f"(default: {OWN})")] = None
+    comm_radius: Annotated[float | None, Default(OWN, "R")] = None
     """rc radius"""
 
     def __post_init__(self):
@@ -299,7 +299,7 @@ class ReproduceOptions:
     """only render the tables from the results on disk"""
     update_doc: Annotated[str | None, tyro.conf.arg(metavar="FILE")] = None
     """also write the tables into FILE between its markers"""
-    figures: Annotated[str | None, tyro.conf.arg(metavar="DIR", help_behavior_hint="(default: ROOT)")] = None
+    figures: Annotated[str | None, Default("ROOT", "DIR")] = None
     """where the learning-curve figures go"""
 
     def __post_init__(self):

@@ -7,7 +7,7 @@ import shlex
 import sys
 
 from reproduce.spec import SpecError
-from swarm_cli.options import ReproduceOptions, parse
+from swarm_cli.options import ReproduceOptions, fail, parse
 
 DESCRIPTION = """\
 Run the cells of the paper's Tables 1-4 (or a selection) on Ray, resumably, and render
@@ -93,8 +93,7 @@ def reproduce_main(argv: list[str]) -> int:
     except KeyboardInterrupt:
         return 130
     except (SpecError, ValueError, FileNotFoundError) as exc:
-        print(f"swarm reproduce: error: {exc}", file=sys.stderr)
-        return 2
+        return fail("swarm reproduce", exc)
     if failed:
         print(f"swarm reproduce: {len(failed)} cell(s) failed: {', '.join(failed)}", file=sys.stderr)
         return 1
