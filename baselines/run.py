@@ -51,10 +51,12 @@ def experiment_config(
     out_dir: str,
     device: str = "cpu",
     overrides: dict | None = None,
+    checkpoint_every: int = 25,
 ):
     """BenchMARL's default ExperimentConfig with the run's budget, batch, folder and device;
     no wandb, no rendering, no evaluation during training (``evaluate_policy`` does it after),
-    a checkpoint at the end. ``overrides``: any other ExperimentConfig field."""
+    a checkpoint every ``checkpoint_every`` iterations (0: none) and at the end, the last two
+    kept. ``overrides``: any other ExperimentConfig field."""
     from benchmarl.experiment import ExperimentConfig
 
     cfg = ExperimentConfig.get_from_yaml()
@@ -72,8 +74,9 @@ def experiment_config(
         "render": False,
         "evaluation": False,
         "save_folder": out_dir,
-        "checkpoint_interval": 0,
+        "checkpoint_interval": checkpoint_every * frames_per_batch,
         "checkpoint_at_end": True,
+        "keep_checkpoints_num": 2,
     }
     fields = {f.name for f in dataclasses.fields(cfg)}
     for key, value in (overrides or {}).items():
@@ -85,21 +88,98 @@ def experiment_config(
     return cfg
 
 
+def latest_checkpoint(out_dir: str) -> str | None:
+    """The checkpoint with the most env steps in ``out_dir``'s BenchMARL experiment folder
+    (``<out>/<experiment>/checkpoints/checkpoint_<frames>.pt``), or None."""
+    import glob
+
+    found = glob.glob(os.path.join(out_dir, "*", "checkpoints", "checkpoint_*.pt"))
+    folders = {os.path.dirname(os.path.dirname(f)) for f in found}
+    if len(folders) > 1:
+        raise ValueError(f"--out {out_dir} holds {len(folders)} experiments with checkpoints; keep one: {sorted(folders)}")
+
+    def frames(path: str) -> int:
+        return int(os.path.basename(path)[len("checkpoint_") : -len(".pt")])
+
+    return max(found, key=frames) if found else None
+
+
+def check_resumable(checkpoint: str, algorithm: str, task: SwarmTaskClass, seed: int, config) -> None:
+    """Refuse to resume a run of another algorithm, task, seed or batch: a ValueError naming
+    what differs between the folder's config.pkl (written by BenchMARL) and this command."""
+    import pickle
+
+    with open(os.path.join(os.path.dirname(os.path.dirname(checkpoint)), "config.pkl"), "rb") as f:
+        saved_task, saved_task_config, saved_algorithm, _model, saved_seed, saved_config = (
+            pickle.load(f) for _ in range(6)
+        )
+    want = {
+        "algorithm": (type(saved_algorithm), type(algorithm_config(algorithm))),
+        "task": (saved_task.name, task.name),
+        "task config": (saved_task_config, task.config),
+        "seed": (saved_seed, seed),
+    }
+    for name in ("on_policy_collected_frames_per_batch", "off_policy_collected_frames_per_batch"):
+        want[name] = (getattr(saved_config, name), getattr(config, name))
+    for name, (saved, now) in want.items():
+        if saved != now:
+            raise ValueError(
+                f"--out: {checkpoint} is from a run with another {name} ({saved!r}, this command: {now!r}); "
+                "give another --out to start a new run"
+            )
+
+
+def _atomic_experiment_class():
+    """BenchMARL's Experiment, its checkpoints written to a temporary file and renamed, so a
+    run stopped while saving leaves the previous checkpoint whole."""
+    from benchmarl.experiment import Experiment
+
+    class AtomicCheckpointExperiment(Experiment):
+        def _save_experiment(self) -> None:
+            path = self.folder_name / "checkpoints" / f"checkpoint_{self.total_frames}.pt"
+            if path in self._checkpointed_files:  # the end of a run on an interval: rewritten, not counted twice
+                self._checkpointed_files.remove(path)
+            if self.config.keep_checkpoints_num is not None:
+                while len(self._checkpointed_files) >= self.config.keep_checkpoints_num:
+                    self._checkpointed_files.popleft().unlink(missing_ok=True)
+            path.parent.mkdir(parents=False, exist_ok=True)
+            tmp = path.with_suffix(".pt.tmp")
+            torch.save(self.state_dict(), tmp)
+            os.replace(tmp, path)
+            self._checkpointed_files.append(path)
+
+        def _load_experiment(self):
+            # the checkpoints already written count towards keep_checkpoints_num
+            found = (self.folder_name / "checkpoints").glob("checkpoint_*.pt")
+            self._checkpointed_files.extend(sorted(found, key=lambda p: int(p.stem.split("_")[1])))
+            # the checkpoint holds the collector's and buffers' plain-Python state too
+            self.load_state_dict(
+                torch.load(self.config.restore_file, map_location=self.config.restore_map_location, weights_only=False)
+            )
+            return self
+
+    return AtomicCheckpointExperiment
+
+
 def train(
     algorithm: str,
     task: SwarmTaskClass,
     seed: int,
     config,
     model: str = "mlp",
+    restore_file: str | None = None,
 ):
-    """Build and run a BenchMARL Experiment; returns it (its ``policy`` is the trained one)."""
-    from benchmarl.experiment import Experiment
+    """Build and run a BenchMARL Experiment, from ``restore_file`` (a checkpoint of the same
+    run) where given; returns it (its ``policy`` is the trained one)."""
     from benchmarl.models import model_config_registry
 
     if model not in model_config_registry:
         raise ValueError(f"model must be one of {sorted(model_config_registry)}, got {model!r}")
+    if restore_file is not None:
+        check_resumable(restore_file, algorithm, task, seed, config)
+        config.restore_file = restore_file
     model_cfg = model_config_registry[model].get_from_yaml()
-    experiment = Experiment(
+    experiment = _atomic_experiment_class()(
         task=task,
         algorithm_config=algorithm_config(algorithm),
         model_config=model_cfg,
@@ -226,7 +306,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="override a BenchMARL ExperimentConfig field, e.g. --experiment lr=3e-4 (repeatable)",
     )
-    ap.add_argument("--out", required=True, help="output directory: BenchMARL's experiment folder and results.json")
+    ap.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=25,
+        help="iterations between checkpoints (default 25; 0 = only at the end); the last two are kept",
+    )
+    ap.add_argument(
+        "--out",
+        required=True,
+        help="output directory: BenchMARL's experiment folder and results.json; a run stopped "
+        "part-way resumes from its latest checkpoint when the same command is given again",
+    )
     return ap
 
 
@@ -235,6 +326,8 @@ def run(args: argparse.Namespace) -> dict:
     for name in ("frames", "num_envs", "frames_per_batch", "eval_episodes", "agents", "max_steps"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.checkpoint_every < 0:
+        raise ValueError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
     if args.threads < 0:
         raise ValueError(f"--threads must be >= 0, got {args.threads}")
     algorithm_config(args.algorithm)  # a bad name fails here, before any work
@@ -259,11 +352,15 @@ def run(args: argparse.Namespace) -> dict:
         os.path.abspath(args.out),
         args.device,
         _parse_overrides(args.experiment),
+        args.checkpoint_every,
     )
+    restore = latest_checkpoint(args.out)
+    if restore is not None:
+        print(f"run_baselines.py: resuming from {restore}", file=sys.stderr)
     if args.threads:
         torch.set_num_threads(args.threads)
     start = time.time()
-    experiment = train(args.algorithm, task, args.seed, config, args.model)
+    experiment = train(args.algorithm, task, args.seed, config, args.model, restore_file=restore)
     train_s = time.time() - start
     continuous = bool(experiment.continuous_actions)
     start = time.time()
@@ -282,7 +379,9 @@ def run(args: argparse.Namespace) -> dict:
         "T": result["mean_length"],
         "DIST": result["dist"],
         **result,
-        "train_seconds": round(train_s, 1),
+        # wall-clock of this command; a resumed run counts BenchMARL's own iteration time instead
+        "train_seconds": round(train_s if restore is None else float(experiment.total_time), 1),
+        "resumed_from": None if restore is None else os.path.relpath(restore),
         "eval_seconds": round(eval_s, 1),
         "experiment_folder": os.path.relpath(str(experiment.folder_name)),  # relative: results.json is committed
         "versions": _versions(),
@@ -374,6 +473,7 @@ __all__ = [
     "build_parser",
     "evaluate_policy",
     "experiment_config",
+    "latest_checkpoint",
     "main",
     "run",
     "train",

@@ -415,3 +415,28 @@ def test_run_baselines_rejects_bad_arguments(tmp_path, capsys):
         assert main([*args, *out]) == 2
         assert name in capsys.readouterr().err
     assert not (tmp_path / "x" / "results.json").exists()
+
+
+def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
+    """A run given the same command again continues from its checkpoint (here: extended from
+    200 to 400 env steps); a run of another algorithm in the same --out is refused."""
+    pytest.importorskip("benchmarl")
+    from baselines.run import latest_checkpoint, main
+
+    out = tmp_path / "mappo"
+    base = ["--algorithm", "mappo", "--task", "coverage", "--agents", "2", "--out", str(out), *TINY]
+    base += ["--actions", "discrete", "--checkpoint-every", "1"]
+    assert main(base) == 0
+    assert latest_checkpoint(str(out)).endswith("checkpoint_200.pt")
+    assert len(list(out.glob("*/checkpoints/*.pt"))) == 2  # the last two kept: 100 and 200
+    frames_at = base.index("--frames") + 1
+    longer = [*base[:frames_at], "400", *base[frames_at + 1 :]]
+    assert main(longer) == 0
+    assert "resuming from" in capsys.readouterr().err
+    result = json.loads((out / "results.json").read_text())
+    assert result["frames"] == 400 and result["resumed_from"].endswith("checkpoint_200.pt")
+    assert len(list(out.glob("*"))) == 3  # one experiment folder (with config.pkl), results.json, curves.png
+    assert sorted(p.name for p in out.glob("*/checkpoints/*")) == ["checkpoint_300.pt", "checkpoint_400.pt"]
+    other = [*longer[:1], "iql", *longer[2:]]
+    assert main(other) == 2
+    assert "another algorithm" in capsys.readouterr().err
