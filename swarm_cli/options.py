@@ -118,7 +118,7 @@ class ResumeOptions:
 
 @dataclass(kw_only=True)
 class EvaluationOptions(SettingOptions):
-    """What every greedy evaluation of a checkpoint takes (swarm eval, swarm zero-shot)."""
+    """What every evaluation of a checkpoint takes (swarm eval, swarm zero-shot)."""
 
     checkpoint: Annotated[str, Positional, tyro.conf.arg(metavar="CHECKPOINT")]
     """checkpoint file or run directory"""
@@ -130,10 +130,18 @@ class EvaluationOptions(SettingOptions):
     """simulator arch"""
     json: str | None = None
     """also write the results to this JSON file"""
+    sampled: bool = False
+    """draw actions from the policy's distribution instead of argmax (a diagnostic: the paper
+    and docs/RESULTS.md report greedy actions; a large gap shows a policy that relies on
+    randomness, e.g. to break ties between agents)"""
 
     def __post_init__(self):
         SettingOptions.__post_init__(self)
         at_least(self.episodes, 1, "episodes")
+
+    @property
+    def actions(self) -> str:
+        return "sampled" if self.sampled else "greedy"
 
 
 @dataclass(kw_only=True)

@@ -90,14 +90,17 @@ def eval_main(argv: list[str]) -> int:
 
         recorder = open_recorders(opts, s.task, opts.episodes, agents, s.comm, s.comm_radius)
         result = evaluate(
-            policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch, recorder=recorder
-        )
+            policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
+            recorder=recorder, actions=opts.actions,
+        )  # fmt: skip
         if recorder is not None:
             recorder.close()
             recorder.report()
     except USER_ERRORS as exc:
         return fail("swarm eval", exc)
     print(format_table([result]))
+    if opts.sampled:
+        print("(sampled actions: a diagnostic; the paper's numbers are greedy)")
     if opts.json:
         atomic_write_json(opts.json, {"checkpoint": opts.checkpoint, **result})
     return 0
@@ -119,12 +122,19 @@ def zero_shot_main(argv: list[str]) -> int:
         s = _eval_settings(opts, payload)
         rows = []
         for M in sizes:
-            rows.append(evaluate(policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch))
+            rows.append(
+                evaluate(
+                    policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
+                    actions=opts.actions,
+                )  # fmt: skip
+            )
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return fail("swarm zero-shot", exc)
     print()
     print(format_table(rows))
+    if opts.sampled:
+        print("(sampled actions: a diagnostic; the paper's numbers are greedy)")
     if opts.json:
         atomic_write_json(
             opts.json,

@@ -148,9 +148,11 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     assert "eval S%" in r.stdout
     r = swarm("eval", "run", "--agents", "4", "--episodes", "5", "--json", "ev.json", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    assert "formation" in r.stdout and json.load(open(tmp_path / "ev.json"))["agents"] == 4
-    r = swarm("zero-shot", "run/checkpoint.pt", "--sizes", "2-3", "--episodes", "3", cwd=tmp_path)
+    result = json.load(open(tmp_path / "ev.json"))
+    assert "formation" in r.stdout and result["agents"] == 4 and result["actions"] == "greedy"
+    r = swarm("zero-shot", "run/checkpoint.pt", "--sizes", "2-3", "--episodes", "3", "--sampled", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
+    assert "sampled actions" in r.stdout
     r = swarm(
         "curriculum",
         "--task",
