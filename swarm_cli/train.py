@@ -124,7 +124,14 @@ def zero_shot_main(argv: list[str]) -> int:
         for M in sizes:
             rows.append(
                 evaluate(
-                    policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
+                    policy,
+                    s.task,
+                    M,
+                    s.comm,
+                    s.comm_radius,
+                    opts.episodes,
+                    opts.seed,
+                    arch=opts.arch,
                     actions=opts.actions,
                 )  # fmt: skip
             )
@@ -159,8 +166,9 @@ def curriculum_main(argv: list[str]) -> int:
         run_dir = cfg.default_run_dir()
         base = dataclasses.replace(cfg.train_config(), run_dir=run_dir)
         stages = run_curriculum(
-            base, list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, run_dir, cfg.min_updates_per_stage
-        )
+            base, list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, run_dir, cfg.min_updates_per_stage,
+            cfg.fresh_eval_episodes, cfg.fresh_eval_seed,
+        )  # fmt: skip
     except KeyboardInterrupt:
         return 130
     except USER_ERRORS as exc:

@@ -1,20 +1,48 @@
 """Curriculum over team sizes (s.6): train M = 3, then 5, 7, 10, each stage
 starting from the previous stage's weights with a fresh optimiser and reward
 normaliser, moving on once evaluation success reaches the threshold.
-Records S% and the number of updates N per stage (the paper's tables 2, 3).
-Re-running the same command resumes: finished stages are skipped, a stopped
-stage continues from its checkpoint."""
+Records S% and the number of updates N per stage (the paper's tables 2, 3), and,
+with ``fresh_eval_episodes``, each stage's final policy on that many fresh greedy
+episodes: the evaluation that ended a stage is the first of several noisy ones to
+pass the threshold, so it overstates the stage. Re-running the same command
+resumes: finished stages are skipped (their fresh evaluation is kept in the stage
+directory), a stopped stage continues from its checkpoint."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 
 from trainer import checkpoint
 from trainer.config import TrainConfig
-from trainer.train import train_or_resume
+from trainer.evaluate import evaluate
+from trainer.train import resolve_device, train_or_resume
 
 MIN_STAGE_EVAL_EPISODES = 200
+FRESH_EVAL_FILE = "fresh-eval.json"
+
+
+def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: int, seed: int) -> dict:
+    """S%, T, DIST of the stage's final policy (``stage_dir/policy.pt``, at ``update``) on
+    ``episodes`` fresh greedy episodes from ``seed``, at the stage's team size and comm;
+    kept in ``stage_dir/fresh-eval.json`` and reused while policy, episodes and seed match."""
+    path = os.path.join(stage_dir, FRESH_EVAL_FILE)
+    key = {"update": update, "episodes": episodes, "seed": seed}
+    if os.path.exists(path):
+        with open(path) as f:
+            saved = json.load(f)
+        if all(saved.get(k) == v for k, v in key.items()):
+            return saved
+    policy, _ = checkpoint.load_policy(os.path.join(stage_dir, "policy.pt"))
+    device = resolve_device(cfg.device)
+    policy.to(device)
+    result = evaluate(
+        policy, cfg.task, cfg.agents, cfg.comm, cfg.comm_radius, episodes, seed, arch=cfg.arch, device=device
+    )
+    fresh = {**key, **{k: result[k] for k in ("success_rate", "mean_length", "dist")}}
+    checkpoint.atomic_write_json(path, fresh)
+    return fresh
 
 
 def run_curriculum(
@@ -24,6 +52,8 @@ def run_curriculum(
     max_updates_per_stage: int,
     run_dir: str,
     min_updates_per_stage: int = 0,
+    fresh_eval_episodes: int = 0,
+    fresh_eval_seed: int = 777,
 ) -> list[dict]:
     if not sizes:
         raise ValueError("--sizes must name at least one team size")
@@ -34,26 +64,27 @@ def run_curriculum(
             f"--min-updates-per-stage must be in [0, --max-updates-per-stage={max_updates_per_stage}], "
             f"got {min_updates_per_stage}"
         )
+    if fresh_eval_episodes < 0:
+        raise ValueError(f"--fresh-eval-episodes must be >= 0, got {fresh_eval_episodes}")
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []
     previous_ckpt = base.init_from
     for M in sizes:
         stage_dir = os.path.join(run_dir, f"stage-m{M}")
-        summary = train_or_resume(
-            dataclasses.replace(
-                base,
-                agents=M,
-                run_dir=stage_dir,
-                init_from=previous_ckpt,
-                updates=max_updates_per_stage,
-                target_success=threshold,
-                min_updates=min_updates_per_stage,
-                # a stage advances on an evaluation of at least 200 episodes: 100 overstated
-                # stages by up to 10 points (docs/RESULTS.md)
-                eval_episodes=max(base.eval_episodes, MIN_STAGE_EVAL_EPISODES),
-            )
+        stage_cfg = dataclasses.replace(
+            base,
+            agents=M,
+            run_dir=stage_dir,
+            init_from=previous_ckpt,
+            updates=max_updates_per_stage,
+            target_success=threshold,
+            min_updates=min_updates_per_stage,
+            # a stage advances on an evaluation of at least 200 episodes: 100 overstated
+            # stages by up to 10 points (docs/RESULTS.md)
+            eval_episodes=max(base.eval_episodes, MIN_STAGE_EVAL_EPISODES),
         )
+        summary = train_or_resume(stage_cfg)
         last = summary["last_eval"] or {}
         stage = {
             "agents": M,
@@ -66,6 +97,10 @@ def run_curriculum(
             "reached_threshold": summary["reached_target"],
             "run_dir": stage_dir,
         }
+        if fresh_eval_episodes:
+            stage["fresh_eval"] = fresh_evaluation(
+                stage_dir, stage_cfg, summary["update"], fresh_eval_episodes, fresh_eval_seed
+            )
         stages.append(stage)
         checkpoint.atomic_write_json(
             results_path, {"task": base.task, "comm": base.comm, "threshold": threshold, "stages": stages}
@@ -80,12 +115,23 @@ def run_curriculum(
 
 
 def format_stages(stages: list[dict]) -> str:
-    head = f"{'M':>3} {'S%':>6} {'N (updates)':>12} {'env steps':>10} {'minutes':>8}  reached"
+    """S% is the evaluation that ended the stage; "fresh S%" its final policy on fresh
+    episodes (shown where the curriculum ran with fresh_eval_episodes)."""
+    fresh = any("fresh_eval" in s for s in stages)
+    head = f"{'M':>3} {'S%':>6}" + (f" {'fresh S%':>9} {'T':>6}" if fresh else "")
+    head += f" {'N (updates)':>12} {'env steps':>10} {'minutes':>8}  reached"
     lines = [head, "-" * len(head)]
     for s in stages:
         sr = "-" if s["success_rate"] is None else f"{100 * s['success_rate']:.1f}"
+        line = f"{s['agents']:>3} {sr:>6}"
+        if fresh:
+            f = s.get("fresh_eval")
+            line += f" {100 * f['success_rate']:>9.1f} {f['mean_length']:>6.2f}" if f else f" {'-':>9} {'-':>6}"
         lines.append(
-            f"{s['agents']:>3} {sr:>6} {s['updates']:>12} {s['env_steps']:>10} "
+            line + f" {s['updates']:>12} {s['env_steps']:>10} "
             f"{s['wall_time'] / 60:>8.1f}  {'yes' if s['reached_threshold'] else 'no'}"
         )
+    if fresh:
+        f = next(s["fresh_eval"] for s in stages if "fresh_eval" in s)
+        lines.append(f"fresh S%, T: the stage's final policy on {f['episodes']} greedy episodes, seed {f['seed']}")
     return "\n".join(lines)

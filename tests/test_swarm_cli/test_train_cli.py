@@ -153,7 +153,7 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     r = swarm("zero-shot", "run/checkpoint.pt", "--sizes", "2-3", "--episodes", "3", "--sampled", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "sampled actions" in r.stdout
-    r = swarm(
+    curriculum = [
         "curriculum",
         "--task",
         "coverage",
@@ -166,12 +166,23 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
         "2",
         "--run-dir",
         "cur",
+        "--fresh-eval-episodes",
+        "6",
         *common,
-        cwd=tmp_path,
-    )
+    ]
+    r = swarm(*curriculum, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     stages = json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"]
     assert [s["agents"] for s in stages] == [2, 3]
+    fresh = [s["fresh_eval"] for s in stages]  # each stage's final policy on fresh episodes
+    assert [(f["episodes"], f["seed"], f["update"]) for f in fresh] == [(6, 777, 2), (6, 777, 2)]
+    assert "fresh S%" in r.stdout and "6 greedy episodes, seed 777" in r.stdout
+    saved = tmp_path / "cur" / "stage-m3" / "fresh-eval.json"
+    before = saved.stat().st_mtime_ns
+    r = swarm(*curriculum, cwd=tmp_path)  # resumed: finished stages and their evaluations are kept
+    assert r.returncode == 0, r.stderr
+    assert saved.stat().st_mtime_ns == before
+    assert json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"] == stages
     r = swarm("plot", "run", cwd=tmp_path)
     assert r.returncode == 0 and (tmp_path / "run" / "curves.png").exists()
     # errors are one clear line, not a traceback
