@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
+import re
 import sys
 import time
 
@@ -69,12 +71,12 @@ def experiment_config(
         "sampling_device": device,
         "train_device": device,
         "buffer_device": device,
+        "restore_map_location": device,
         "loggers": ["csv"],
         "create_json": False,
         "render": False,
         "evaluation": False,
         "save_folder": out_dir,
-        "checkpoint_interval": checkpoint_every * frames_per_batch,
         "checkpoint_at_end": True,
         "keep_checkpoints_num": 2,
     }
@@ -85,7 +87,19 @@ def experiment_config(
         settings[key] = value
     for key, value in settings.items():
         setattr(cfg, key, value)
+    if "checkpoint_interval" not in (overrides or {}):
+        # a multiple of both batch sizes (BenchMARL checks it against the one its algorithm uses)
+        batch = math.lcm(cfg.on_policy_collected_frames_per_batch, cfg.off_policy_collected_frames_per_batch)
+        cfg.checkpoint_interval = checkpoint_every * batch
     return cfg
+
+
+CHECKPOINT_NAME = re.compile(r"checkpoint_(\d+)\.pt")
+
+
+def _checkpoint_frames(path) -> int | None:
+    match = CHECKPOINT_NAME.fullmatch(os.path.basename(path))
+    return int(match.group(1)) if match else None
 
 
 def latest_checkpoint(out_dir: str) -> str | None:
@@ -93,45 +107,75 @@ def latest_checkpoint(out_dir: str) -> str | None:
     (``<out>/<experiment>/checkpoints/checkpoint_<frames>.pt``), or None."""
     import glob
 
-    found = glob.glob(os.path.join(out_dir, "*", "checkpoints", "checkpoint_*.pt"))
+    found = [
+        f
+        for f in glob.glob(os.path.join(out_dir, "*", "checkpoints", "checkpoint_*.pt"))
+        if _checkpoint_frames(f) is not None
+    ]
     folders = {os.path.dirname(os.path.dirname(f)) for f in found}
     if len(folders) > 1:
-        raise ValueError(f"--out {out_dir} holds {len(folders)} experiments with checkpoints; keep one: {sorted(folders)}")
-
-    def frames(path: str) -> int:
-        return int(os.path.basename(path)[len("checkpoint_") : -len(".pt")])
-
-    return max(found, key=frames) if found else None
+        raise ValueError(
+            f"--out {out_dir} holds {len(folders)} experiments with checkpoints; keep one: {sorted(folders)}"
+        )
+    return max(found, key=_checkpoint_frames) if found else None
 
 
-def check_resumable(checkpoint: str, algorithm: str, task: SwarmTaskClass, seed: int, config) -> None:
-    """Refuse to resume a run of another algorithm, task, seed or batch: a ValueError naming
-    what differs between the folder's config.pkl (written by BenchMARL) and this command."""
+# ExperimentConfig fields a resumed run may change: its length, where it saves, how it checkpoints
+RESUMABLE_CHANGES = {
+    "max_n_frames",
+    "restore_file",
+    "restore_map_location",
+    "save_folder",
+    "checkpoint_interval",
+    "checkpoint_at_end",
+    "keep_checkpoints_num",
+}
+
+
+def check_resumable(checkpoint: str, algorithm: str, task: SwarmTaskClass, seed: int, model_cfg, config) -> None:
+    """Refuse to resume another run: a ValueError naming what differs (algorithm, task and its
+    config, seed, model, or any ExperimentConfig field but the run's length and checkpointing)
+    between the experiment folder's config.pkl, as BenchMARL wrote it, and this command."""
     import pickle
 
-    with open(os.path.join(os.path.dirname(os.path.dirname(checkpoint)), "config.pkl"), "rb") as f:
-        saved_task, saved_task_config, saved_algorithm, _model, saved_seed, saved_config = (
-            pickle.load(f) for _ in range(6)
-        )
+    path = os.path.join(os.path.dirname(os.path.dirname(checkpoint)), "config.pkl")
+    try:
+        with open(path, "rb") as f:  # the order of Experiment._setup_name
+            saved_task, saved_task_config, saved_algorithm, saved_model, saved_seed, saved_config = (
+                pickle.load(f) for _ in range(6)
+            )
+    except (OSError, EOFError, pickle.UnpicklingError, AttributeError) as exc:
+        raise ValueError(f"--out: cannot resume {checkpoint}: its {path} is unreadable ({exc})") from None
     want = {
-        "algorithm": (type(saved_algorithm), type(algorithm_config(algorithm))),
-        "task": (saved_task.name, task.name),
-        "task config": (saved_task_config, task.config),
-        "seed": (saved_seed, seed),
+        "--algorithm": (saved_algorithm, algorithm_config(algorithm)),
+        "--task": (saved_task.name, task.name),
+        "task config (--agents, --comm, --obs-mode, --actions, --max-steps)": (saved_task_config, task.config),
+        "--seed": (saved_seed, seed),
+        "--model": (saved_model, model_cfg),
     }
-    for name in ("on_policy_collected_frames_per_batch", "off_policy_collected_frames_per_batch"):
-        want[name] = (getattr(saved_config, name), getattr(config, name))
+    for field in dataclasses.fields(config):
+        if field.name not in RESUMABLE_CHANGES:
+            want[f"{field.name} (--num-envs, --frames-per-batch, --device or --experiment)"] = (
+                getattr(saved_config, field.name),
+                getattr(config, field.name),
+            )
     for name, (saved, now) in want.items():
         if saved != now:
             raise ValueError(
                 f"--out: {checkpoint} is from a run with another {name} ({saved!r}, this command: {now!r}); "
-                "give another --out to start a new run"
+                "give the run's own options, or another --out to start a new run"
             )
 
 
 def _atomic_experiment_class():
-    """BenchMARL's Experiment, its checkpoints written to a temporary file and renamed, so a
-    run stopped while saving leaves the previous checkpoint whole."""
+    """BenchMARL's Experiment with checkpoints that make a stopped run continue as it was: each
+    written to a temporary file and renamed (a run stopped while saving keeps the previous
+    checkpoint whole; older ones are pruned only after), holding the optimisers' state and
+    the random number generators' too (BenchMARL saves neither, and reseeds in ``run``).
+    The environments start new episodes on resume."""
+    import random
+
+    import numpy as np
     from benchmarl.experiment import Experiment
 
     class AtomicCheckpointExperiment(Experiment):
@@ -139,24 +183,55 @@ def _atomic_experiment_class():
             path = self.folder_name / "checkpoints" / f"checkpoint_{self.total_frames}.pt"
             if path in self._checkpointed_files:  # the end of a run on an interval: rewritten, not counted twice
                 self._checkpointed_files.remove(path)
-            if self.config.keep_checkpoints_num is not None:
-                while len(self._checkpointed_files) >= self.config.keep_checkpoints_num:
-                    self._checkpointed_files.popleft().unlink(missing_ok=True)
             path.parent.mkdir(parents=False, exist_ok=True)
             tmp = path.with_suffix(".pt.tmp")
             torch.save(self.state_dict(), tmp)
             os.replace(tmp, path)
             self._checkpointed_files.append(path)
+            if self.config.keep_checkpoints_num is not None:
+                while len(self._checkpointed_files) > self.config.keep_checkpoints_num:
+                    self._checkpointed_files.popleft().unlink(missing_ok=True)
+
+        def state_dict(self):
+            state = super().state_dict()
+            state["optimizers"] = {
+                group: {name: opt.state_dict() for name, opt in optimizers.items()}
+                for group, optimizers in self.optimizers.items()
+            }
+            state["rng"] = {
+                "torch": torch.get_rng_state(),
+                "numpy": np.random.get_state(),  # noqa: NPY002 - BenchMARL seeds the global one
+                "python": random.getstate(),
+            }
+            return state
+
+        def load_state_dict(self, state_dict) -> None:
+            super().load_state_dict(state_dict)
+            for group, optimizers in state_dict.get("optimizers", {}).items():
+                for name, opt_state in optimizers.items():
+                    self.optimizers[group][name].load_state_dict(opt_state)
+            self._restored_rng = state_dict.get("rng")
 
         def _load_experiment(self):
+            folder = self.folder_name / "checkpoints"
+            for stale in folder.glob("*.pt.tmp"):  # a save that was stopped part-way
+                stale.unlink(missing_ok=True)
             # the checkpoints already written count towards keep_checkpoints_num
-            found = (self.folder_name / "checkpoints").glob("checkpoint_*.pt")
-            self._checkpointed_files.extend(sorted(found, key=lambda p: int(p.stem.split("_")[1])))
+            found = [p for p in folder.glob("checkpoint_*.pt") if _checkpoint_frames(p) is not None]
+            self._checkpointed_files.extend(sorted(found, key=_checkpoint_frames))
             # the checkpoint holds the collector's and buffers' plain-Python state too
             self.load_state_dict(
                 torch.load(self.config.restore_file, map_location=self.config.restore_map_location, weights_only=False)
             )
             return self
+
+        def _collection_loop(self):
+            rng = getattr(self, "_restored_rng", None)
+            if rng is not None:  # after run()'s seed_everything, which would replay iteration 0's stream
+                torch.set_rng_state(rng["torch"])
+                np.random.set_state(rng["numpy"])  # noqa: NPY002
+                random.setstate(rng["python"])
+            return super()._collection_loop()
 
     return AtomicCheckpointExperiment
 
@@ -175,10 +250,10 @@ def train(
 
     if model not in model_config_registry:
         raise ValueError(f"model must be one of {sorted(model_config_registry)}, got {model!r}")
-    if restore_file is not None:
-        check_resumable(restore_file, algorithm, task, seed, config)
-        config.restore_file = restore_file
     model_cfg = model_config_registry[model].get_from_yaml()
+    if restore_file is not None:
+        check_resumable(restore_file, algorithm, task, seed, model_cfg, config)
+        config.restore_file = restore_file
     experiment = _atomic_experiment_class()(
         task=task,
         algorithm_config=algorithm_config(algorithm),
@@ -328,6 +403,11 @@ def run(args: argparse.Namespace) -> dict:
             raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.checkpoint_every < 0:
         raise ValueError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+    if args.frames_per_batch % args.num_envs:
+        # TorchRL would round each batch up, and checkpoints at multiples of the batch never come
+        raise ValueError(
+            f"--frames-per-batch ({args.frames_per_batch}) must be a multiple of --num-envs ({args.num_envs})"
+        )
     if args.threads < 0:
         raise ValueError(f"--threads must be >= 0, got {args.threads}")
     algorithm_config(args.algorithm)  # a bad name fails here, before any work
@@ -379,8 +459,10 @@ def run(args: argparse.Namespace) -> dict:
         "T": result["mean_length"],
         "DIST": result["dist"],
         **result,
-        # wall-clock of this command; a resumed run counts BenchMARL's own iteration time instead
+        # a fresh run: this command's wall-clock; resumed: BenchMARL's summed iteration times
+        # over every command (without setup, and without iterations redone after a stop)
         "train_seconds": round(train_s if restore is None else float(experiment.total_time), 1),
+        "wall_seconds_this_command": round(train_s, 1),
         "resumed_from": None if restore is None else os.path.relpath(restore),
         "eval_seconds": round(eval_s, 1),
         "experiment_folder": os.path.relpath(str(experiment.folder_name)),  # relative: results.json is committed

@@ -25,20 +25,25 @@ FRESH_EVAL_FILE = "fresh-eval.json"
 
 def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: int, seed: int) -> dict:
     """S%, T, DIST of the stage's final policy (``stage_dir/policy.pt``, at ``update``) on
-    ``episodes`` fresh greedy episodes from ``seed``, at the stage's team size and comm;
-    kept in ``stage_dir/fresh-eval.json`` and reused while policy, episodes and seed match."""
+    ``episodes`` fresh greedy episodes from ``seed``, in the setting the policy was trained
+    in (its own task, team size, comm and radius, whatever this command says); kept in
+    ``stage_dir/fresh-eval.json`` and reused while policy, setting, episodes and seed match."""
+    from taichi_swarm import TaskSetting
+
+    policy, payload = checkpoint.load_policy(os.path.join(stage_dir, "policy.pt"))
+    setting = TaskSetting.from_dict(payload.get("task"), f"{stage_dir}/policy.pt")
+    key = {"update": update, "episodes": episodes, "seed": seed, "arch": cfg.arch, **setting.to_dict()}
     path = os.path.join(stage_dir, FRESH_EVAL_FILE)
-    key = {"update": update, "episodes": episodes, "seed": seed}
     if os.path.exists(path):
         with open(path) as f:
             saved = json.load(f)
         if all(saved.get(k) == v for k, v in key.items()):
             return saved
-    policy, _ = checkpoint.load_policy(os.path.join(stage_dir, "policy.pt"))
     device = resolve_device(cfg.device)
     policy.to(device)
+    agents = setting.team_size(f"{stage_dir}/policy.pt")
     result = evaluate(
-        policy, cfg.task, cfg.agents, cfg.comm, cfg.comm_radius, episodes, seed, arch=cfg.arch, device=device
+        policy, setting.task, agents, setting.comm, setting.comm_radius, episodes, seed, arch=cfg.arch, device=device
     )
     fresh = {**key, **{k: result[k] for k in ("success_rate", "mean_length", "dist")}}
     checkpoint.atomic_write_json(path, fresh)
@@ -66,6 +71,8 @@ def run_curriculum(
         )
     if fresh_eval_episodes < 0:
         raise ValueError(f"--fresh-eval-episodes must be >= 0, got {fresh_eval_episodes}")
+    if fresh_eval_seed < 0:
+        raise ValueError(f"--fresh-eval-seed must be >= 0, got {fresh_eval_seed}")
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []

@@ -419,8 +419,10 @@ def test_run_baselines_rejects_bad_arguments(tmp_path, capsys):
 
 def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
     """A run given the same command again continues from its checkpoint (here: extended from
-    200 to 400 env steps); a run of another algorithm in the same --out is refused."""
+    200 to 400 env steps) with its optimisers' state; another run's options are refused."""
     pytest.importorskip("benchmarl")
+    import torch
+
     from baselines.run import latest_checkpoint, main
 
     out = tmp_path / "mappo"
@@ -429,6 +431,16 @@ def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
     assert main(base) == 0
     assert latest_checkpoint(str(out)).endswith("checkpoint_200.pt")
     assert len(list(out.glob("*/checkpoints/*.pt"))) == 2  # the last two kept: 100 and 200
+    folder = next(out.glob("*/checkpoints"))
+    (folder / "checkpoint_final.pt").write_text("not ours")  # ignored
+    (folder / "checkpoint_300.pt.tmp").write_text("a save stopped part-way")  # removed
+
+    def adam_steps(path):
+        state = torch.load(path, weights_only=False)["optimizers"]["agents"]
+        return {name: int(s["state"][0]["step"]) for name, s in state.items() if s["state"]}
+
+    steps_at_200 = adam_steps(folder / "checkpoint_200.pt")
+    assert steps_at_200 and all(n > 0 for n in steps_at_200.values())
     frames_at = base.index("--frames") + 1
     longer = [*base[:frames_at], "400", *base[frames_at + 1 :]]
     assert main(longer) == 0
@@ -436,7 +448,24 @@ def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
     result = json.loads((out / "results.json").read_text())
     assert result["frames"] == 400 and result["resumed_from"].endswith("checkpoint_200.pt")
     assert len(list(out.glob("*"))) == 3  # one experiment folder (with config.pkl), results.json, curves.png
-    assert sorted(p.name for p in out.glob("*/checkpoints/*")) == ["checkpoint_300.pt", "checkpoint_400.pt"]
-    other = [*longer[:1], "iql", *longer[2:]]
-    assert main(other) == 2
-    assert "another algorithm" in capsys.readouterr().err
+    assert sorted(p.name for p in folder.iterdir()) == ["checkpoint_300.pt", "checkpoint_400.pt", "checkpoint_final.pt"]
+    # Adam continued where it stopped: twice the steps after twice the iterations
+    assert adam_steps(folder / "checkpoint_400.pt") == {k: 2 * n for k, n in steps_at_200.items()}
+    for change, named in [
+        (["--algorithm", "iql"], "--algorithm"),
+        (["--agents", "3"], "task config"),
+        (["--seed", "1"], "--seed"),
+        (["--experiment", "lr=0.001"], "lr"),
+        (["--num-envs", "2"], "n_envs_per_worker"),
+    ]:
+        assert main([*longer, *change]) == 2
+        assert named in capsys.readouterr().err
+
+
+def test_run_baselines_refuses_a_batch_that_is_not_a_multiple_of_the_envs(tmp_path, capsys):
+    pytest.importorskip("benchmarl")
+    from baselines.run import main
+
+    args = ["--out", str(tmp_path / "x"), *TINY, "--num-envs", "3"]  # 100 frames per batch
+    assert main(args) == 2
+    assert "--frames-per-batch (100) must be a multiple of --num-envs (3)" in capsys.readouterr().err

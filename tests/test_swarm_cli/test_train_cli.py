@@ -179,7 +179,9 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     assert "fresh S%" in r.stdout and "6 greedy episodes, seed 777" in r.stdout
     saved = tmp_path / "cur" / "stage-m3" / "fresh-eval.json"
     before = saved.stat().st_mtime_ns
-    r = swarm(*curriculum, cwd=tmp_path)  # resumed: finished stages and their evaluations are kept
+    assert fresh[1]["agents"] == 3 and fresh[1]["comm"] == "uc"  # the setting the stage trained in
+    # resumed (with another radius, which a finished stage ignores): stages and evaluations are kept
+    r = swarm(*curriculum, "--comm-radius", "0.5", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert saved.stat().st_mtime_ns == before
     assert json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"] == stages
