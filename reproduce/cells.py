@@ -222,7 +222,8 @@ def run_cell(
 
 def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> dict:
     """Train and evaluate a stock BenchMARL algorithm (baselines/run.py) into ``directory``;
-    the row in this module's format. Not resumable mid-run: a stopped one starts over."""
+    the row in this module's format. A stopped one resumes from its latest BenchMARL checkpoint
+    (baselines/run.py writes one every 25 iterations)."""
     from trainer.train import resolve_device
 
     try:

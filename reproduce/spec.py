@@ -12,7 +12,7 @@ docs/PAPER.md s.7; ``smoke.toml`` is a tiny one for tests and a first try). Its
   curriculum) evaluated at ``sizes`` without fine-tuning (Table 4).
 - ``baseline``: a stock BenchMARL ``algorithm`` (baselines/) trained at ``agents`` for
   ``frames`` env steps with ``obs_mode`` observations (Table 1's baseline rows; needs
-  the ``baselines`` extra). It is not resumable mid-run: a stopped one starts over.
+  the ``baselines`` extra). A stopped one resumes from its latest checkpoint.
 
 Every number a cell reports comes from ``final_episodes`` fresh greedy episodes at
 ``eval_seed`` (training never draws seeds below 2**40), not from the evaluations that
