@@ -344,14 +344,22 @@ def train(
 
 def train_or_resume(cfg: TrainConfig) -> dict:
     """Bring the run of ``cfg`` to its end from whatever state its directory is in:
-    finished (summary.json is read back), stopped (resumed from checkpoint.pt) or new."""
+    finished (summary.json is read back), stopped (resumed from checkpoint.pt) or new.
+    A larger ``cfg.updates`` than the run had raises its budget: a stopped run trains to
+    it, and so does a finished one that ran out of updates short of its target (a
+    curriculum stage given more updates per stage); one that reached its target stays done."""
     run = Run(cfg.default_run_dir())
     summary_path = os.path.join(run.path, "summary.json")
     if os.path.exists(summary_path):
         with open(summary_path) as f:
-            return json.load(f)
+            summary = json.load(f)
+        budget_left = not summary.get("reached_target") and summary["update"] < cfg.updates
+        if not (budget_left and os.path.exists(run.checkpoint)):
+            return summary
     if os.path.exists(run.checkpoint):
-        return train(resume=run.path)
+        with open(run.config) as f:
+            budget = json.load(f)["updates"]
+        return train(resume=run.path, updates=cfg.updates if cfg.updates > budget else None)
     return train(cfg)
 
 

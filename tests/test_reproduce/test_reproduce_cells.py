@@ -338,3 +338,28 @@ def test_a_run_stopped_at_its_target_stays_stopped_after_a_kill(tmp_path, monkey
     os.unlink(tmp_path / "run" / "summary.json")  # the kill
     summary = train_mod.train_or_resume(cfg)
     assert summary["update"] == 2 and summary["reached_target"]
+
+
+def test_a_larger_budget_extends_a_run_that_ran_out_short_of_its_target(tmp_path, monkeypatch):
+    """train_or_resume with more updates than a finished run had continues it when it ran out
+    of updates below its target (a curriculum given more updates per stage), never when it
+    reached its target, and a smaller budget changes nothing."""
+    import trainer.train as train_mod
+    from trainer.config import PRESETS, TrainConfig
+
+    rate = {"value": 0.0}
+
+    def evaluation(policy, cfg, update, device):
+        return {"success_rate": rate["value"], "mean_length": 5.0, "dist": 0.0, "update": update}
+
+    monkeypatch.setattr(train_mod, "evaluate_during_training", evaluation)
+    ppo = PRESETS["fast"].__class__(**{**PRESETS["fast"].__dict__, "num_envs": 4, "num_steps": 8, "minibatches": 1})
+    cfg = TrainConfig(agents=2, updates=4, eval_every=2, target_success=0.5, run_dir=str(tmp_path / "run"),
+                      compile=False, progress=False, transfer_offsets=(), ppo=ppo)  # fmt: skip
+    first = train_mod.train(cfg)
+    assert first["update"] == 4 and not first["reached_target"]
+    assert train_mod.train_or_resume(dataclasses.replace(cfg, updates=3)) == first
+    rate["value"] = 1.0  # reached at the first evaluation of the extension
+    extended = train_mod.train_or_resume(dataclasses.replace(cfg, updates=10))
+    assert extended["update"] == 6 and extended["reached_target"]
+    assert train_mod.train_or_resume(dataclasses.replace(cfg, updates=20))["update"] == 6
