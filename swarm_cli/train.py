@@ -71,6 +71,9 @@ def _eval_settings(opts, payload: dict, agents: int | None = None):
     )  # fmt: skip
 
 
+SAMPLED_NOTE = "(sampled actions: a diagnostic; the paper's numbers are greedy)"
+
+
 def eval_main(argv: list[str]) -> int:
     opts = parse(EvalOptions, argv, "swarm eval")
     import torch
@@ -100,7 +103,7 @@ def eval_main(argv: list[str]) -> int:
         return fail("swarm eval", exc)
     print(format_table([result]))
     if opts.sampled:
-        print("(sampled actions: a diagnostic; the paper's numbers are greedy)")
+        print(SAMPLED_NOTE)
     if opts.json:
         atomic_write_json(opts.json, {"checkpoint": opts.checkpoint, **result})
     return 0
@@ -122,26 +125,15 @@ def zero_shot_main(argv: list[str]) -> int:
         s = _eval_settings(opts, payload)
         rows = []
         for M in sizes:
-            rows.append(
-                evaluate(
-                    policy,
-                    s.task,
-                    M,
-                    s.comm,
-                    s.comm_radius,
-                    opts.episodes,
-                    opts.seed,
-                    arch=opts.arch,
-                    actions=opts.actions,
-                )  # fmt: skip
-            )
+            rows.append(evaluate(policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed,
+                                 arch=opts.arch, actions=opts.actions))  # fmt: skip
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return fail("swarm zero-shot", exc)
     print()
     print(format_table(rows))
     if opts.sampled:
-        print("(sampled actions: a diagnostic; the paper's numbers are greedy)")
+        print(SAMPLED_NOTE)
     if opts.json:
         atomic_write_json(
             opts.json,

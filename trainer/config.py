@@ -161,7 +161,7 @@ class TrainConfig:
     """Arithmetic of the update's forward and backward: fp32, or bf16 autocast (GEMMs in
     bfloat16, parameters, optimiser and loss reductions in fp32). bf16 is faster on CPUs
     with AVX-512 BF16 / AMX and on GPUs (1.2x at M = 3, 1.6x at M = 10 per minibatch here:
-    docs/BENCHMARKS.md); its effect on learning has not been measured yet."""
+    docs/BENCHMARKS.md); its effect on learning, measured on two runs, is in docs/RESULTS.md."""
     tensorboard: bool = False
     """Also write every scalar of metrics.jsonl as TensorBoard events under
     RUN_DIR/tensorboard (needs the tensorboard package: pip install -e ".[tensorboard]")."""

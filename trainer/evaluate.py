@@ -7,6 +7,8 @@ import torch
 import taichi_swarm
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 
+ACTION_MODES = ("greedy", "sampled")
+
 
 @torch.no_grad()
 def evaluate(
@@ -39,9 +41,6 @@ def evaluate(
         return _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions)
     finally:
         torch.set_num_threads(threads)
-
-
-ACTION_MODES = ("greedy", "sampled")
 
 
 def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions) -> dict:
