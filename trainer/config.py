@@ -15,6 +15,8 @@ from typing import Literal
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from trainer.model import ENTITY_MODES, ModelConfig
 
+INIT_CARRY = ("weights", "normaliser", "optimiser")  # what --init-from carries, cumulative
+
 
 @dataclass
 class PPOConfig:
@@ -144,7 +146,13 @@ class TrainConfig:
     run_dir: str = ""
     """Where the run lives (default runs/<task>-m<agents>-<comm>-s<seed>)."""
     init_from: str = ""
-    """Start from these weights (a checkpoint); fresh optimiser and normaliser."""
+    """Start from these weights (a checkpoint); what else it carries: ``init_carry``."""
+    init_carry: Literal["weights", "normaliser", "optimiser"] = "weights"
+    """What ``init_from`` carries into the new run. weights: the weights only (fresh Adam and
+    reward normaliser: the paper's curriculum); normaliser: also the reward normaliser's
+    running statistics; optimiser: also those and Adam's moments. The last two need a
+    checkpoint.pt (policy.pt holds weights only); they remove the dip a restart causes
+    (docs/RESULTS.md, "The restart dip")."""
     arch: str = "cpu"
     """Where the simulator runs: cpu | cuda | auto."""
     device: str = "cpu"
@@ -204,6 +212,7 @@ class TrainConfig:
             raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        self.validate_init_carry()
         if any(abs(d) > 1000 for d in self.transfer_offsets):
             raise ValueError(f"transfer_offsets must be small team-size offsets, got {self.transfer_offsets}")
         if not math.isfinite(self.comm_radius):
@@ -216,6 +225,12 @@ class TrainConfig:
             raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
         self.ppo.validate()
 
+    def validate_init_carry(self) -> None:
+        if self.init_carry not in INIT_CARRY:
+            raise ValueError(f"init_carry must be one of {INIT_CARRY}, got {self.init_carry!r}")
+        if self.init_carry != "weights" and not self.init_from:
+            raise ValueError(f"init_carry={self.init_carry!r} needs init_from (a checkpoint.pt to carry it from)")
+
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""
         return list(self.team_sizes) or [self.agents]
@@ -227,7 +242,7 @@ class TrainConfig:
 @dataclass
 class CurriculumConfig(TrainConfig):
     """``swarm curriculum``: train stage by stage over team sizes, each stage from the last
-    stage's weights (fresh optimiser and reward normaliser), moving on once a greedy
+    stage's weights (fresh optimiser and reward normaliser unless ``init_carry``), moving on once a greedy
     evaluation of at least 200 episodes reaches ``threshold`` (docs/PAPER.md s.6). Every
     option of ``swarm train`` applies to every stage, except ``agents``, ``updates`` and
     ``target_success`` and ``min_updates``, which the stages set. The run directory (default
@@ -251,6 +266,12 @@ class CurriculumConfig(TrainConfig):
     the threshold, so it overstates the stage (by 3 points for our RC M = 10 stage)."""
     fresh_eval_seed: int = 777
     """Seed of those episodes (training never uses it)."""
+
+    def validate_init_carry(self) -> None:
+        """Between stages init_carry carries from the last stage's checkpoint; the first stage
+        takes only the weights of --init-from (which may be a weights-only policy.pt)."""
+        if self.init_carry not in INIT_CARRY:
+            raise ValueError(f"init_carry must be one of {INIT_CARRY}, got {self.init_carry!r}")
 
     def train_config(self) -> TrainConfig:
         """The options every stage shares, as a TrainConfig."""

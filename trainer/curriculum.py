@@ -1,6 +1,6 @@
 """Curriculum over team sizes (s.6): train M = 3, then 5, 7, 10, each stage
 starting from the previous stage's weights with a fresh optimiser and reward
-normaliser, moving on once evaluation success reaches the threshold.
+normaliser (``init_carry`` carries those too), moving on once evaluation success reaches the threshold.
 Records S% and the number of updates N per stage (the paper's tables 2, 3), and,
 with ``fresh_eval_episodes``, each stage's final policy on that many fresh greedy
 episodes: the evaluation that ended a stage is the first of several noisy ones to
@@ -77,13 +77,15 @@ def run_curriculum(
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []
     previous_ckpt = base.init_from
-    for M in sizes:
+    for stage_index, M in enumerate(sizes):
         stage_dir = os.path.join(run_dir, f"stage-m{M}")
         stage_cfg = dataclasses.replace(
             base,
             agents=M,
             run_dir=stage_dir,
             init_from=previous_ckpt,
+            # the first stage takes only the weights of --init-from (often a policy.pt)
+            init_carry=base.init_carry if stage_index else "weights",
             updates=max_updates_per_stage,
             target_success=threshold,
             min_updates=min_updates_per_stage,

@@ -422,8 +422,9 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     p = cfg.ppo
     torch.manual_seed(cfg.seed)
     policy = SwarmPolicy(model_config_for(cfg)).to(device)
+    init_payload = None
     if cfg.init_from and payload is None:
-        init_policy, _ = checkpoint.load_policy(cfg.init_from)
+        init_policy, init_payload = checkpoint.load_policy(cfg.init_from)
         if init_policy.config != policy.config:
             raise checkpoint.CheckpointError(
                 f"--init-from {cfg.init_from} has model {init_policy.config}, this run wants {policy.config}"
@@ -441,6 +442,8 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
             TeamGroup(size, env, {}, Rollout.allocate(p.num_steps, E, size, env.num_landmarks, device), scaler)
         )
     state = TrainingState(policy, optimizer, groups, {"update": 0, "env_steps": 0, "wall_time": 0.0}, [])
+    if init_payload is not None and cfg.init_carry != "weights":
+        carry_training_state(init_payload, cfg, state)
     if payload is not None:
         checkpoint.load_weights(policy, payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
@@ -462,6 +465,31 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
             seed = TRAIN_SEED_BASE + cfg.seed * 1_000_003 + state.counters["update"] + 7_919 * k
             g.obs = g.env.reset(seed=seed)
     return state
+
+
+def carry_training_state(init_payload: dict, cfg: TrainConfig, state: TrainingState) -> None:
+    """--init-carry normaliser|optimiser: the reward normalisers' running statistics (not
+    the per-environment running returns, which start at 0) and, for optimiser, Adam's moments
+    (at this run's learning rate) from the --init-from checkpoint."""
+    scaler_states = init_payload.get("reward_scalers") or (
+        [init_payload["reward_scaler"]] if "reward_scaler" in init_payload else []
+    )
+    if not scaler_states:
+        raise checkpoint.CheckpointError(
+            f"--init-carry {cfg.init_carry} needs a training checkpoint (checkpoint.pt): "
+            f"{cfg.init_from} holds weights only"
+        )
+    if len(scaler_states) not in (1, len(state.groups)):
+        raise checkpoint.CheckpointError(
+            f"--init-from {cfg.init_from} holds {len(scaler_states)} reward normalisers; "
+            f"this run has {len(state.groups)} team sizes (carry needs 1 or as many)"
+        )
+    for k, g in enumerate(state.groups):
+        g.scaler.rms.load_state_dict(scaler_states[k if len(scaler_states) > 1 else 0]["rms"])
+    if cfg.init_carry == "optimiser":
+        state.optimizer.load_state_dict(init_payload["optimizer"])
+        for group in state.optimizer.param_groups:
+            group["lr"] = cfg.ppo.lr
 
 
 def save_checkpoint(run: Run, state: TrainingState, cfg: TrainConfig) -> None:
