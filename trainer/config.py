@@ -151,8 +151,8 @@ class TrainConfig:
     """What ``init_from`` carries into the new run. weights: the weights only (fresh Adam and
     reward normaliser: the paper's curriculum); normaliser: also the reward normaliser's
     running statistics; optimiser: also those and Adam's moments. The last two need a
-    checkpoint.pt (policy.pt holds weights only); they remove the dip a restart causes
-    (docs/RESULTS.md, "The restart dip")."""
+    checkpoint.pt (policy.pt holds weights only). Carrying the normaliser removes the value-loss
+    spike of a restart (docs/RESULTS.md, "Carrying the reward normaliser across a restart")."""
     arch: str = "cpu"
     """Where the simulator runs: cpu | cuda | auto."""
     device: str = "cpu"
