@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from trainer.model import ENTITY_MODES, ModelConfig
@@ -225,10 +225,13 @@ class TrainConfig:
             raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
         self.ppo.validate()
 
+    carry_needs_init_from: ClassVar[bool] = True
+    """A run carries from its --init-from; a curriculum (False) from each last stage."""
+
     def validate_init_carry(self) -> None:
         if self.init_carry not in INIT_CARRY:
             raise ValueError(f"init_carry must be one of {INIT_CARRY}, got {self.init_carry!r}")
-        if self.init_carry != "weights" and not self.init_from:
+        if self.carry_needs_init_from and self.init_carry != "weights" and not self.init_from:
             raise ValueError(f"init_carry={self.init_carry!r} needs init_from (a checkpoint.pt to carry it from)")
 
     def training_sizes(self) -> list[int]:
@@ -267,11 +270,9 @@ class CurriculumConfig(TrainConfig):
     fresh_eval_seed: int = 777
     """Seed of those episodes (training never uses it)."""
 
-    def validate_init_carry(self) -> None:
-        """Between stages init_carry carries from the last stage's checkpoint; the first stage
-        takes only the weights of --init-from (which may be a weights-only policy.pt)."""
-        if self.init_carry not in INIT_CARRY:
-            raise ValueError(f"init_carry must be one of {INIT_CARRY}, got {self.init_carry!r}")
+    # between stages init_carry carries from the last stage's checkpoint; the first stage
+    # takes only the weights of --init-from (which may be a weights-only policy.pt)
+    carry_needs_init_from: ClassVar[bool] = False
 
     def train_config(self) -> TrainConfig:
         """The options every stage shares, as a TrainConfig."""

@@ -447,7 +447,7 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     if payload is not None:
         checkpoint.load_weights(policy, payload["model"])
         optimizer.load_state_dict(payload["optimizer"])
-        scaler_states = payload.get("reward_scalers", [payload["reward_scaler"]])
+        scaler_states = reward_scaler_states(payload)
         if len(scaler_states) != len(groups):
             raise checkpoint.CheckpointError(f"the checkpoint holds {len(scaler_states)} reward scalers")
         for g, scaler_state in zip(groups, scaler_states, strict=True):
@@ -467,13 +467,19 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     return state
 
 
+def reward_scaler_states(payload: dict) -> list[dict]:
+    """The reward normalisers a checkpoint holds, one per team size (checkpoints from before
+    several sizes hold one, as "reward_scaler"); [] for a weights-only policy.pt."""
+    if "reward_scalers" in payload:
+        return payload["reward_scalers"]
+    return [payload["reward_scaler"]] if "reward_scaler" in payload else []
+
+
 def carry_training_state(init_payload: dict, cfg: TrainConfig, state: TrainingState) -> None:
     """--init-carry normaliser|optimiser: the reward normalisers' running statistics (not
     the per-environment running returns, which start at 0) and, for optimiser, Adam's moments
     (at this run's learning rate) from the --init-from checkpoint."""
-    scaler_states = init_payload.get("reward_scalers") or (
-        [init_payload["reward_scaler"]] if "reward_scaler" in init_payload else []
-    )
+    scaler_states = reward_scaler_states(init_payload)
     if not scaler_states:
         raise checkpoint.CheckpointError(
             f"--init-carry {cfg.init_carry} needs a training checkpoint (checkpoint.pt): "
