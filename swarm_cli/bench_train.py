@@ -34,22 +34,29 @@ def forward_flops(hidden: int, rounds: int, agents: int, landmarks: int, teams: 
     return 2.0 * (teams * M * per_agent + per_call)
 
 
-def sgemm_peak(threads: int = 1, size: int = 1024, seconds: float = 1.0) -> float:
-    """Measured fp32 GEMM GFLOP/s of this machine (``size``^3 matmuls, ``threads`` threads)."""
+def sgemm_peak(threads: int = 1, size: int = 1024, seconds: float = 1.0, device: str = "cpu") -> float:
+    """Measured fp32 GEMM GFLOP/s where the network runs: ``size``^3 matmuls on the CPU with
+    ``threads`` threads, or on the GPU (``device="cuda"``, synchronised before reading the clock)."""
     import time
 
     import torch
 
+    cuda = device.startswith("cuda")
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        a, b = torch.randn(size, size), torch.randn(size, size)
+        a, b = torch.randn(size, size, device=device), torch.randn(size, size, device=device)
         for _ in range(3):
             a @ b
+        if cuda:
+            torch.cuda.synchronize()
         n, start = 0, time.perf_counter()
         while time.perf_counter() - start < seconds:
-            a @ b
-            n += 1
+            for _ in range(10 if cuda else 1):  # GPU: queue a few before each clock read
+                a @ b
+                n += 1
+            if cuda:
+                torch.cuda.synchronize()
         return 2 * size**3 * n / (time.perf_counter() - start) / 1e9
     finally:
         torch.set_num_threads(previous)
@@ -66,6 +73,7 @@ def measure(
     num_envs: int | None = None,
     compile: bool = True,
     precision: str = "fp32",
+    minibatches: int | None = None,
 ) -> dict:
     tmp = tempfile.mkdtemp(prefix="swarm-bench-")
     try:
@@ -73,7 +81,11 @@ def measure(
             task=task,
             agents=agents,
             preset=preset,
-            ppo=dataclasses.replace(PRESETS[preset], **({"num_envs": num_envs} if num_envs else {})),
+            ppo=dataclasses.replace(
+                PRESETS[preset],
+                **({"num_envs": num_envs} if num_envs else {}),
+                **({"minibatches": minibatches} if minibatches else {}),
+            ),
             device=device,
             arch=arch,
             compile=compile,
@@ -110,6 +122,7 @@ def measure(
         "preset": preset,
         "threads": threads,
         "precision": precision,
+        "minibatches": p.minibatches,
         "env_steps_per_s": steps / wall,
         "agent_samples_per_update": cfg.ppo.num_envs * cfg.ppo.num_steps * agents,
         "share_sim": sim / wall,
@@ -132,12 +145,28 @@ def main(argv: list[str] | None = None) -> int:
     if problems:
         return fail("swarm bench train", "; ".join(problems))
     rows = [
-        measure(p, args.task, args.agents, args.updates, t, args.device, args.arch, args.num_envs, args.compile, x)
+        measure(
+            p,
+            args.task,
+            args.agents,
+            args.updates,
+            t,
+            args.device,
+            args.arch,
+            args.num_envs,
+            args.compile,
+            x,
+            args.minibatches,
+        )
         for p in presets
         for t in args.threads
         for x in args.precisions
     ]
-    peak = {t: sgemm_peak(t) for t in sorted(set(args.threads))}
+    from trainer.train import resolve_device
+
+    device = resolve_device(args.device)
+    gemm = 4096 if device.startswith("cuda") else 1024
+    peak = {t: sgemm_peak(t, gemm, device=device) for t in sorted(set(args.threads))}
     print(f"\nPPO cycle, {args.task} M={args.agents}, {args.updates} timed updates per row")
     head = (
         f"{'preset':<7} {'threads':>7} {'prec':>5} {'env steps/s':>12} {'s/update':>9} {'sim':>6}"
@@ -155,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "agent-samples/s: agent samples through forward+backward in the update; GFLOP/s: the GEMM and "
         "attention FLOPs of the fused network (swarm_cli.bench_train.forward_flops, backward = 2x forward) per "
-        "second of update; sgemm peak measured here (1024^3): "
+        f"second of update; fp32 GEMM peak measured here ({gemm}^3 on {device}): "
         + ", ".join(f"{t} thread(s) {g:.0f} GFLOP/s" for t, g in peak.items())
     )
     base = {p: rows[[r["preset"] for r in rows].index(p)] for p in presets}  # fewest threads, first precision

@@ -377,13 +377,15 @@ class BenchTrainOptions:
     """where the simulator runs"""
     num_envs: int | None = None
     """override the preset's environments per rollout"""
+    minibatches: int | None = None
+    """override the preset's minibatches per epoch"""
     compile: bool = True
     """torch.compile the update (--no-compile: eager)"""
     precisions: tuple[Literal["fp32", "bf16"], ...] = ("fp32",)
     """arithmetic of the update, one row each (bf16: autocast, TrainConfig.precision)"""
 
     def __post_init__(self):
-        for name in ("agents", "updates", "num_envs"):
+        for name in ("agents", "updates", "num_envs", "minibatches"):
             at_least(getattr(self, name), 1, name.replace("_", "-"))
         for t in self.threads:
             at_least(t, 1, "threads")

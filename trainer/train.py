@@ -533,6 +533,8 @@ def one_update(state: TrainingState, cfg: TrainConfig, loss_fn, device: str, run
     torch.set_num_threads(cfg.torch_threads)
     batches = [(g.buf, r.advantages, r.returns) for g, r in zip(state.groups, rollouts, strict=True)]
     stats, skipped = ppo_update(state.policy, state.optimizer, batches, p, loss_fn)
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()  # the update's kernels are queued: time them, not their launch
     t_update = time.perf_counter() - tc
     state.counters["skipped_minibatches"] = state.counters.get("skipped_minibatches", 0) + skipped
     state.bad_updates = state.bad_updates + 1 if skipped == p.epochs * p.minibatches else 0

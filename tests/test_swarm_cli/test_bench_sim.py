@@ -145,6 +145,25 @@ def test_gpu_check_script_arguments():
     assert any("tests/test_taichi_swarm/test_cuda.py" in x for x in lines)
     bench = [x for x in lines if "bench train" in x]
     assert len(bench) == 2 and "--agents 3" in bench[0] and "--agents 5" in bench[1] and "--device cuda" in bench[0]
-    for bad in (["--agents", "0"], ["--bogus"], ["--updates", "x"]):
+    assert not any("swarm_cli train" in x for x in lines)  # no training unless asked
+    r = subprocess.run(
+        [script, "--dry-run", "--python", "python3", "--train-seconds", "60", "--precisions", "bf16"],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
+    assert all("--precisions bf16" in x for x in lines if "bench train" in x)
+    assert any(x.startswith("+ timeout -s INT 60 python3 -m swarm_cli train") for x in lines)
+    for bad in (["--agents", "0"], ["--bogus"], ["--updates", "x"], ["--precisions", "fp16"], ["--train-seconds", "x"]):
         r = subprocess.run([script, "--dry-run", *bad], capture_output=True, text=True)
         assert r.returncode == 2 and r.stderr, bad
+
+
+def test_bench_train_measures_a_preset_with_overrides():
+    """One timed update on the CPU with --num-envs and --minibatches overriding the preset."""
+    from swarm_cli.bench_train import measure
+
+    row = measure("fast", "coverage", 3, 1, 1, num_envs=8, compile=False, minibatches=2)
+    assert row["minibatches"] == 2 and row["agent_samples_per_update"] == 8 * 32 * 3
+    assert row["env_steps_per_s"] > 0 and 0 < row["share_update"] < 1

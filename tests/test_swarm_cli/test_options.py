@@ -28,6 +28,7 @@ def test_a_list_option_without_values_is_refused(argv, capsys):
         (["eval", "x.pt", "--episodes", "0"], "--episodes must be >= 1"),
         (["eval", "x.pt", "--record-envs", "0"], "--record-envs must be >= 1"),
         (["execute", "d", "--threads", "0"], "--threads must be >= 1"),
+        (["bench", "train", "--minibatches", "0"], "--minibatches must be >= 1"),
         (["eval", "x.pt", "--comm-radius", "-1"], "--comm-radius must be >= 0"),
         (["eval", "x.pt", "--comm", "xx"], "--comm"),
         (["replay", "f.rrd", "--port", "70000"], "--port must be in 1..65535"),
