@@ -37,12 +37,13 @@ def train_main(argv: list[str]) -> int:
     try:
         if "--resume" in argv or any(a.startswith("--resume=") for a in argv):
             opts = parse(ResumeOptions, argv, "swarm train --resume RUN_DIR")
-            summary = train(resume=opts.resume, updates=opts.updates)
+            summary = train(resume=opts.resume, updates=opts.updates, progress=opts.progress)
         else:
             if "-h" in argv or "--help" in argv:
                 print(
-                    "swarm train --resume RUN_DIR [--updates N]   continue a stopped run (N raises its update budget)\n"
-                    "swarm train [options below]                  start a run\n"
+                    "swarm train --resume RUN_DIR [--updates N] [--no-progress]\n"
+                    "                      continue a stopped run (N raises its update budget)\n"
+                    "swarm train [options below]   start a run\n"
                 )
             summary = train(_config_from_argv(argv, "swarm train"))
     except KeyboardInterrupt:

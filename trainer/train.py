@@ -321,10 +321,14 @@ class TeamGroup:
 
 
 def train(
-    cfg: TrainConfig | None = None, resume: str | None = None, on_update=None, updates: int | None = None
+    cfg: TrainConfig | None = None,
+    resume: str | None = None,
+    on_update=None,
+    updates: int | None = None,
+    progress: bool | None = None,
 ) -> dict:
     """Train from ``cfg``, or continue the run in directory ``resume`` (``updates``
-    then raises its total update budget).
+    then raises its total update budget; ``progress`` overrides whether it shows a bar).
 
     ``on_update(record)`` is called after every update (tests, curriculum).
     Returns a summary: run_dir, updates done, env steps, wall time, last eval.
@@ -339,7 +343,7 @@ def train(
     else:
         run_dir = cfg.default_run_dir()
     with RunDirLock(run_dir):
-        return _train_locked(cfg, resume, on_update, updates)
+        return _train_locked(cfg, resume, on_update, updates, progress)
 
 
 def train_or_resume(cfg: TrainConfig) -> dict:
@@ -363,7 +367,7 @@ def train_or_resume(cfg: TrainConfig) -> dict:
     return train(cfg)
 
 
-def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None):
+def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None, progress: bool | None = None):
     """The run directory of a new run, or of one to resume (its checkpoint checked, its
     config read back, leftovers of a killed write repaired). Returns (run, cfg, payload)."""
     if resume is None:
@@ -398,6 +402,8 @@ def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None):
             checkpoint.save_policy_only(payload, run.policy)
     if updates is not None:
         cfg = dataclasses.replace(cfg, updates=updates)
+    if progress is not None:
+        cfg = dataclasses.replace(cfg, progress=progress)
     run.truncate_metrics(payload["counters"]["update"])
     cfg.validate()
     checkpoint.atomic_write_json(run.config, to_dict(cfg))
@@ -611,8 +617,8 @@ def reached_target(cfg, last_eval: dict | None, update: int) -> bool:
     return hit and update >= cfg.min_updates
 
 
-def _train_locked(cfg, resume, on_update, updates) -> dict:
-    run, cfg, payload = open_run(cfg, resume, updates)
+def _train_locked(cfg, resume, on_update, updates, progress=None) -> dict:
+    run, cfg, payload = open_run(cfg, resume, updates, progress)
     device = resolve_device(cfg.device)
     state = build_state(cfg, payload, device)
     loss_fn = make_loss_fn(state.policy, cfg.ppo, compile=cfg.compile, precision=cfg.precision)

@@ -11,6 +11,7 @@ import sys
 import pytest
 import torch
 
+from swarm_cli.main import main as swarm_main
 from trainer import checkpoint
 from trainer.config import PPOConfig, TrainConfig
 from trainer.model import ModelConfig
@@ -54,6 +55,11 @@ def test_run_dir_resume_and_refusal_to_overwrite(tmp_path):
     lines = [json.loads(x) for x in open(os.path.join(run, "metrics.jsonl"))]
     assert [r["update"] for r in lines] == [1, 2, 3, 4]
     assert not torch.equal(before["model"]["agent_encoder.weight"], after["model"]["agent_encoder.weight"])
+    # the CLI's resume takes --progress / --no-progress (a display setting, not part of the experiment)
+    assert swarm_main(["train", "--resume", run, "--updates", "5", "--progress"]) == 0
+    assert json.load(open(os.path.join(run, "config.json")))["progress"] is True
+    assert swarm_main(["train", "--resume", run, "--updates", "6", "--no-progress"]) == 0
+    assert json.load(open(os.path.join(run, "config.json")))["progress"] is False
 
 
 def test_resume_drops_metrics_written_after_the_checkpoint(tmp_path):
