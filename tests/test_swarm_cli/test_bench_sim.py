@@ -167,3 +167,31 @@ def test_bench_train_measures_a_preset_with_overrides():
     row = measure("fast", "coverage", 3, 1, 1, num_envs=8, compile=False, minibatches=2)
     assert row["minibatches"] == 2 and row["agent_samples_per_update"] == 8 * 32 * 3
     assert row["env_steps_per_s"] > 0 and 0 < row["share_update"] < 1
+
+
+def test_gpu_campaign_script_arguments():
+    """tools/gpu_campaign.sh: the jobs it lists are swarm commands that parse here, on the CPU."""
+    import shlex
+    import subprocess
+
+    from swarm_cli.train import _config_from_argv
+    from trainer.config import CurriculumConfig, TrainConfig
+
+    script = os.path.join(os.path.dirname(__file__), "..", "..", "tools", "gpu_campaign.sh")
+    r = subprocess.run([script, "--list"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    jobs = dict(line.split(": swarm ", 1) for line in r.stdout.splitlines())
+    assert len(jobs) == 8 and {"table1-cov6-uc", "curr-cov-rc"} <= set(jobs)
+    for name, command in jobs.items():
+        argv = shlex.split(command)
+        config_type = TrainConfig if argv[0] == "train" else CurriculumConfig
+        cfg = _config_from_argv(argv[1:], f"swarm {argv[0]}", config_type)
+        assert cfg.preset == "gpu" and cfg.device == "cuda" and cfg.arch == "cuda", name
+        assert cfg.ppo.num_envs == 4096 and cfg.ppo.minibatches == 16, name
+    r = subprocess.run([script, "--dry-run", "--device", "cpu", "curr-form-uc"], capture_output=True, text=True)
+    lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
+    assert r.returncode == 0 and len(lines) == 1 and "curriculum --task formation --comm uc" in lines[0]
+    assert "--device cpu --arch cpu" in lines[0] and lines[0].startswith("+ timeout -s INT 240 ")
+    for bad in (["bogus-job"], ["--seconds", "0"], ["--device", "tpu"], ["--frobnicate"]):
+        r = subprocess.run([script, "--dry-run", *bad], capture_output=True, text=True)
+        assert r.returncode == 2 and r.stderr, bad

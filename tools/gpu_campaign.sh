@@ -1,0 +1,92 @@
+#!/usr/bin/env bash
+# The training that is slow on two CPU cores, prepared for a GPU lent for a few minutes:
+# Table 1's M = 6 cells from scratch and the RC curricula by the paper's protocol, each a
+# `swarm` command with the `gpu` preset on CUDA, several at a time on the one GPU.
+#
+#   tools/gpu_campaign.sh --list                      # the jobs and their commands
+#   tools/gpu_campaign.sh --dry-run                   # print what would run
+#   tools/gpu_campaign.sh --python python3 --seconds 240 --parallel 4 --out "$OUT" [JOB ...]
+#   tools/gpu_campaign.sh --device cpu --seconds 20 table1-cov3-rc   # a smoke test without a GPU
+#
+# Each job stops at its own end or after --seconds (Ctrl-C: the trainer keeps its
+# checkpoint). Then each run directory, without checkpoint.pt (weights-only policy.pt,
+# config, metrics, curves) and with the job's log, is packed into OUT/JOB.tgz: at most 8 jobs
+# per call, one file each. Evaluate what comes back anywhere, e.g.
+#   swarm eval RUN/policy.pt --episodes 500 --seed 777
+set -uo pipefail
+
+usage() { sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; }
+common="--preset gpu --no-compile --no-progress --eval-every 10 --eval-episodes 500"
+curr="--max-updates-per-stage 200 --fresh-eval-episodes 500 --fresh-eval-seed 777 --transfer-offsets"
+declare -A JOBS=(
+    [table1-cov6-uc]="train --task coverage --agents 6 --comm uc --updates 400 --transfer-offsets -1 1"
+    [table1-cov6-rc]="train --task coverage --agents 6 --comm rc --updates 400 --transfer-offsets -1 1"
+    [table1-line6-rc]="train --task line --agents 6 --comm rc --updates 400 --transfer-offsets -1 1"
+    [table1-cov3-rc]="train --task coverage --agents 3 --comm rc --updates 400 --transfer-offsets 1 2"
+    [curr-cov-rc]="curriculum --task coverage --comm rc $curr"
+    [curr-form-rc]="curriculum --task formation --comm rc $curr"
+    [curr-line-rc]="curriculum --task line --comm rc $curr"
+    [curr-form-uc]="curriculum --task formation --comm uc $curr"
+)
+ORDER="table1-cov6-uc curr-cov-rc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc"
+
+dry_run=0
+device=cuda
+python=python
+seconds=240
+parallel=4
+out=runs/gpu-campaign
+jobs=()
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --dry-run) dry_run=1 ;;
+        --list) for j in $ORDER; do echo "$j: swarm ${JOBS[$j]} $common --device cuda --arch cuda"; done; exit 0 ;;
+        --device) device="${2:?--device needs a value}"; shift ;;
+        --python) python="${2:?--python needs a value}"; shift ;;
+        --seconds) seconds="${2:?--seconds needs a value}"; shift ;;
+        --parallel) parallel="${2:?--parallel needs a value}"; shift ;;
+        --out) out="${2:?--out needs a value}"; shift ;;
+        -h|--help) usage; exit 0 ;;
+        -*) echo "gpu_campaign.sh: unknown option '$1'" >&2; usage >&2; exit 2 ;;
+        *)
+            if [ -z "${JOBS[$1]+x}" ]; then
+                echo "gpu_campaign.sh: unknown job '$1' (jobs: $ORDER)" >&2
+                exit 2
+            fi
+            jobs+=("$1") ;;
+    esac
+    shift
+done
+case "$device" in cuda|cpu) ;; *) echo "gpu_campaign.sh: --device takes cuda or cpu, got '$device'" >&2; exit 2 ;; esac
+for n in "$seconds" "$parallel"; do
+    case "$n" in ''|*[!0-9]*|0) echo "gpu_campaign.sh: --seconds and --parallel take positive integers, got '$n'" >&2; exit 2 ;; esac
+done
+[ ${#jobs[@]} -eq 0 ] && read -r -a jobs <<< "$ORDER"
+if [ ${#jobs[@]} -gt 8 ]; then
+    echo "gpu_campaign.sh: at most 8 jobs per call (one packed file each), got ${#jobs[@]}" >&2
+    exit 2
+fi
+
+cd "$(dirname "$0")/.."
+work=$(mktemp -d /tmp/gpu-campaign.XXXXXX)
+[ "$dry_run" = 0 ] && mkdir -p "$out"
+run_job() {  # JOB: its command under the time limit, then its run directory packed
+    local j=$1 dir="$work/$1"
+    # shellcheck disable=SC2086  # the job's arguments are a word list
+    set -- timeout -s INT "$seconds" "$python" -m swarm_cli ${JOBS[$j]} $common --device "$device" --arch "$device" --run-dir "$dir"
+    echo "+ $*"
+    [ "$dry_run" = 1 ] && return 0
+    "$@" > "$work/$j.log" 2>&1
+    echo "$j: exit $? after at most $seconds s"
+    tar czf "$out/$j.tgz" --exclude=checkpoint.pt -C "$work" "$j" "$j.log"
+}
+running=0
+for j in "${jobs[@]}"; do
+    if [ "$dry_run" = 1 ]; then run_job "$j"; continue; fi
+    run_job "$j" &
+    running=$((running + 1))
+    if [ "$running" -ge "$parallel" ]; then wait -n; running=$((running - 1)); fi
+done
+wait
+[ "$dry_run" = 0 ] && ls -la "$out"
+exit 0
