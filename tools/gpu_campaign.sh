@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The training that is slow on two CPU cores, prepared for a GPU lent for a few minutes:
-# Table 1's M = 6 cells from scratch and the RC curricula by the paper's protocol, each a
+# Table 1's M = 6 cells from scratch, the RC curricula by the paper's protocol and Table 2's
+# no-EMP curricula (the first 8 jobs of --list run by default), each a
 # `swarm` command with the `gpu` preset on CUDA, several at a time on the one GPU.
 #
 #   tools/gpu_campaign.sh --list                      # the jobs and their commands
@@ -15,7 +16,7 @@
 #   swarm eval RUN/policy.pt --episodes 500 --seed 777
 set -uo pipefail
 
-usage() { sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; }
 common="--preset gpu --no-compile --no-progress --eval-every 10 --eval-episodes 500"
 curr="--max-updates-per-stage 200 --fresh-eval-episodes 500 --fresh-eval-seed 777 --transfer-offsets"
 declare -A JOBS=(
@@ -27,8 +28,11 @@ declare -A JOBS=(
     [curr-form-rc]="curriculum --task formation --comm rc $curr"
     [curr-line-rc]="curriculum --task line --comm rc $curr"
     [curr-form-uc]="curriculum --task formation --comm uc $curr"
+    [curr-cov-uc-noemp]="curriculum --task coverage --comm uc --model.entity-mode padded $curr"
+    [curr-cov-rc-noemp]="curriculum --task coverage --comm rc --model.entity-mode padded $curr"
 )
-ORDER="table1-cov6-uc curr-cov-rc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc"
+ORDER="table1-cov6-uc curr-cov-rc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-cov-uc-noemp curr-cov-rc-noemp curr-form-uc table1-cov3-rc"
+DEFAULT="table1-cov6-uc curr-cov-rc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-cov-uc-noemp curr-cov-rc-noemp"
 
 dry_run=0
 device=cuda
@@ -61,7 +65,7 @@ case "$device" in cuda|cpu) ;; *) echo "gpu_campaign.sh: --device takes cuda or 
 for n in "$seconds" "$parallel"; do
     case "$n" in ''|*[!0-9]*|0) echo "gpu_campaign.sh: --seconds and --parallel take positive integers, got '$n'" >&2; exit 2 ;; esac
 done
-[ ${#jobs[@]} -eq 0 ] && read -r -a jobs <<< "$ORDER"
+[ ${#jobs[@]} -eq 0 ] && read -r -a jobs <<< "$DEFAULT"
 if [ ${#jobs[@]} -gt 8 ]; then
     echo "gpu_campaign.sh: at most 8 jobs per call (one packed file each), got ${#jobs[@]}" >&2
     exit 2

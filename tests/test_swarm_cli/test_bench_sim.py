@@ -181,7 +181,7 @@ def test_gpu_campaign_script_arguments():
     r = subprocess.run([script, "--list"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     jobs = dict(line.split(": swarm ", 1) for line in r.stdout.splitlines())
-    assert len(jobs) == 8 and {"table1-cov6-uc", "curr-cov-rc"} <= set(jobs)
+    assert len(jobs) == 10 and {"table1-cov6-uc", "curr-cov-rc", "curr-cov-uc-noemp"} <= set(jobs)
     for name, command in jobs.items():
         argv = shlex.split(command)
         config_type = TrainConfig if argv[0] == "train" else CurriculumConfig
@@ -192,6 +192,8 @@ def test_gpu_campaign_script_arguments():
     lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
     assert r.returncode == 0 and len(lines) == 1 and "curriculum --task formation --comm uc" in lines[0]
     assert "--device cpu --arch cpu" in lines[0] and lines[0].startswith("+ timeout -s INT 240 ")
-    for bad in (["bogus-job"], ["--seconds", "0"], ["--device", "tpu"], ["--frobnicate"]):
+    r = subprocess.run([script, "--dry-run"], capture_output=True, text=True)
+    assert r.returncode == 0 and sum(x.startswith("+ ") for x in r.stdout.splitlines()) == 8  # the default jobs
+    for bad in (["bogus-job"], ["--seconds", "0"], ["--device", "tpu"], ["--frobnicate"], list(jobs)):
         r = subprocess.run([script, "--dry-run", *bad], capture_output=True, text=True)
         assert r.returncode == 2 and r.stderr, bad
