@@ -165,8 +165,15 @@ def main(argv: list[str] | None = None) -> int:
     from trainer.train import resolve_device
 
     device = resolve_device(args.device)
-    gemm = 4096 if device.startswith("cuda") else 1024
-    peak = {t: sgemm_peak(t, gemm, device=device) for t in sorted(set(args.threads))}
+    if device.startswith("cuda"):  # one GPU peak; torch's CPU threads do not change it
+        gpu_peak = sgemm_peak(1, 4096, device=device)
+        peak = dict.fromkeys(args.threads, gpu_peak)
+        peak_text = f"fp32 GEMM peak measured here (4096^3 on {device}): {gpu_peak:.0f} GFLOP/s"
+    else:
+        peak = {t: sgemm_peak(t) for t in sorted(set(args.threads))}
+        peak_text = "fp32 GEMM peak measured here (1024^3 on cpu): " + ", ".join(
+            f"{t} thread(s) {g:.0f} GFLOP/s" for t, g in peak.items()
+        )
     print(f"\nPPO cycle, {args.task} M={args.agents}, {args.updates} timed updates per row")
     head = (
         f"{'preset':<7} {'threads':>7} {'prec':>5} {'env steps/s':>12} {'s/update':>9} {'sim':>6}"
@@ -184,8 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "agent-samples/s: agent samples through forward+backward in the update; GFLOP/s: the GEMM and "
         "attention FLOPs of the fused network (swarm_cli.bench_train.forward_flops, backward = 2x forward) per "
-        f"second of update; fp32 GEMM peak measured here ({gemm}^3 on {device}): "
-        + ", ".join(f"{t} thread(s) {g:.0f} GFLOP/s" for t, g in peak.items())
+        "second of update; " + peak_text
     )
     base = {p: rows[[r["preset"] for r in rows].index(p)] for p in presets}  # fewest threads, first precision
     for r in rows:

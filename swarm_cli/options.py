@@ -111,7 +111,7 @@ class ResumeOptions:
     """run directory of the stopped run"""
     updates: Annotated[int | None, Default("keep it")] = None
     """raise the run's total update budget to this"""
-    progress: bool = True
+    progress: Annotated[bool, Default("the run's own setting")] = True
     """show a progress bar (--no-progress for a run in the background with output to a log)"""
 
     def __post_init__(self):

@@ -37,7 +37,8 @@ def train_main(argv: list[str]) -> int:
     try:
         if "--resume" in argv or any(a.startswith("--resume=") for a in argv):
             opts = parse(ResumeOptions, argv, "swarm train --resume RUN_DIR")
-            summary = train(resume=opts.resume, updates=opts.updates, progress=opts.progress)
+            given = any(a in ("--progress", "--no-progress") for a in argv)  # else the run's own setting
+            summary = train(resume=opts.resume, updates=opts.updates, progress=opts.progress if given else None)
         else:
             if "-h" in argv or "--help" in argv:
                 print(

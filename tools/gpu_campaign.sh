@@ -10,13 +10,14 @@
 #   tools/gpu_campaign.sh --device cpu --seconds 20 table1-cov3-rc   # a smoke test without a GPU
 #
 # Each job stops at its own end or after --seconds (Ctrl-C: the trainer keeps its
-# checkpoint). Then each run directory, without checkpoint.pt (weights-only policy.pt,
-# config, metrics, curves) and with the job's log, is packed into OUT/JOB.tgz: at most 8 jobs
-# per call, one file each. Evaluate what comes back anywhere, e.g.
+# checkpoint; killed 60 s later if still there). Then each run directory, without
+# checkpoint.pt (weights-only policy.pt, config, metrics; curves only for a run that
+# finished) and with the job's log, is packed into OUT/JOB.tgz: at most 8 jobs per call,
+# one file each. Evaluate what comes back anywhere, e.g.
 #   swarm eval RUN/policy.pt --episodes 500 --seed 777
 set -uo pipefail
 
-usage() { sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; }
 common="--preset gpu --no-compile --no-progress --eval-every 10 --eval-episodes 500"
 curr="--max-updates-per-stage 200 --fresh-eval-episodes 500 --fresh-eval-seed 777 --transfer-offsets"
 declare -A JOBS=(
@@ -57,6 +58,9 @@ while [ $# -gt 0 ]; do
                 echo "gpu_campaign.sh: unknown job '$1' (jobs: $ORDER)" >&2
                 exit 2
             fi
+            for k in "${jobs[@]}"; do
+                [ "$k" = "$1" ] && { echo "gpu_campaign.sh: job '$1' named twice (one run directory each)" >&2; exit 2; }
+            done
             jobs+=("$1") ;;
     esac
     shift
@@ -71,18 +75,23 @@ if [ ${#jobs[@]} -gt 8 ]; then
     exit 2
 fi
 
+out=$(realpath -m "$out")  # relative to where the script was called from
 cd "$(dirname "$0")/.."
-work=$(mktemp -d /tmp/gpu-campaign.XXXXXX)
-[ "$dry_run" = 0 ] && mkdir -p "$out"
+work=/tmp/gpu-campaign.DRY-RUN
+[ "$dry_run" = 0 ] && work=$(mktemp -d /tmp/gpu-campaign.XXXXXX) && mkdir -p "$out"
 run_job() {  # JOB: its command under the time limit, then its run directory packed
     local j=$1 dir="$work/$1"
     # shellcheck disable=SC2086  # the job's arguments are a word list
-    set -- timeout -s INT "$seconds" "$python" -m swarm_cli ${JOBS[$j]} $common --device "$device" --arch "$device" --run-dir "$dir"
+    set -- timeout --preserve-status -k 60 -s INT "$seconds" "$python" -m swarm_cli ${JOBS[$j]} $common \
+        --device "$device" --arch "$device" --run-dir "$dir"
     echo "+ $*"
     [ "$dry_run" = 1 ] && return 0
     "$@" > "$work/$j.log" 2>&1
-    echo "$j: exit $? after at most $seconds s"
-    tar czf "$out/$j.tgz" --exclude=checkpoint.pt -C "$work" "$j" "$j.log"
+    local rc=$?
+    case $rc in 0) echo "$j: finished" ;; 130) echo "$j: stopped at the $seconds s limit" ;; *) echo "$j: FAILED (exit $rc)" ;; esac
+    local pack=("$j.log")
+    [ -d "$dir" ] && pack+=("$j")
+    tar czf "$out/$j.tgz" --exclude=checkpoint.pt -C "$work" "${pack[@]}"
 }
 running=0
 for j in "${jobs[@]}"; do

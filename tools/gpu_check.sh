@@ -9,12 +9,13 @@
 #
 # --python: the interpreter that has torch, taichi and this project (default: python).
 # --train-seconds S: afterwards, train coverage M = 3 with the `gpu` preset on CUDA for at
-# most S seconds (Ctrl-C at the limit: the checkpoint is kept; `swarm eval` it anywhere).
+# most S seconds (Ctrl-C at the limit: the checkpoint is kept; `swarm eval` it anywhere) into
+# --run-dir (default: runs/gpu-coverage-m3-DATE-TIME).
 # Every step runs even when an earlier one failed; the exit status says whether all passed.
 # Target on one H100: >= 100k env steps/s at M = 3 (docs/BENCHMARKS.md, GPU).
 set -uo pipefail
 
-usage() { sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; }
 dry_run=0
 agents="3 10"
 updates=3
@@ -22,7 +23,7 @@ num_envs=4096
 precisions="fp32 bf16"
 python=python
 train_seconds=0
-run_dir=runs/gpu-coverage-m3
+run_dir=runs/gpu-coverage-m3-$(date +%Y%m%d-%H%M%S)
 while [ $# -gt 0 ]; do
     case "$1" in
         --dry-run) dry_run=1 ;;
@@ -42,10 +43,12 @@ for n in $agents $updates $num_envs; do
     case "$n" in ''|*[!0-9]*|0) echo "gpu_check.sh: expected positive integers, got '$n'" >&2; exit 2 ;; esac
 done
 case "$train_seconds" in ''|*[!0-9]*) echo "gpu_check.sh: --train-seconds expects seconds (0 = no training), got '$train_seconds'" >&2; exit 2 ;; esac
+[ -z "${precisions// /}" ] && { echo "gpu_check.sh: --precisions needs fp32 and/or bf16" >&2; exit 2; }
 for p in $precisions; do
     case "$p" in fp32|bf16) ;; *) echo "gpu_check.sh: --precisions takes fp32 and/or bf16, got '$p'" >&2; exit 2 ;; esac
 done
 
+run_dir=$(realpath -m "$run_dir")  # relative to where the script was called from
 cd "$(dirname "$0")/.."
 failed=()
 run() {
@@ -64,17 +67,20 @@ for m in $agents; do
         --updates "$updates" --num-envs "$num_envs" --no-compile --precisions $precisions
 done
 if [ "$train_seconds" -gt 0 ]; then
-    # SIGINT at the limit: the trainer saves its checkpoint and exits 130 (not a failure here)
-    echo "+ timeout -s INT $train_seconds $python -m swarm_cli train --task coverage --agents 3 --preset gpu ..."
+    # SIGINT at the limit: the trainer saves its checkpoint and exits 130 (not a failure
+    # here); a process still there 60 s later is killed
+    train=(timeout --preserve-status -k 60 -s INT "$train_seconds" "$python" -m swarm_cli train --task coverage
+        --agents 3 --preset gpu --device cuda --arch cuda --no-compile --updates 1000 --eval-every 10
+        --eval-episodes 500 --transfer-offsets --no-progress --run-dir "$run_dir")
+    echo "+ ${train[*]}"
     if [ "$dry_run" = 0 ]; then
-        timeout -s INT "$train_seconds" "$python" -m swarm_cli train --task coverage --agents 3 --preset gpu \
-            --device cuda --arch cuda --no-compile --updates 1000 --eval-every 10 --eval-episodes 500 \
-            --transfer-offsets --no-progress --run-dir "$run_dir"
+        "${train[@]}"
         rc=$?
-        case $rc in 0|124|130) ;; *) failed+=("training (exit $rc)") ;; esac
+        case $rc in 0|130) ;; *) failed+=("training (exit $rc)") ;; esac
         echo "  checkpoint: $run_dir (evaluate: swarm eval $run_dir/policy.pt --episodes 500 --seed 777)"
     fi
 fi
+[ "$dry_run" = 1 ] && exit 0
 if [ "${#failed[@]}" -gt 0 ]; then
     printf 'gpu_check.sh: FAILED: %s\n' "${failed[@]}" >&2
     exit 1

@@ -153,9 +153,11 @@ def test_gpu_check_script_arguments():
     )
     assert r.returncode == 0, r.stderr
     lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
-    assert all("--precisions bf16" in x for x in lines if "bench train" in x)
-    assert any(x.startswith("+ timeout -s INT 60 python3 -m swarm_cli train") for x in lines)
-    for bad in (["--agents", "0"], ["--bogus"], ["--updates", "x"], ["--precisions", "fp16"], ["--train-seconds", "x"]):
+    bench = [x for x in lines if "bench train" in x]
+    assert len(bench) == 2 and all("--precisions bf16" in x for x in bench)
+    assert any(x.startswith("+ timeout --preserve-status -k 60 -s INT 60 python3 -m swarm_cli train") for x in lines)
+    bad_args = (["--agents", "0"], ["--bogus"], ["--updates", "x"], ["--precisions", "fp16"], ["--precisions", " "])
+    for bad in (*bad_args, ["--train-seconds", "x"]):
         r = subprocess.run([script, "--dry-run", *bad], capture_output=True, text=True)
         assert r.returncode == 2 and r.stderr, bad
 
@@ -191,9 +193,19 @@ def test_gpu_campaign_script_arguments():
     r = subprocess.run([script, "--dry-run", "--device", "cpu", "curr-form-uc"], capture_output=True, text=True)
     lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
     assert r.returncode == 0 and len(lines) == 1 and "curriculum --task formation --comm uc" in lines[0]
-    assert "--device cpu --arch cpu" in lines[0] and lines[0].startswith("+ timeout -s INT 240 ")
+    assert "--device cpu --arch cpu" in lines[0] and lines[0].startswith(
+        "+ timeout --preserve-status -k 60 -s INT 240 "
+    )
     r = subprocess.run([script, "--dry-run"], capture_output=True, text=True)
     assert r.returncode == 0 and sum(x.startswith("+ ") for x in r.stdout.splitlines()) == 8  # the default jobs
-    for bad in (["bogus-job"], ["--seconds", "0"], ["--device", "tpu"], ["--frobnicate"], list(jobs)):
+    bad_args = (
+        ["bogus-job"],
+        ["--seconds", "0"],
+        ["--device", "tpu"],
+        ["--frobnicate"],
+        list(jobs),
+        ["curr-cov-rc"] * 2,
+    )
+    for bad in bad_args:
         r = subprocess.run([script, "--dry-run", *bad], capture_output=True, text=True)
         assert r.returncode == 2 and r.stderr, bad

@@ -60,6 +60,8 @@ def test_run_dir_resume_and_refusal_to_overwrite(tmp_path):
     assert json.load(open(os.path.join(run, "config.json")))["progress"] is True
     assert swarm_main(["train", "--resume", run, "--updates", "6", "--no-progress"]) == 0
     assert json.load(open(os.path.join(run, "config.json")))["progress"] is False
+    assert swarm_main(["train", "--resume", run, "--updates", "7"]) == 0  # neither: the run's own setting
+    assert json.load(open(os.path.join(run, "config.json")))["progress"] is False
 
 
 def test_resume_drops_metrics_written_after_the_checkpoint(tmp_path):
