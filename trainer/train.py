@@ -342,8 +342,10 @@ def train(
         raise ValueError("train() needs a config or a run directory to resume")
     else:
         run_dir = cfg.default_run_dir()
+    # what a resume may change in the run's config (None: keep the run's own)
+    overrides = {k: v for k, v in (("updates", updates), ("progress", progress)) if v is not None}
     with RunDirLock(run_dir):
-        return _train_locked(cfg, resume, on_update, updates, progress)
+        return _train_locked(cfg, resume, on_update, overrides)
 
 
 def train_or_resume(cfg: TrainConfig) -> dict:
@@ -367,9 +369,10 @@ def train_or_resume(cfg: TrainConfig) -> dict:
     return train(cfg)
 
 
-def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None, progress: bool | None = None):
+def open_run(cfg: TrainConfig | None, resume: str | None, overrides: dict | None = None):
     """The run directory of a new run, or of one to resume (its checkpoint checked, its
-    config read back, leftovers of a killed write repaired). Returns (run, cfg, payload)."""
+    config read back, leftovers of a killed write repaired; ``overrides``: the config fields a
+    resume changes, e.g. updates, progress). Returns (run, cfg, payload)."""
     if resume is None:
         if cfg is None:
             raise ValueError("train() needs a config or a run directory to resume")
@@ -400,10 +403,7 @@ def open_run(cfg: TrainConfig | None, resume: str | None, updates: int | None, p
     if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
         if checkpoint.load(run.policy).get("counters") != payload.get("counters"):
             checkpoint.save_policy_only(payload, run.policy)
-    if updates is not None:
-        cfg = dataclasses.replace(cfg, updates=updates)
-    if progress is not None:
-        cfg = dataclasses.replace(cfg, progress=progress)
+    cfg = dataclasses.replace(cfg, **(overrides or {}))
     run.truncate_metrics(payload["counters"]["update"])
     cfg.validate()
     checkpoint.atomic_write_json(run.config, to_dict(cfg))
@@ -617,8 +617,8 @@ def reached_target(cfg, last_eval: dict | None, update: int) -> bool:
     return hit and update >= cfg.min_updates
 
 
-def _train_locked(cfg, resume, on_update, updates, progress=None) -> dict:
-    run, cfg, payload = open_run(cfg, resume, updates, progress)
+def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
+    run, cfg, payload = open_run(cfg, resume, overrides)
     device = resolve_device(cfg.device)
     state = build_state(cfg, payload, device)
     loss_fn = make_loss_fn(state.policy, cfg.ppo, compile=cfg.compile, precision=cfg.precision)
