@@ -396,6 +396,26 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+class TrainingDiverged(RuntimeError):
+    """The policy produced NaN actions during training: the run diverged (the simulator refuses
+    NaN); not a bad input. The message names the last checkpoint and how to evaluate it."""
+
+
+def _diverged_message(algorithm: str, out_dir: str, cause: Exception) -> str:
+    last = latest_checkpoint(out_dir)
+    head = f"training diverged: the {algorithm} policy's actions became NaN ({cause})."
+    if last is None:
+        return (
+            f"{head} No checkpoint was written before it; lower the learning rate "
+            "(--experiment lr=...) or checkpoint more often (--checkpoint-every)."
+        )
+    frames = _checkpoint_frames(last)
+    return (
+        f"{head} The last checkpoint before it is {last} ({frames} env steps): give the same "
+        f"command with --frames {frames} to evaluate that policy without training further."
+    )
+
+
 def run(args: argparse.Namespace) -> dict:
     """Check everything, train, evaluate, write ``<out>/results.json``; returns the result."""
     for name in ("frames", "num_envs", "frames_per_batch", "eval_episodes", "agents", "max_steps"):
@@ -440,7 +460,12 @@ def run(args: argparse.Namespace) -> dict:
     if args.threads:
         torch.set_num_threads(args.threads)
     start = time.time()
-    experiment = train(args.algorithm, task, args.seed, config, args.model, restore_file=restore)
+    try:
+        experiment = train(args.algorithm, task, args.seed, config, args.model, restore_file=restore)
+    except ValueError as exc:
+        if "NaN" not in str(exc):
+            raise
+        raise TrainingDiverged(_diverged_message(args.algorithm, args.out, exc)) from exc
     train_s = time.time() - start
     continuous = bool(experiment.continuous_actions)
     start = time.time()
@@ -540,6 +565,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"run_baselines.py: error: {exc}", file=sys.stderr)
         return 2
+    except TrainingDiverged as exc:
+        print(f"run_baselines.py: {exc}", file=sys.stderr)
+        return 3
     dist = "-" if summary["DIST"] is None else f"{summary['DIST']:.3f}"
     print(
         f"{summary['algorithm']} {summary['task']} M={summary['agents']} {summary['obs_mode']} {summary['actions']}: "
@@ -550,6 +578,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 __all__ = [
+    "TrainingDiverged",
     "algorithm_config",
     "algorithm_names",
     "build_parser",

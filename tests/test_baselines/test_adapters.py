@@ -469,3 +469,43 @@ def test_run_baselines_refuses_a_batch_that_is_not_a_multiple_of_the_envs(tmp_pa
     args = ["--out", str(tmp_path / "x"), *TINY, "--num-envs", "3"]  # 100 frames per batch
     assert main(args) == 2
     assert "--frames-per-batch (100) must be a multiple of --num-envs (3)" in capsys.readouterr().err
+
+
+def test_a_run_whose_actions_become_nan_names_its_last_checkpoint(tmp_path, capsys, monkeypatch):
+    """A diverged policy (NaN actions, which the simulator refuses) is reported as divergence,
+    naming the last checkpoint and the --frames that evaluates it; that command then works."""
+    pytest.importorskip("benchmarl")
+    import torch
+
+    import baselines.run as run_module
+
+    out = tmp_path / "ippo"
+    base = ["--algorithm", "ippo", "--task", "coverage", "--agents", "2", "--out", str(out), *TINY]
+    base += ["--actions", "continuous", "--checkpoint-every", "1"]
+    assert run_module.main(base) == 0
+    (out / "results.json").unlink()
+
+    env = taichi_swarm.make("coverage", num_envs=1, num_agents=2, action_space="continuous")
+    env.reset(seed=0)
+    with pytest.raises(ValueError) as refused:  # the simulator's own error, as a diverged run meets it
+        env.step(torch.full((1, 2, 2), float("nan")))
+
+    def diverging_train(*args, **kwargs):
+        raise refused.value
+
+    monkeypatch.setattr(run_module, "train", diverging_train)
+    frames_at = base.index("--frames") + 1
+    longer = [*base[:frames_at], "400", *base[frames_at + 1 :]]
+    assert run_module.main(longer) == 3
+    err = capsys.readouterr().err
+    assert "training diverged" in err and "NaN" in err
+    assert "checkpoint_200.pt" in err and "--frames 200" in err
+    assert not (out / "results.json").exists()
+    monkeypatch.undo()
+    assert run_module.main(base) == 0  # --frames 200: evaluates the checkpoint, trains no further
+    assert json.loads((out / "results.json").read_text())["frames"] == 200
+
+    fresh = tmp_path / "fresh"
+    monkeypatch.setattr(run_module, "train", diverging_train)
+    assert run_module.main([*base[: base.index("--out")], "--out", str(fresh), *base[base.index("--out") + 2 :]]) == 3
+    assert "No checkpoint was written" in capsys.readouterr().err
