@@ -411,7 +411,7 @@ def _diverged_message(algorithm: str, out_dir: str, cause: Exception) -> str:
         )
     frames = _checkpoint_frames(last)
     return (
-        f"{head} The last checkpoint before it is {last} ({frames} env steps): give the same "
+        f"{head} The latest checkpoint is {last} ({frames} env steps): give the same "
         f"command with --frames {frames} to evaluate that policy without training further."
     )
 
@@ -469,9 +469,19 @@ def run(args: argparse.Namespace) -> dict:
     train_s = time.time() - start
     continuous = bool(experiment.continuous_actions)
     start = time.time()
-    result = evaluate_policy(
-        experiment.policy, task, continuous, episodes=args.eval_episodes, seed=args.eval_seed, device=args.device
-    )
+    try:
+        result = evaluate_policy(
+            experiment.policy, task, continuous, episodes=args.eval_episodes, seed=args.eval_seed, device=args.device
+        )
+    except ValueError as exc:
+        if "NaN" not in str(exc):
+            raise
+        raise TrainingDiverged(
+            f"the trained {args.algorithm} policy ({experiment.total_frames} env steps) gives NaN actions ({exc}): "
+            "its weights diverged; checkpoints are in "
+            f"{os.path.join(args.out, '*', 'checkpoints')} (an earlier one may still be finite: keep it alone "
+            "there and give --frames its env steps)"
+        ) from exc
     eval_s = time.time() - start
     summary = {
         "algorithm": args.algorithm.lower(),

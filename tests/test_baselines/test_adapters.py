@@ -473,7 +473,8 @@ def test_run_baselines_refuses_a_batch_that_is_not_a_multiple_of_the_envs(tmp_pa
 
 def test_a_run_whose_actions_become_nan_names_its_last_checkpoint(tmp_path, capsys, monkeypatch):
     """A diverged policy (NaN actions, which the simulator refuses) is reported as divergence,
-    naming the last checkpoint and the --frames that evaluates it; that command then works."""
+    naming the latest checkpoint and the --frames that evaluates it; that command then works
+    (and says so too when the checkpoint itself holds diverged weights)."""
     pytest.importorskip("benchmarl")
     import torch
 
@@ -501,6 +502,10 @@ def test_a_run_whose_actions_become_nan_names_its_last_checkpoint(tmp_path, caps
     assert "training diverged" in err and "NaN" in err
     assert "checkpoint_200.pt" in err and "--frames 200" in err
     assert not (out / "results.json").exists()
+    monkeypatch.undo()
+    monkeypatch.setattr(run_module, "evaluate_policy", diverging_train)  # a checkpoint that holds NaN weights
+    assert run_module.main(base) == 3
+    assert "weights diverged" in capsys.readouterr().err
     monkeypatch.undo()
     assert run_module.main(base) == 0  # --frames 200: evaluates the checkpoint, trains no further
     assert json.loads((out / "results.json").read_text())["frames"] == 200
