@@ -158,7 +158,7 @@ class SwarmParallelEnv(ParallelEnv):
                 if u.shape != (2,):
                     raise ValueError(f"actions[{name!r}] must have shape (2,) (continuous), got {u.shape}")
                 if np.isnan(u).any():
-                    raise ValueError(f"actions[{name!r}] must not contain NaN, got {u.tolist()}")
+                    raise taichi_swarm.NaNActionsError(f"actions[{name!r}] must not contain NaN, got {u.tolist()}")
                 self._actions[0, i] = u
             else:
                 if isinstance(a, np.ndarray) and a.shape == ():

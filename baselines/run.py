@@ -21,7 +21,7 @@ import time
 import torch
 import yaml
 
-from taichi_swarm import TASKS
+from taichi_swarm import TASKS, NaNActionsError
 from taichi_swarm.files import atomic_write_json, ensure_writable
 from taichi_swarm.metrics import FirstEpisodes
 
@@ -462,9 +462,7 @@ def run(args: argparse.Namespace) -> dict:
     start = time.time()
     try:
         experiment = train(args.algorithm, task, args.seed, config, args.model, restore_file=restore)
-    except ValueError as exc:
-        if "NaN" not in str(exc):
-            raise
+    except NaNActionsError as exc:
         raise TrainingDiverged(_diverged_message(args.algorithm, args.out, exc)) from exc
     train_s = time.time() - start
     continuous = bool(experiment.continuous_actions)
@@ -473,9 +471,7 @@ def run(args: argparse.Namespace) -> dict:
         result = evaluate_policy(
             experiment.policy, task, continuous, episodes=args.eval_episodes, seed=args.eval_seed, device=args.device
         )
-    except ValueError as exc:
-        if "NaN" not in str(exc):
-            raise
+    except NaNActionsError as exc:
         raise TrainingDiverged(
             f"the trained {args.algorithm} policy ({experiment.total_frames} env steps) gives NaN actions ({exc}): "
             "its weights diverged; checkpoints are in "

@@ -11,7 +11,7 @@ Taichi is initialised by the first ``make`` (or ``taichi_swarm.init``), never
 at import.
 """
 
-from .env import ARRAYS, COMMS, SwarmEnv, make
+from .env import ARRAYS, COMMS, NaNActionsError, SwarmEnv, make
 from .physics import ACTION_DIM, ACTION_MEANINGS, ACTION_SPACES, NUM_ACTIONS
 from .runtime import init
 from .setting import TaskSetting
@@ -24,6 +24,7 @@ __all__ = [
     "ARRAYS",
     "COMMS",
     "NUM_ACTIONS",
+    "NaNActionsError",
     "TASKS",
     "TASK_SPECS",
     "TaskSetting",

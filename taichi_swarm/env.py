@@ -69,6 +69,11 @@ def _check_float(name: str, value, minimum: float) -> float:
     return float(value)
 
 
+class NaNActionsError(ValueError):
+    """Actions holding NaN, refused by ``SwarmEnv.step``: from a trainer, a policy whose weights
+    diverged (a ValueError, so callers that treat it as bad input still do)."""
+
+
 class SwarmEnv:
     """B environments of one task; build it with ``taichi_swarm.make``."""
 
@@ -326,11 +331,11 @@ class SwarmEnv:
                 raise ValueError(f"{what} must be contiguous (call .contiguous())")
             if actions.device.type == "cuda":
                 if bool(torch.isnan(actions).any()):
-                    raise ValueError(f"{what} must not contain NaN")
+                    raise NaNActionsError(f"{what} must not contain NaN")
                 return actions.detach().view(-1)
             flat = actions.detach().numpy().reshape(-1)
         if np.isnan(flat).any():
-            raise ValueError(f"{what} must not contain NaN")
+            raise NaNActionsError(f"{what} must not contain NaN")
         return flat
 
     def _check_actions(self, actions) -> np.ndarray | None:
