@@ -6,7 +6,10 @@ imports torch and ``swarm --help`` is instant.
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
+import threading
 
 # name -> (module:function, one-line help)
 COMMANDS = {
@@ -22,6 +25,28 @@ COMMANDS = {
     "replay": ("swarm_cli.deploy:replay_main", "play back or inspect a Rerun recording"),
     "bench": ("swarm_cli.bench:main", "benchmarks: sim | train | deploy"),
 }
+
+
+@contextlib.contextmanager
+def sigterm_as_ctrl_c():
+    """While inside, SIGTERM (``kill PID``, a scheduler's stop) takes the Ctrl-C path:
+    training saves its checkpoint, says how to resume and exits. Yields a list that holds
+    the signal once one arrived. A job started in the background by a non-interactive
+    shell ignores Ctrl-C's SIGINT, so SIGTERM is how such a run is stopped cleanly."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+        yield received
+        return
+
+    def stop(signum, frame):
+        received.append(signum)
+        raise KeyboardInterrupt(f"stopped by {signal.Signals(signum).name}")
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
@@ -46,16 +71,20 @@ def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
     except ImportError as exc:
         print(f"{prog} {name}: cannot import {module_name} ({exc})", file=sys.stderr)
         return 2
-    try:
-        return int(getattr(module, func_name)(rest) or 0)
-    except KeyboardInterrupt:
-        return 130
-    except SystemExit as exc:  # an option parser refused the command line (and said why) or printed --help
-        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
-    except OSError as exc:  # disk full, read-only file system, permissions: one line, no traceback
-        where = f" ({exc.filename})" if exc.filename else ""
-        print(f"{prog} {name}: error: {exc.strerror or exc}{where}", file=sys.stderr)
-        return 1
+    with sigterm_as_ctrl_c() as received:
+        try:
+            code = int(getattr(module, func_name)(rest) or 0)
+        except KeyboardInterrupt:
+            code = 130
+        except SystemExit as exc:  # an option parser refused the command line (and said why) or printed --help
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+        except OSError as exc:  # disk full, read-only file system, permissions: one line, no traceback
+            where = f" ({exc.filename})" if exc.filename else ""
+            print(f"{prog} {name}: error: {exc.strerror or exc}{where}", file=sys.stderr)
+            code = 1
+    if received:  # the command took the Ctrl-C path because of SIGTERM: the shell's 128 + 15
+        code = 128 + signal.SIGTERM
+    return code
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -508,3 +508,61 @@ def test_init_carry_takes_the_normaliser_and_adam_from_a_checkpoint(tmp_path):
         dataclasses.replace(fresh, init_carry="optimiser").validate()
     with pytest.raises(ValueError, match="init_carry must be one of"):
         dataclasses.replace(fresh, init_from="x", init_carry="adam").validate()
+
+
+def test_sigterm_takes_the_ctrl_c_path_and_exits_143(monkeypatch):
+    import signal
+    import time
+    import types
+
+    from swarm_cli.main import dispatch
+
+    seen = []
+
+    def command(argv):  # a command that is stopped by SIGTERM while it works
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(30)
+        except KeyboardInterrupt as exc:
+            seen.append(str(exc))
+            raise
+        return 0
+
+    monkeypatch.setitem(sys.modules, "fake_swarm_command", types.SimpleNamespace(run=command))
+    before = signal.getsignal(signal.SIGTERM)
+    assert dispatch("swarm", {"work": ("fake_swarm_command:run", "")}, ["work"]) == 143
+    assert seen == ["stopped by SIGTERM"]
+    assert signal.getsignal(signal.SIGTERM) is before  # the handler lives only while the command runs
+    assert dispatch("swarm", {"ok": ("fake_swarm_command:run", "")}, ["ok", "x"]) == 143  # still handled
+    monkeypatch.setitem(sys.modules, "fake_swarm_command", types.SimpleNamespace(run=lambda argv: 0))
+    assert dispatch("swarm", {"ok": ("fake_swarm_command:run", "")}, ["ok"]) == 0
+
+
+@pytest.mark.slow
+def test_kill_stops_a_background_training_run_with_its_checkpoint(tmp_path):
+    """`kill PID` (SIGTERM) on `swarm train` saves the checkpoint at the update it stopped at,
+    even when the shell that started the run in the background ignores SIGINT for it."""
+    import signal
+    import time
+
+    run = str(tmp_path / "run")
+    cmd = [sys.executable, "-m", "swarm_cli", "train", "--task", "coverage", "--agents", "2", "--updates", "400",
+           "--ppo.num-envs", "4", "--ppo.num-steps", "8", "--ppo.minibatches", "2", "--eval-every", "1000",
+           "--checkpoint-every", "1000", "--no-compile", "--no-progress", "--run-dir", run]  # fmt: skip
+    root = os.path.join(os.path.dirname(__file__), "..", "..")
+    proc = subprocess.Popen(
+        cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),  # as `cmd &` in a script
+    )  # fmt: skip
+    metrics = os.path.join(run, "metrics.jsonl")
+    deadline = time.time() + 180
+    while time.time() < deadline and (not os.path.exists(metrics) or len(open(metrics).readlines()) < 3):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)  # ignored, as Ctrl-C is for a background job of a script
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 143, out
+    assert "interrupted: checkpoint saved at update" in out and "swarm train --resume" in out
+    done = len(open(metrics).readlines())
+    assert 3 <= done < 400
+    assert checkpoint.load(os.path.join(run, "checkpoint.pt"))["counters"]["update"] == done
