@@ -149,7 +149,8 @@ def zero_shot_main(argv: list[str]) -> int:
 
 
 def curriculum_main(argv: list[str]) -> int:
-    """swarm curriculum [--sizes 3 5 7 10] [--threshold 0.85] [--max-updates-per-stage N] [train options]"""
+    """swarm curriculum [--sizes 3 5 7 10] [--threshold 0.85] [--max-updates-per-stage N] [--polish-updates N]
+    [train options]"""
     from trainer.config import CurriculumConfig
     from trainer.curriculum import format_stages, run_curriculum
 
@@ -161,7 +162,7 @@ def curriculum_main(argv: list[str]) -> int:
         base = dataclasses.replace(cfg.train_config(), run_dir=run_dir)
         stages = run_curriculum(
             base, list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, run_dir, cfg.min_updates_per_stage,
-            cfg.fresh_eval_episodes, cfg.fresh_eval_seed,
+            cfg.fresh_eval_episodes, cfg.fresh_eval_seed, cfg.polish_updates, cfg.polish_lr,
         )  # fmt: skip
     except KeyboardInterrupt:
         return 130

@@ -270,6 +270,13 @@ class CurriculumConfig(TrainConfig):
     the threshold, so it overstates the stage (by 3 points for our RC M = 10 stage)."""
     fresh_eval_seed: int = 777
     """Seed of those episodes (training never uses it)."""
+    polish_updates: int = 0
+    """After each stage, train it on for this many updates at the constant ``polish_lr``
+    from its weights (fresh optimiser and normaliser), no target, in stage-m<M>-polish/; the
+    next stage starts from there (0: no polish). 300 at 3e-5 added 3-11 points to three of
+    four of our stages that had stopped short of the paper (docs/RESULTS.md, session 12)."""
+    polish_lr: float = 3e-5
+    """Constant learning rate of the polish."""
 
     # between stages init_carry carries from the last stage's checkpoint; the first stage
     # takes only the weights of --init-from (which may be a weights-only policy.pt)

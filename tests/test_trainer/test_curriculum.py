@@ -1,0 +1,76 @@
+"""The curriculum's polish: each stage trained on at a low constant learning rate, the
+next stage started from the polished weights."""
+
+import dataclasses
+import json
+import os
+
+import pytest
+
+
+def tiny_config(tmp_path, monkeypatch):
+    import trainer.train as train_mod
+    from trainer.config import PRESETS, ModelConfig, TrainConfig
+
+    def perfect(policy, cfg, update, device):
+        return {"success_rate": 1.0, "mean_length": 5.0, "dist": 0.0, "update": update}
+
+    monkeypatch.setattr(train_mod, "evaluate_during_training", perfect)
+    ppo = dataclasses.replace(PRESETS["fast"], num_envs=4, num_steps=8, minibatches=1, epochs=1)
+    return TrainConfig(
+        agents=2, updates=4, eval_every=2, run_dir=str(tmp_path / "cur"), compile=False, progress=False,
+        transfer_offsets=(), ppo=ppo, model=ModelConfig(hidden=16, rounds=1),
+    )  # fmt: skip
+
+
+def read_config(path):
+    with open(os.path.join(path, "config.json")) as f:
+        return json.load(f)
+
+
+def test_polish_trains_each_stage_on_and_the_next_stage_starts_from_it(tmp_path, monkeypatch):
+    from trainer.curriculum import format_stages, run_curriculum
+
+    cfg = tiny_config(tmp_path, monkeypatch)
+    run_dir = str(tmp_path / "cur")
+    args = (cfg, [2, 3], 0.5, 4, run_dir)
+    stages = run_curriculum(*args, fresh_eval_episodes=3, polish_updates=2, polish_lr=1e-5)
+    assert [s["updates"] for s in stages] == [2, 2]  # each stage stopped at its first evaluation
+    assert [s["polish"]["updates"] for s in stages] == [2, 2]  # the polish has no target
+    polish = read_config(os.path.join(run_dir, "stage-m2-polish"))
+    assert polish["ppo"]["lr"] == 1e-5 and polish["ppo"]["lr_end"] is None
+    assert polish["init_carry"] == "weights" and polish["target_success"] == 0.0
+    assert polish["init_from"] == os.path.join(run_dir, "stage-m2", "checkpoint.pt")
+    assert read_config(os.path.join(run_dir, "stage-m3"))["init_from"] == os.path.join(
+        run_dir, "stage-m2-polish", "checkpoint.pt"
+    )
+    fresh = stages[1]["polish"]["fresh_eval"]  # the polished policy on fresh episodes
+    assert (fresh["agents"], fresh["episodes"], fresh["update"]) == (3, 3, 2)
+    with open(os.path.join(run_dir, "curriculum.json")) as f:
+        assert json.load(f)["stages"][0]["polish"]["run_dir"] == os.path.join(run_dir, "stage-m2-polish")
+    table = format_stages(stages)
+    assert "polished S%" in table and "+N" in table
+
+    summary = os.path.join(run_dir, "stage-m3-polish", "summary.json")
+    before = os.stat(summary).st_mtime_ns
+    again = run_curriculum(*args, fresh_eval_episodes=3, polish_updates=2, polish_lr=1e-5)  # resumed: all done
+    assert os.stat(summary).st_mtime_ns == before
+    assert [s["polish"]["fresh_eval"] for s in again] == [s["polish"]["fresh_eval"] for s in stages]
+
+
+def test_without_polish_the_table_has_no_polish_columns(tmp_path, monkeypatch):
+    from trainer.curriculum import format_stages, run_curriculum
+
+    stages = run_curriculum(tiny_config(tmp_path, monkeypatch), [2], 0.5, 4, str(tmp_path / "cur"))
+    assert "polish" not in stages[0] and "polished" not in format_stages(stages)
+    assert not os.path.exists(tmp_path / "cur" / "stage-m2-polish")
+
+
+@pytest.mark.parametrize(
+    "kwargs, message", [({"polish_updates": -1}, "--polish-updates"), ({"polish_lr": 0.0}, "--polish-lr")]
+)
+def test_bad_polish_options_are_named(tmp_path, monkeypatch, kwargs, message):
+    from trainer.curriculum import run_curriculum
+
+    with pytest.raises(ValueError, match=message):
+        run_curriculum(tiny_config(tmp_path, monkeypatch), [2], 0.5, 4, str(tmp_path / "cur"), **kwargs)
