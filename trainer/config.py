@@ -273,7 +273,7 @@ class CurriculumConfig(TrainConfig):
     polish_updates: int = 0
     """After each stage, train it on for this many updates at the constant ``polish_lr``
     from its weights (fresh optimiser and normaliser), no target, in stage-m<M>-polish/; the
-    next stage starts from there (0: no polish). 300 at 3e-5 added 3-11 points to three of
+    next stage starts from there (0: no polish). 300-400 at 3e-5 added 3-11 points to three of
     four of our stages that had stopped short of the paper (docs/RESULTS.md, session 12)."""
     polish_lr: float = 3e-5
     """Constant learning rate of the polish."""

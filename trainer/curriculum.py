@@ -11,7 +11,7 @@ directory), a stopped stage continues from its checkpoint.
 With ``polish_updates``, each stage is then trained on for that many updates at a low
 constant learning rate (``polish_lr``) from its weights, with no target, in a sibling run
 directory ``stage-m<M>-polish``; the next stage starts from the polished weights. Measured
-here (docs/RESULTS.md, session 12): 300 such updates at 3e-5 took coverage RC M = 10 from
+here (docs/RESULTS.md, session 12): 300-400 such updates at 3e-5 took coverage RC M = 10 from
 81.0 to 87.4%, line RC M = 10 from 83.8 to 94.8%, coverage RC M = 3 from 95.4 to 98.4%, and
 left coverage RC M = 5 where it was (94.8 / 94.2%)."""
 

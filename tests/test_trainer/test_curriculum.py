@@ -34,9 +34,9 @@ def test_polish_trains_each_stage_on_and_the_next_stage_starts_from_it(tmp_path,
     cfg = tiny_config(tmp_path, monkeypatch)
     run_dir = str(tmp_path / "cur")
     args = (cfg, [2, 3], 0.5, 4, run_dir)
-    stages = run_curriculum(*args, fresh_eval_episodes=3, polish_updates=2, polish_lr=1e-5)
+    stages = run_curriculum(*args, fresh_eval_episodes=3, polish_updates=4, polish_lr=1e-5)
     assert [s["updates"] for s in stages] == [2, 2]  # each stage stopped at its first evaluation
-    assert [s["polish"]["updates"] for s in stages] == [2, 2]  # the polish has no target
+    assert [s["polish"]["updates"] for s in stages] == [4, 4]  # the polish has no target: evaluations at 2 and 4
     polish = read_config(os.path.join(run_dir, "stage-m2-polish"))
     assert polish["ppo"]["lr"] == 1e-5 and polish["ppo"]["lr_end"] is None
     assert polish["init_carry"] == "weights" and polish["target_success"] == 0.0
@@ -45,7 +45,7 @@ def test_polish_trains_each_stage_on_and_the_next_stage_starts_from_it(tmp_path,
         run_dir, "stage-m2-polish", "checkpoint.pt"
     )
     fresh = stages[1]["polish"]["fresh_eval"]  # the polished policy on fresh episodes
-    assert (fresh["agents"], fresh["episodes"], fresh["update"]) == (3, 3, 2)
+    assert (fresh["agents"], fresh["episodes"], fresh["update"]) == (3, 3, 4)
     with open(os.path.join(run_dir, "curriculum.json")) as f:
         assert json.load(f)["stages"][0]["polish"]["run_dir"] == os.path.join(run_dir, "stage-m2-polish")
     table = format_stages(stages)
@@ -53,7 +53,7 @@ def test_polish_trains_each_stage_on_and_the_next_stage_starts_from_it(tmp_path,
 
     summary = os.path.join(run_dir, "stage-m3-polish", "summary.json")
     before = os.stat(summary).st_mtime_ns
-    again = run_curriculum(*args, fresh_eval_episodes=3, polish_updates=2, polish_lr=1e-5)  # resumed: all done
+    again = run_curriculum(*args, fresh_eval_episodes=3, polish_updates=4, polish_lr=1e-5)  # resumed: all done
     assert os.stat(summary).st_mtime_ns == before
     assert [s["polish"]["fresh_eval"] for s in again] == [s["polish"]["fresh_eval"] for s in stages]
 
