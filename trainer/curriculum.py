@@ -107,15 +107,9 @@ def run_curriculum(
             eval_episodes=max(base.eval_episodes, MIN_STAGE_EVAL_EPISODES),
         )
         summary = train_or_resume(stage_cfg)
-        last = summary["last_eval"] or {}
         stage = {
             "agents": M,
-            "success_rate": last.get("success_rate"),
-            "mean_length": last.get("mean_length"),
-            "dist": last.get("dist"),
-            "updates": summary["update"],
-            "env_steps": summary["env_steps"],
-            "wall_time": summary["wall_time"],
+            **run_record(summary),
             "reached_threshold": summary["reached_target"],
             "run_dir": stage_dir,
         }
@@ -142,6 +136,19 @@ def run_curriculum(
     return stages
 
 
+def run_record(summary: dict) -> dict:
+    """A finished run's last evaluation and counters, as curriculum.json records them."""
+    last = summary["last_eval"] or {}
+    return {
+        "success_rate": last.get("success_rate"),
+        "mean_length": last.get("mean_length"),
+        "dist": last.get("dist"),
+        "updates": summary["update"],
+        "env_steps": summary["env_steps"],
+        "wall_time": summary["wall_time"],
+    }
+
+
 def polish_stage(
     stage_cfg: TrainConfig, polish_dir: str, updates: int, lr: float, fresh_eval_episodes: int, fresh_eval_seed: int
 ) -> dict:
@@ -159,16 +166,7 @@ def polish_stage(
         ppo=dataclasses.replace(stage_cfg.ppo, lr=lr, lr_end=None),
     )
     summary = train_or_resume(polish_cfg)
-    last = summary["last_eval"] or {}
-    record = {
-        "success_rate": last.get("success_rate"),
-        "mean_length": last.get("mean_length"),
-        "updates": summary["update"],
-        "env_steps": summary["env_steps"],
-        "wall_time": summary["wall_time"],
-        "lr": lr,
-        "run_dir": polish_dir,
-    }
+    record = {**run_record(summary), "lr": lr, "run_dir": polish_dir}
     if fresh_eval_episodes:
         record["fresh_eval"] = fresh_evaluation(
             polish_dir, polish_cfg, summary["update"], fresh_eval_episodes, fresh_eval_seed
