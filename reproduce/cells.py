@@ -32,6 +32,7 @@ from taichi_swarm.files import atomic_write_json
 RESULT = "result.json"
 ATTEMPTS = "attempts.json"
 DEFINITION = "definition.json"  # written at the first start: a changed cell never mixes with old runs
+POLISH_DIR = "polish"  # a train cell's polish run, inside its run directory
 
 
 def cell_dir(root: str, cell: Cell, seed: int) -> str:
@@ -76,9 +77,17 @@ def cell_state(root: str, cell: Cell, seed: int) -> str:
 
 
 def train_config(
-    cell: Cell, seed: int, run_dir: str, agents: int, updates: int, arch: str = "cpu", device: str = "cpu"
+    cell: Cell,
+    seed: int,
+    run_dir: str,
+    agents: int,
+    updates: int,
+    arch: str = "cpu",
+    device: str = "cpu",
+    init_from: str = "",
 ):
-    """The TrainConfig of a cell's run (a curriculum changes agents/run_dir per stage)."""
+    """The TrainConfig of a cell's run (a curriculum changes agents/run_dir per stage);
+    ``init_from``: a policy whose weights the run starts from."""
     from trainer.config import PRESETS, TrainConfig
     from trainer.model import ModelConfig
 
@@ -102,6 +111,8 @@ def train_config(
         checkpoint_every=cell.checkpoint_every,
         seed=seed,
         run_dir=run_dir,
+        init_from=init_from,
+        init_carry="weights",
         compile=cell.compile,
         progress=False,
         arch=arch,
@@ -126,12 +137,43 @@ def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> 
     return {k: r[k] for k in ("agents", "success_rate", "mean_length", "dist", "episodes", "seed")}
 
 
-def policy_path(root: str, cell: Cell, seed: int, agents: int = 0) -> str:
-    """Where a train cell's (or a curriculum stage's) final policy lies."""
+def policy_path(root: str, cell: Cell, seed: int, agents: int = 0, polished: bool = True) -> str:
+    """Where a train cell's (or a curriculum stage's) final policy lies: the polished one
+    where the cell polishes (``polished=False``: the one before the polish)."""
     d = cell_dir(root, cell, seed)
     if cell.kind == "curriculum":
         d = os.path.join(d, f"stage-m{agents}")
+        if cell.polish_updates and polished:
+            d += "-polish"  # trainer.curriculum's layout
+    elif cell.polish_updates and polished:
+        d = os.path.join(d, POLISH_DIR)
     return os.path.join(d, "policy.pt")
+
+
+def run_dirs(root: str, cell: Cell, seed: int) -> list[str]:
+    """The run directories of a train or curriculum cell in training order (a
+    curriculum: stage by stage, each followed by its polish)."""
+    d = cell_dir(root, cell, seed)
+    if cell.kind == "train":
+        return [d] + ([os.path.join(d, POLISH_DIR)] if cell.polish_updates else [])
+    if cell.kind == "curriculum":
+        return [
+            os.path.dirname(policy_path(root, cell, seed, M, polished))
+            for M in cell.sizes
+            for polished in ((False, True) if cell.polish_updates else (False,))
+        ]
+    return []
+
+
+def _init_policy(root: str, cell: Cell, seed: int, upstream: Cell | None) -> str:
+    """The policy an init_from cell starts from ("" for none); an error until it exists."""
+    if not cell.init_from:
+        return ""
+    if upstream is None or upstream.id != cell.init_from:
+        raise SpecError(f"cell {cell.id!r} needs its init_from cell {cell.init_from!r}")
+    if read_result(root, upstream, seed) is None:
+        raise SpecError(f"cell {cell.id!r}: its init_from {upstream.id!r} (seed {seed}) has not finished")
+    return policy_path(root, upstream, seed, cell.init_agents or upstream.agents)
 
 
 def _note_attempt(directory: str) -> int:
@@ -149,9 +191,10 @@ def run_cell(
     cell: Cell, seed: int, root: str, source: Cell | None = None, arch: str = "cpu", device: str = "cpu"
 ) -> dict:
     """Bring one (cell, seed) to its result: train / run the curriculum / evaluate, then
-    evaluate afresh and write result.json. ``source``: the cell a zero-shot row reads;
-    ``arch`` / ``device``: where the simulator / the network run (not part of the cell's
-    definition: the same cell on a GPU is the same experiment)."""
+    evaluate afresh and write result.json. ``source``: the cell this one reads (a
+    zero-shot row's source, a run's init_from: ``cell.needs``); ``arch`` / ``device``:
+    where the simulator / the network run (not part of the cell's definition: the same
+    cell on a GPU is the same experiment)."""
     import torch
 
     done = read_result(root, cell, seed, source)
@@ -164,6 +207,7 @@ def run_cell(
         source_result = read_result(root, source, seed)
         if source_result is None:
             raise SpecError(f"cell {cell.id!r}: its source {source.id!r} (seed {seed}) has not finished")
+    init = _init_policy(root, cell, seed, source)  # before anything is written: an error leaves no trace
     directory = cell_dir(root, cell, seed)
     os.makedirs(directory, exist_ok=True)
     definition_path = os.path.join(directory, DEFINITION)
@@ -176,28 +220,42 @@ def run_cell(
     torch.set_num_threads(1)
     start = time.time()
     if cell.kind == "train":
+        from trainer.curriculum import polish_stage
         from trainer.train import train_or_resume
 
-        summary = train_or_resume(train_config(cell, seed, directory, cell.agents, cell.updates, arch, device))
-        rows = [{**final_eval(policy_path(root, cell, seed), cell, cell.agents, arch), **_training(summary)}]
+        cfg = train_config(cell, seed, directory, cell.agents, cell.updates, arch, device, init)
+        record = _training(train_or_resume(cfg))
+        if cell.polish_updates:
+            polish = polish_stage(cfg, os.path.join(directory, POLISH_DIR), cell.polish_updates, cell.polish_lr, 0, 0)
+            before = final_eval(policy_path(root, cell, seed, polished=False), cell, cell.agents, arch)
+            record = _polished(record, polish, before)
+        rows = [{**final_eval(policy_path(root, cell, seed), cell, cell.agents, arch), **record}]
     elif cell.kind == "curriculum":
         from trainer.curriculum import run_curriculum
 
-        base = train_config(cell, seed, directory, cell.sizes[0], cell.max_updates_per_stage, arch, device)
+        base = train_config(cell, seed, directory, cell.sizes[0], cell.max_updates_per_stage, arch, device, init)
         stages = run_curriculum(
-            base, list(cell.sizes), cell.threshold, cell.max_updates_per_stage, directory, cell.min_updates_per_stage
+            base,
+            list(cell.sizes),
+            cell.threshold,
+            cell.max_updates_per_stage,
+            directory,
+            cell.min_updates_per_stage,
+            polish_updates=cell.polish_updates,
+            polish_lr=cell.polish_lr,
         )
         rows = []
         for stage in stages:
-            row = final_eval(policy_path(root, cell, seed, stage["agents"]), cell, stage["agents"], arch)
-            row.update(
-                updates=stage["updates"],
-                env_steps=stage["env_steps"],
-                wall_time=stage["wall_time"],
-                reached_threshold=stage["reached_threshold"],
-                stopping_success_rate=stage["success_rate"],
-            )
-            rows.append(row)
+            M = stage["agents"]
+            record = {
+                **_training(stage),
+                "reached_threshold": stage["reached_threshold"],
+                "stopping_success_rate": stage["success_rate"],
+            }
+            if "polish" in stage:
+                before = final_eval(policy_path(root, cell, seed, M, polished=False), cell, M, arch)
+                record = _polished(record, stage["polish"], before)
+            rows.append({**final_eval(policy_path(root, cell, seed, M), cell, M, arch), **record})
     elif cell.kind == "baseline":
         rows = [run_baseline(cell, seed, directory, device)]
     else:
@@ -289,23 +347,32 @@ def _finished_baseline(directory: str, args) -> dict | None:
 
 
 def _training(summary: dict) -> dict:
+    """updates, env_steps, wall_time of a run's summary (or of a curriculum stage's record)."""
     return {
-        "updates": summary["update"],
+        "updates": summary["update"] if "update" in summary else summary["updates"],
         "env_steps": summary["env_steps"],
         "wall_time": summary["wall_time"],
+    }
+
+
+def _polished(record: dict, polish: dict, before: dict) -> dict:
+    """A run's counters with its polish added, and the fresh S% / T / DIST before it."""
+    return {
+        **record,
+        "updates": record["updates"] + polish["updates"],
+        "env_steps": record["env_steps"] + polish["env_steps"],
+        "wall_time": record["wall_time"] + polish["wall_time"],
+        "polish_updates": polish["updates"],
+        "before_polish": {k: before[k] for k in ("success_rate", "mean_length", "dist")},
     }
 
 
 def progress(root: str, cell: Cell, seed: int) -> dict:
     """How far a cell is, from its files: updates done (all stages), the budget, and the
     training wall-clock so far (for the time-left estimate)."""
-    d = cell_dir(root, cell, seed)
     state = cell_state(root, cell, seed)
-    runs = [d]
-    if cell.kind == "curriculum":
-        runs = [os.path.join(d, f"stage-m{M}") for M in cell.sizes]
     updates, wall, stage = 0, 0.0, None
-    for run in runs:
+    for run in run_dirs(root, cell, seed):
         last = _last_metrics(os.path.join(run, "metrics.jsonl"))
         if last:
             updates += last["update"]

@@ -52,10 +52,7 @@ def run_on_ray(
     by_id = {c.id: c for c in cells}
     # every result on disk checked before anything starts (a changed cell stops the run here)
     finished = {
-        (c.id, seed)
-        for c in cells
-        for seed in seeds
-        if read_result(root, c, seed, by_id.get(c.source) if c.source else None) is not None
+        (c.id, seed) for c in cells for seed in seeds if read_result(root, c, seed, by_id.get(c.needs)) is not None
     }
     if address is None:
         ray.init(
@@ -72,12 +69,12 @@ def run_on_ray(
     try:
         task = ray.remote(num_cpus=1, num_gpus=gpus_per_cell, max_retries=max_retries)(_run_cell_task)
         refs: dict[tuple[str, int], object] = {}
-        for cell in cells:  # spec order: a source is submitted before the rows that read it
+        for cell in cells:  # spec order: a source (init_from) is submitted before the cells that read it
             for seed in seeds:
                 if (cell.id, seed) in finished:
                     continue
-                source = by_id.get(cell.source) if cell.source else None
-                upstream = [refs[(cell.source, seed)]] if (cell.source, seed) in refs else []
+                source = by_id.get(cell.needs)
+                upstream = [refs[(cell.needs, seed)]] if (cell.needs, seed) in refs else []
                 refs[(cell.id, seed)] = task.remote(cell, seed, root, source, arch, device, *upstream)
         key_of = {ref: key for key, ref in refs.items()}
         live = set(refs)  # submitted and not yet returned
@@ -129,8 +126,8 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
             state = p["state"]
             if state == "started" and live is not None:  # (from the files alone: running or stopped)
                 state = "running" if (cell.id, seed) in live else "stopped"
-            if state == "pending" and cell.source and cell_state(root, _find(cells, cell.source), seed) != "done":
-                state = f"waits for {cell.source}"
+            if state == "pending" and cell.needs and cell_state(root, _find(cells, cell.needs), seed) != "done":
+                state = f"waits for {cell.needs}"
             budget = p["budget"]
             where = f" ({p['stage']})" if p["stage"] else ""
             done_txt = f"{p['updates']}/{budget}{where}" if budget else "-"

@@ -5,9 +5,17 @@ A spec is a TOML file (``reproduce/specs/paper.toml`` ships Tables 1-4 of
 docs/PAPER.md s.7; ``smoke.toml`` is a tiny one for tests and a first try). Its
 ``[defaults]`` apply to every ``[[cells]]`` entry; a cell's own keys win. Kinds:
 
-- ``train``: one run from scratch at ``agents`` for ``updates`` (Table 1).
+- ``train``: one run at ``agents`` for ``updates`` (Table 1: from scratch).
 - ``curriculum``: stages over ``sizes``, each from the previous stage's weights,
   advancing at ``threshold`` or after ``max_updates_per_stage`` (Tables 2, 3).
+
+Both may start from another cell's policy (``init_from``, weights only: e.g. an RC
+curriculum from a UC M = 3 run) and be trained on after the run, or after every
+stage, for ``polish_updates`` at the constant ``polish_lr`` (``swarm curriculum
+--polish-updates``); the row reports the polished policy, and the one before it.
+
+Two more kinds:
+
 - ``zero-shot``: the policy of cell ``source`` (its stage at ``source_agents`` for a
   curriculum) evaluated at ``sizes`` without fine-tuning (Table 4).
 - ``baseline``: a stock BenchMARL ``algorithm`` (baselines/) trained at ``agents`` for
@@ -71,6 +79,16 @@ class Cell:
     """curriculum: a stage trains at least this many updates, past the threshold."""
     source: str = ""
     """zero-shot: the id of the cell whose policy is evaluated."""
+    init_from: str = ""
+    """train, curriculum: the id of a train or curriculum cell whose final policy (weights
+    only) the run, or the first stage, starts from."""
+    init_agents: int = 0
+    """init_from a curriculum: which stage's policy."""
+    polish_updates: int = 0
+    """train, curriculum: after the run (each stage), this many updates more at the
+    constant learning rate polish_lr from its weights (fresh optimiser); the next stage
+    starts from the polished policy and the row reports it."""
+    polish_lr: float = 3e-5
     source_agents: int = 0
     """zero-shot from a curriculum: which stage's policy."""
     algorithm: str = ""
@@ -103,8 +121,15 @@ class Cell:
         if self.kind != "baseline":  # fields only a baseline reads (older results lack them)
             for key in BASELINE_FIELDS:
                 d.pop(key)
-        if not self.min_updates_per_stage:  # added later: older definitions lack it
+        # added later: older definitions lack them, so their defaults are left out
+        if not self.min_updates_per_stage:
             d.pop("min_updates_per_stage")
+        if not self.init_from:
+            d.pop("init_from")
+            d.pop("init_agents")
+        if not self.polish_updates:
+            d.pop("polish_updates")
+            d.pop("polish_lr")
         d["sizes"] = list(self.sizes)
         return d
 
@@ -118,12 +143,17 @@ class Cell:
             return f"{self.task} {self.algorithm.upper()} ({self.obs_mode} obs.)"
         return f"{self.task} {self.comm.upper()}"
 
+    @property
+    def needs(self) -> str:
+        """The id of the cell whose policy this one reads (source or init_from), or ""."""
+        return self.source or self.init_from
+
     def budget_updates(self) -> int:
         """Most PPO updates the cell can take (a curriculum may stop stages earlier)."""
         if self.kind == "train":
-            return self.updates
+            return self.updates + self.polish_updates
         if self.kind == "curriculum":
-            return self.max_updates_per_stage * len(self.sizes)
+            return (self.max_updates_per_stage + self.polish_updates) * len(self.sizes)
         return 0  # zero-shot: none; baseline: ``frames`` env steps (not PPO updates of ours)
 
 
@@ -142,7 +172,7 @@ class Spec:
 
     def select(self, tables: list[int] | None = None, cell_ids: list[str] | None = None) -> list[Cell]:
         """The cells of ``tables`` and/or named by ``cell_ids``, plus the cells they need
-        (a zero-shot row needs its source), in an order where sources come first."""
+        (a zero-shot row its source, a run its init_from), in an order where those come first."""
         if tables:
             unknown = sorted(set(tables) - {c.table for c in self.cells})
             if unknown:
@@ -156,8 +186,8 @@ class Spec:
             self.cell(cid)  # unknown ids are an error
         needed = {c.id for c in chosen}
         for c in list(chosen):
-            while c.source and c.source not in needed:
-                c = self.cell(c.source)
+            while c.needs and c.needs not in needed:
+                c = self.cell(c.needs)
                 needed.add(c.id)
         return [c for c in self.cells if c.id in needed]  # spec order: sources are declared first
 
@@ -267,6 +297,14 @@ def _check_cell(where: str, c: Cell) -> None:
             bad(f"max_updates_per_stage must be >= 1, got {c.max_updates_per_stage}")
         if not 0 <= c.min_updates_per_stage <= c.max_updates_per_stage:
             bad(f"min_updates_per_stage must be in [0, max_updates_per_stage], got {c.min_updates_per_stage}")
+    if c.init_from and c.kind not in ("train", "curriculum"):
+        bad("only train and curriculum cells have init_from")
+    if c.init_agents and not c.init_from:
+        bad("init_agents names a stage of init_from: set init_from too")
+    if c.polish_updates < 0 or (c.polish_updates and c.kind not in ("train", "curriculum")):
+        bad(f"polish_updates must be >= 0, and only train and curriculum cells polish, got {c.polish_updates}")
+    if not c.polish_lr > 0:
+        bad(f"polish_lr must be > 0, got {c.polish_lr}")
     if c.kind == "zero-shot" and not c.source:
         bad("a zero-shot cell needs source (the id of the cell whose policy it evaluates)")
     if c.kind != "zero-shot" and c.source:
@@ -297,6 +335,8 @@ def _check_references(spec: Spec) -> None:
     for c in spec.cells:
         if c.id in seen:
             raise SpecError(f"{spec.path}: two cells named {c.id!r}")
+        if c.init_from:
+            _check_init_from(spec, c, seen.get(c.init_from))
         if c.source:
             src = seen.get(c.source)
             if src is None:
@@ -316,3 +356,20 @@ def _check_references(spec: Spec) -> None:
                     f"from its source's {src.task, src.comm, src.comm_radius}"
                 )
         seen[c.id] = c
+
+
+def _check_init_from(spec: Spec, c: Cell, src: Cell | None) -> None:
+    where = f"{spec.path}: cell {c.id!r}: init_from {c.init_from!r}"
+    if src is None:
+        raise SpecError(f"{where} must be a cell declared before it")
+    if src.kind not in ("train", "curriculum"):
+        raise SpecError(f"{where} is a {src.kind} cell (no policy of ours to start from)")
+    if src.kind == "curriculum" and c.init_agents not in src.sizes:
+        raise SpecError(f"{where}: init_agents must be one of its stage sizes {list(src.sizes)}, got {c.init_agents}")
+    if src.kind == "train" and c.init_agents not in (0, src.agents):
+        raise SpecError(f"{where} is a train cell at M = {src.agents}: leave init_agents out, got {c.init_agents}")
+    if (src.task, src.entity_mode) != (c.task, c.entity_mode):
+        raise SpecError(
+            f"{where}: task / entity_mode {c.task, c.entity_mode} differ from its {src.task, src.entity_mode} "
+            "(the weights would not fit)"
+        )

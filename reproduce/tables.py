@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 
-from reproduce.cells import cell_dir, read_result
+from reproduce.cells import read_result, run_dirs
 from reproduce.spec import Cell
 
 DOC_BEGIN = "<!-- BEGIN swarm reproduce (generated: do not edit by hand) -->"
@@ -67,44 +67,56 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
         return ""
     kind = cells[0].kind
     lines = [f"### {TITLES.get(table, f'Table {table}')}", ""]
+    # a table with polished cells shows S% before the polish too (and "updates" counts both)
+    polish = any(c.polish_updates for c in cells)
+    pol_head, pol_rule = (" S% before polish |", "---|") if polish else ("", "")
+
+    def before(rows: list[dict]) -> str:
+        if not polish:
+            return ""
+        return f" {_stat([r['before_polish']['success_rate'] for r in rows if 'before_polish' in r], 100)} |"
+
     if kind in ("train", "baseline"):
         lines += [
-            "| cell | M | S% | paper S% | T | paper T | DIST | paper DIST | updates | env steps (M) | minutes |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            f"| cell | M | S% | paper S% |{pol_head} T | paper T | DIST | paper DIST | updates "
+            "| env steps (M) | minutes |",
+            f"|---|---|---|---|{pol_rule}---|---|---|---|---|---|---|",
         ]
         for c in cells:
             res = _results(root, c, seeds)
             if not res:
                 lines.append(
-                    f"| {c.row_label()} | {c.agents} | not run | {_paper(c, c.agents, 'S')} | - | "
-                    f"{_paper(c, c.agents, 'T')} | - | {_paper(c, c.agents, 'DIST')} | - | - | - |"
+                    f"| {c.row_label()} | {c.agents} | not run | {_paper(c, c.agents, 'S')} |{' - |' if polish else ''}"
+                    f" - | {_paper(c, c.agents, 'T')} | - | {_paper(c, c.agents, 'DIST')} | - | - | - |"
                 )
                 continue
             rows = _rows_by_size(res)[c.agents]
             lines.append(
                 f"| {c.row_label()} | {c.agents} | {_stat([r['success_rate'] for r in rows], 100)} | "
-                f"{_paper(c, c.agents, 'S')} | {_stat([r['mean_length'] for r in rows], digits=2)} | "
+                f"{_paper(c, c.agents, 'S')} |{before(rows)} {_stat([r['mean_length'] for r in rows], digits=2)} | "
                 f"{_paper(c, c.agents, 'T')} | {_stat([r['dist'] for r in rows], digits=3)} | "
                 f"{_paper(c, c.agents, 'DIST')} | {_stat([r.get('updates') for r in rows], digits=0)} | "
                 f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | {_stat([r['wall_time'] for r in rows], 1 / 60)} |"
             )
     elif kind == "curriculum":
         lines += [
-            "| cell | M | S% | paper S% | N (updates) | paper N | env steps (M) | minutes | reached threshold |",
-            "|---|---|---|---|---|---|---|---|---|",
+            f"| cell | M | S% | paper S% |{pol_head} N (updates) | paper N | env steps (M) | minutes "
+            "| reached threshold |",
+            f"|---|---|---|---|{pol_rule}---|---|---|---|---|",
         ]
         for c in cells:
             by_size = _rows_by_size(_results(root, c, seeds))
             for M in c.sizes:
                 rows = by_size.get(M, [])
                 if not rows:
-                    paper = f"{_paper(c, M, 'S')} | - | {_paper(c, M, 'N')}"
+                    paper = f"{_paper(c, M, 'S')} |{' - |' if polish else ''} - | {_paper(c, M, 'N')}"
                     lines.append(f"| {c.row_label()} | {M} | not run | {paper} | - | - | - |")
                     continue
                 reached = sum(bool(r["reached_threshold"]) for r in rows)
                 lines.append(
                     f"| {c.row_label()} | {M} | {_stat([r['success_rate'] for r in rows], 100)} | "
-                    f"{_paper(c, M, 'S')} | {_stat([r['updates'] for r in rows], digits=0)} | {_paper(c, M, 'N')} | "
+                    f"{_paper(c, M, 'S')} |{before(rows)} {_stat([r['updates'] for r in rows], digits=0)} | "
+                    f"{_paper(c, M, 'N')} | "
                     f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | "
                     f"{_stat([r['wall_time'] for r in rows], 1 / 60)} | {reached} of {len(rows)} |"
                 )
@@ -160,17 +172,15 @@ def render_all(
 
 def plot_curves(table: int, cells: list[Cell], seeds: list[int], root: str, out_dir: str) -> str | None:
     """Evaluation S% against env steps of every training cell of ``table`` (curricula:
-    the stages one after another, a dotted line where a stage starts)."""
+    the stages one after another, a dotted line where a stage, or a polish, starts)."""
     from trainer.plot import _save, read_metrics
 
     cells = [c for c in cells if c.table == table and c.kind in ("train", "curriculum")]
     curves = []
     for c in cells:
         for seed in seeds:
-            d = cell_dir(root, c, seed)
-            runs = [d] if c.kind == "train" else [os.path.join(d, f"stage-m{M}") for M in c.sizes]
             xs, ys, starts, offset = [], [], [], 0
-            for run in runs:
+            for run in run_dirs(root, c, seed):
                 if not os.path.exists(os.path.join(run, "metrics.jsonl")):
                     break
                 rows = read_metrics(run)

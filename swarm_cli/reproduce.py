@@ -121,6 +121,7 @@ def _dry_run(cells, seeds, root, spec_name: str) -> str:
         else:
             budget = f"{c.final_episodes} episodes"
         states = ", ".join(f"s{s} {cell_state(root, c, s)}" for s in seeds)
+        states += f"  (reads {c.needs})" if c.needs else ""  # a zero-shot row's source, a run's init_from
         lines.append(f"{c.id:<24} {c.kind:<10} {c.task:<9} {c.comm:<4} {sizes:<14} {budget:>22}  {states}")
     lines.append(f"\nat most {_steps(total_steps)} env steps in all (curricula at their full stage budgets)")
     return "\n".join(lines)

@@ -76,6 +76,27 @@ def test_shipped_paper_spec_has_every_table_and_the_papers_numbers():
     assert all(c.final_episodes >= 500 and c.eval_seed < 2**40 for c in spec.cells)
 
 
+def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
+    """`recipe` has the paper spec's tables of our method, with the paper's numbers, run by
+    what reproduced them here: fast preset, never-reset return, a polish after every run
+    and stage, and the coverage curricula started from Table 1's UC M = 3 run."""
+    paper, recipe = load_spec("paper"), load_spec("recipe")
+    ours = [c for c in paper.cells if c.kind != "baseline"]
+    assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
+    assert all(recipe.cell(c.id).paper == c.paper for c in ours)
+    trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
+    assert all(c.preset == "fast" and c.ppo == {"reset_return": False} for c in trained)
+    assert all(c.polish_updates == 300 and c.polish_lr == 3e-5 for c in trained)
+    assert all(c.updates * 2048 >= 4_500_000 for c in trained if c.kind == "train")  # the paper's budget
+    for cid in ("t2-coverage-emp-uc", "t2-coverage-emp-rc"):
+        assert recipe.cell(cid).init_from == "t1-coverage-uc-m3"
+    assert recipe.cell("t2-coverage-emp-rc").sizes == (3, 5, 7, 10)
+    assert [c.id for c in recipe.select(cell_ids=["t4-coverage-rc"])] == [
+        "t1-coverage-uc-m3", "t2-coverage-emp-rc", "t4-coverage-rc"
+    ]  # fmt: skip
+    assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in recipe.cells)
+
+
 def test_selection_pulls_in_the_source_of_a_zero_shot_row():
     spec = load_spec("paper")
     chosen = [c.id for c in spec.select(cell_ids=["t4-coverage-rc"])]
@@ -113,7 +134,7 @@ def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
-    with pytest.raises(SpecError, match=r"\(paper, quick, smoke\)"):
+    with pytest.raises(SpecError, match=r"\(paper, quick, recipe, smoke\)"):
         load_spec("no-such-spec")
 
 
@@ -363,3 +384,108 @@ def test_a_larger_budget_extends_a_run_that_ran_out_short_of_its_target(tmp_path
     extended = train_mod.train_or_resume(dataclasses.replace(cfg, updates=10))
     assert extended["update"] == 6 and extended["reached_target"]
     assert train_mod.train_or_resume(dataclasses.replace(cfg, updates=20))["update"] == 6
+
+
+# --- init_from and polish: a run started from another cell's policy, trained on after -----
+
+CHAIN = (
+    TINY.format(updates=2, eval_every=2).split('[[cells]]\nid = "zs-cov"')[0]
+    + """
+polish_updates = 2
+polish_lr = 1e-5
+
+[[cells]]
+id = "curr-cov-rc"
+table = 2
+kind = "curriculum"
+task = "coverage"
+comm = "rc"
+sizes = [2, 3]
+max_updates_per_stage = 2
+init_from = "train-cov"
+polish_updates = 1
+paper = { "3" = { S = 96, N = 3700 } }
+
+[[cells]]
+id = "zs-cov-rc"
+table = 4
+kind = "zero-shot"
+task = "coverage"
+comm = "rc"
+source = "curr-cov-rc"
+source_agents = 3
+sizes = [3, 4]
+"""
+)
+
+
+def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path):
+    spec = load_spec(write_spec(tmp_path, text=CHAIN))
+    train_cell, curr_cell, zs_cell = spec.cells
+    assert curr_cell.needs == "train-cov" and zs_cell.needs == "curr-cov-rc"
+    assert [c.id for c in spec.select(cell_ids=["zs-cov-rc"])] == ["train-cov", "curr-cov-rc", "zs-cov-rc"]
+    assert train_cell.budget_updates() == 4 and curr_cell.budget_updates() == 6
+    root = str(tmp_path / "root")
+    with pytest.raises(SpecError, match="needs its init_from cell 'train-cov'"):
+        cells_mod.run_cell(curr_cell, 0, root)
+    with pytest.raises(SpecError, match="init_from 'train-cov' .* has not finished"):
+        cells_mod.run_cell(curr_cell, 0, root, source=train_cell)
+    assert cells_mod.cell_state(root, curr_cell, 0) == "pending"  # the refusal wrote nothing
+
+    trained = cells_mod.run_cell(train_cell, 0, root)
+    (row,) = trained["rows"]
+    assert row["updates"] == 4 and row["polish_updates"] == 2 and set(row["before_polish"]) == {
+        "success_rate", "mean_length", "dist"
+    }  # fmt: skip
+    polish_dir = os.path.join(cells_mod.cell_dir(root, train_cell, 0), "polish")
+    assert _metric_updates(polish_dir) == [1, 2]
+    polish_cfg = json.loads(open(os.path.join(polish_dir, "config.json")).read())
+    assert polish_cfg["ppo"]["lr"] == 1e-5 and polish_cfg["ppo"]["lr_end"] is None
+
+    chained = cells_mod.run_cell(curr_cell, 0, root, source=train_cell)
+    assert [r["agents"] for r in chained["rows"]] == [2, 3]
+    assert all(r["polish_updates"] == 1 and "before_polish" in r for r in chained["rows"])
+    d = cells_mod.cell_dir(root, curr_cell, 0)
+    first = json.loads(open(os.path.join(d, "stage-m2", "config.json")).read())
+    assert first["init_from"] == cells_mod.policy_path(root, train_cell, 0) == os.path.join(polish_dir, "policy.pt")
+    assert first["comm"] == "rc" and first["init_carry"] == "weights"
+    second = json.loads(open(os.path.join(d, "stage-m3", "config.json")).read())
+    assert second["init_from"] == os.path.join(d, "stage-m2-polish", "checkpoint.pt")
+    assert cells_mod.run_dirs(root, curr_cell, 0) == [
+        os.path.join(d, name) for name in ("stage-m2", "stage-m2-polish", "stage-m3", "stage-m3-polish")
+    ]
+    assert cells_mod.progress(root, curr_cell, 0)["updates"] == 6
+    # the zero-shot row reads the polished M = 3 stage
+    assert cells_mod.policy_path(root, curr_cell, 0, 3) == os.path.join(d, "stage-m3-polish", "policy.pt")
+    assert [r["agents"] for r in cells_mod.run_cell(zs_cell, 0, root, source=curr_cell)["rows"]] == [3, 4]
+
+    md = render_all(spec.cells, [0], root, "tiny")
+    assert md.count("S% before polish") == 2 and "| coverage RC | 3 |" in md
+    # cells without the new keys keep their old definitions (their results stay valid)
+    assert {"init_from", "polish_updates"} & set(load_spec("paper").cells[0].definition()) == set()
+    assert {"init_from", "init_agents", "polish_updates", "polish_lr"} <= set(curr_cell.definition())
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda t: t.replace('init_from = "train-cov"', 'init_from = "nope"'), "must be a cell declared before it"),
+        (lambda t: t.replace('init_from = "train-cov"', 'init_from = "zs-cov-rc"'), "must be a cell declared"),
+        (
+            lambda t: t.replace('source = "curr-cov-rc"', 'source = "curr-cov-rc"\ninit_from = "train-cov"'),
+            "only train and curriculum cells have init_from",
+        ),
+        (lambda t: t.replace("polish_updates = 1", "polish_updates = 1\ninit_agents = 5"), "leave init_agents out"),
+        (
+            lambda t: t.replace("polish_updates = 1", 'polish_updates = 1\nentity_mode = "padded"'),
+            "the weights would not fit",
+        ),
+        (lambda t: t.replace("polish_updates = 1", "polish_updates = -1"), "polish_updates must be >= 0"),
+        (lambda t: t.replace("polish_lr = 1e-5", "polish_lr = 0.0"), "polish_lr must be > 0"),
+        (lambda t: t.replace("sizes = [3, 4]", "sizes = [3, 4]\npolish_updates = 3"), "only train and curriculum"),
+        (lambda t: t.replace('init_from = "train-cov"\n', "init_agents = 2\n"), "set init_from too"),
+    ],
+)
+def test_bad_init_from_and_polish_name_the_cell_and_the_key(tmp_path, edit, message):
+    with pytest.raises(SpecError, match=message):
+        load_spec(write_spec(tmp_path, text=edit(CHAIN)))
