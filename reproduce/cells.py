@@ -4,8 +4,10 @@ Layout under the reproduction root::
 
     ROOT/<cell id>/s<seed>/         the run directory (train: the run itself; curriculum:
                                     curriculum.json + stage-m<M>/ per stage)
+    ROOT/<cell id>/s<seed>/polish/  a train cell's polish (a curriculum's: stage-m<M>-polish/)
     ROOT/<cell id>/s<seed>/result.json   written last, atomically: the cell is done
     ROOT/<cell id>/s<seed>/attempts.json every start of the cell (pid, host, time)
+    ROOT/<cell id>/s<seed>/upstream.json an init_from cell: the upstream result it started from
 
 ``run_cell`` is idempotent: a finished cell returns its result.json, a stopped one
 resumes from its checkpoints (``train_or_resume``), so running it again after a kill
@@ -33,6 +35,7 @@ RESULT = "result.json"
 ATTEMPTS = "attempts.json"
 DEFINITION = "definition.json"  # written at the first start: a changed cell never mixes with old runs
 POLISH_DIR = "polish"  # a train cell's polish run, inside its run directory
+UPSTREAM = "upstream.json"  # an init_from cell: which result of its upstream it started from
 
 
 def cell_dir(root: str, cell: Cell, seed: int) -> str:
@@ -49,11 +52,20 @@ def read_result(root: str, cell: Cell, seed: int, source: Cell | None = None) ->
     with open(path) as f:
         result = json.load(f)
     check_same_definition(path, cell, result.get("definition", {}))
-    if cell.kind == "zero-shot" and source is not None:
+    if source is not None and source.id == cell.needs:
         source_result = read_result(root, source, seed)
         if source_result is None or source_result["finished"] != result.get("source_finished"):
-            return None  # stale: evaluated a policy that is no longer the source's
+            if cell.kind == "zero-shot":
+                return None  # stale: evaluated a policy that is no longer the source's
+            raise SpecError(_retrained(path, cell))
     return result
+
+
+def _retrained(path: str, cell: Cell) -> str:
+    return (
+        f"{path}: cell {cell.id!r} was trained from a policy of its init_from {cell.init_from!r} that has been "
+        f"trained again since (or is being); delete {os.path.dirname(path)} to train it from the new one"
+    )
 
 
 def check_same_definition(path: str, cell: Cell, stored: dict) -> None:
@@ -165,17 +177,6 @@ def run_dirs(root: str, cell: Cell, seed: int) -> list[str]:
     return []
 
 
-def _init_policy(root: str, cell: Cell, seed: int, upstream: Cell | None) -> str:
-    """The policy an init_from cell starts from ("" for none); an error until it exists."""
-    if not cell.init_from:
-        return ""
-    if upstream is None or upstream.id != cell.init_from:
-        raise SpecError(f"cell {cell.id!r} needs its init_from cell {cell.init_from!r}")
-    if read_result(root, upstream, seed) is None:
-        raise SpecError(f"cell {cell.id!r}: its init_from {upstream.id!r} (seed {seed}) has not finished")
-    return policy_path(root, upstream, seed, cell.init_agents or upstream.agents)
-
-
 def _note_attempt(directory: str) -> int:
     path = os.path.join(directory, ATTEMPTS)
     attempts = []
@@ -201,13 +202,14 @@ def run_cell(
     if done is not None:
         return done
     source_result = None
-    if cell.kind == "zero-shot":
-        if source is None or source.id != cell.source:
-            raise SpecError(f"cell {cell.id!r} needs its source cell {cell.source!r}")
+    if cell.needs:  # checked before anything is written: an error leaves no trace
+        role = "source" if cell.kind == "zero-shot" else "init_from"
+        if source is None or source.id != cell.needs:
+            raise SpecError(f"cell {cell.id!r} needs its {role} cell {cell.needs!r}")
         source_result = read_result(root, source, seed)
         if source_result is None:
-            raise SpecError(f"cell {cell.id!r}: its source {source.id!r} (seed {seed}) has not finished")
-    init = _init_policy(root, cell, seed, source)  # before anything is written: an error leaves no trace
+            raise SpecError(f"cell {cell.id!r}: its {role} {source.id!r} (seed {seed}) has not finished")
+    init = policy_path(root, source, seed, cell.init_agents or source.agents) if cell.init_from else ""
     directory = cell_dir(root, cell, seed)
     os.makedirs(directory, exist_ok=True)
     definition_path = os.path.join(directory, DEFINITION)
@@ -216,6 +218,13 @@ def run_cell(
             check_same_definition(definition_path, cell, json.load(f))
     else:
         atomic_write_json(definition_path, cell.definition())
+    if cell.init_from:  # a run resumes only from the upstream policy it started from
+        upstream_path = os.path.join(directory, UPSTREAM)
+        if not os.path.exists(upstream_path):
+            atomic_write_json(upstream_path, {"cell": source.id, "finished": source_result["finished"]})
+        with open(upstream_path) as f:
+            if json.load(f)["finished"] != source_result["finished"]:
+                raise SpecError(_retrained(upstream_path, cell))
     attempt = _note_attempt(directory)
     torch.set_num_threads(1)
     start = time.time()
@@ -226,7 +235,8 @@ def run_cell(
         cfg = train_config(cell, seed, directory, cell.agents, cell.updates, arch, device, init)
         record = _training(train_or_resume(cfg))
         if cell.polish_updates:
-            polish = polish_stage(cfg, os.path.join(directory, POLISH_DIR), cell.polish_updates, cell.polish_lr, 0, 0)
+            polish_dir = os.path.join(directory, POLISH_DIR)
+            polish = polish_stage(cfg, polish_dir, cell.polish_updates, cell.polish_lr, 0, 0, record["updates"])
             before = final_eval(policy_path(root, cell, seed, polished=False), cell, cell.agents, arch)
             record = _polished(record, polish, before)
         rows = [{**final_eval(policy_path(root, cell, seed), cell, cell.agents, arch), **record}]

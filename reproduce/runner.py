@@ -92,7 +92,11 @@ def run_on_ray(
                     done.append(f"{cell_id}/s{seed}")
                     print(f"done: {cell_id} seed {seed}", file=out, flush=True)
                 except Exception as exc:  # noqa: BLE001 - one failed cell never stops the others
-                    failed[f"{cell_id}/s{seed}"] = _short_error(exc)
+                    needs = by_id[cell_id].needs
+                    if f"{needs}/s{seed}" in failed:  # Ray fails a task whose upstream failed
+                        failed[f"{cell_id}/s{seed}"] = f"not run: {needs} failed"
+                    else:
+                        failed[f"{cell_id}/s{seed}"] = _short_error(exc)
                     print(f"FAILED: {cell_id} seed {seed}: {failed[f'{cell_id}/s{seed}']}", file=out, flush=True)
             if not ready:
                 print(format_progress(cells, seeds, root, workers, live=live), file=out, flush=True)

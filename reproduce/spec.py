@@ -301,8 +301,10 @@ def _check_cell(where: str, c: Cell) -> None:
         bad("only train and curriculum cells have init_from")
     if c.init_agents and not c.init_from:
         bad("init_agents names a stage of init_from: set init_from too")
-    if c.polish_updates < 0 or (c.polish_updates and c.kind not in ("train", "curriculum")):
-        bad(f"polish_updates must be >= 0, and only train and curriculum cells polish, got {c.polish_updates}")
+    if c.polish_updates < 0:
+        bad(f"polish_updates must be >= 0, got {c.polish_updates}")
+    if c.polish_updates and c.kind not in ("train", "curriculum"):
+        bad(f"only train and curriculum cells polish: a {c.kind} cell has no polish_updates")
     if not c.polish_lr > 0:
         bad(f"polish_lr must be > 0, got {c.polish_lr}")
     if c.kind == "zero-shot" and not c.source:

@@ -67,14 +67,22 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
         return ""
     kind = cells[0].kind
     lines = [f"### {TITLES.get(table, f'Table {table}')}", ""]
-    # a table with polished cells shows S% before the polish too (and "updates" counts both)
+    # a table with polished cells shows S% before the polish (and how many polish updates);
+    # N / updates are the run's (stage's) own, env steps and minutes include the polish
     polish = any(c.polish_updates for c in cells)
-    pol_head, pol_rule = (" S% before polish |", "---|") if polish else ("", "")
+    pol_head, pol_rule = (" S% before polish (+updates) |", "---|") if polish else ("", "")
 
     def before(rows: list[dict]) -> str:
         if not polish:
             return ""
-        return f" {_stat([r['before_polish']['success_rate'] for r in rows if 'before_polish' in r], 100)} |"
+        polished = [r for r in rows if "before_polish" in r]
+        if not polished:
+            return " - |"
+        added = _stat([r["polish_updates"] for r in polished], digits=0)
+        return f" {_stat([r['before_polish']['success_rate'] for r in polished], 100)} (+{added}) |"
+
+    def own_updates(rows: list[dict]) -> str:
+        return _stat([r.get("updates") and r["updates"] - r.get("polish_updates", 0) for r in rows], digits=0)
 
     if kind in ("train", "baseline"):
         lines += [
@@ -95,7 +103,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
                 f"| {c.row_label()} | {c.agents} | {_stat([r['success_rate'] for r in rows], 100)} | "
                 f"{_paper(c, c.agents, 'S')} |{before(rows)} {_stat([r['mean_length'] for r in rows], digits=2)} | "
                 f"{_paper(c, c.agents, 'T')} | {_stat([r['dist'] for r in rows], digits=3)} | "
-                f"{_paper(c, c.agents, 'DIST')} | {_stat([r.get('updates') for r in rows], digits=0)} | "
+                f"{_paper(c, c.agents, 'DIST')} | {own_updates(rows)} | "
                 f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | {_stat([r['wall_time'] for r in rows], 1 / 60)} |"
             )
     elif kind == "curriculum":
@@ -115,7 +123,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
                 reached = sum(bool(r["reached_threshold"]) for r in rows)
                 lines.append(
                     f"| {c.row_label()} | {M} | {_stat([r['success_rate'] for r in rows], 100)} | "
-                    f"{_paper(c, M, 'S')} |{before(rows)} {_stat([r['updates'] for r in rows], digits=0)} | "
+                    f"{_paper(c, M, 'S')} |{before(rows)} {own_updates(rows)} | "
                     f"{_paper(c, M, 'N')} | "
                     f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | "
                     f"{_stat([r['wall_time'] for r in rows], 1 / 60)} | {reached} of {len(rows)} |"
@@ -135,6 +143,12 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
                 cols.append(f"{ours} ({_paper(c, M, 'S')})")
             source = f"{c.source} M={c.source_agents}" if c.source_agents else c.source
             lines.append(f"| {c.row_label()} | {source} | " + " | ".join(cols) + " |")
+    if polish:
+        lines += [
+            "",
+            "Polished cells: S% is the policy after the polish (a constant low learning rate from the "
+            "run's weights); updates / N count the run (stage) alone, env steps and minutes include the polish.",
+        ]
     lines.append("")
     return "\n".join(lines)
 

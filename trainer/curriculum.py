@@ -28,6 +28,7 @@ from trainer.train import resolve_device, train_or_resume
 
 MIN_STAGE_EVAL_EPISODES = 200
 FRESH_EVAL_FILE = "fresh-eval.json"
+POLISH_OF = "polish-of.json"  # in a polish run: the stage (and its last update) it polished
 
 
 def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: int, seed: int) -> dict:
@@ -121,7 +122,7 @@ def run_curriculum(
         if polish_updates:
             final_dir = f"{stage_dir}-polish"
             stage["polish"] = polish_stage(
-                stage_cfg, final_dir, polish_updates, polish_lr, fresh_eval_episodes, fresh_eval_seed
+                stage_cfg, final_dir, polish_updates, polish_lr, fresh_eval_episodes, fresh_eval_seed, summary["update"]
             )
         stages.append(stage)
         checkpoint.atomic_write_json(
@@ -150,11 +151,31 @@ def run_record(summary: dict) -> dict:
 
 
 def polish_stage(
-    stage_cfg: TrainConfig, polish_dir: str, updates: int, lr: float, fresh_eval_episodes: int, fresh_eval_seed: int
+    stage_cfg: TrainConfig,
+    polish_dir: str,
+    updates: int,
+    lr: float,
+    fresh_eval_episodes: int,
+    fresh_eval_seed: int,
+    stage_update: int,
 ) -> dict:
     """Train the finished stage of ``stage_cfg`` on from its weights (fresh optimiser and
     normaliser) for ``updates`` updates at the constant learning rate ``lr``, no target;
-    resumes like a stage. Returns its record for curriculum.json."""
+    resumes like a stage. ``stage_update``: where the stage ended; a polish of the stage as
+    it ended before (a stage given more updates since) is an error, never reused. Returns
+    its record for curriculum.json."""
+    marker = os.path.join(polish_dir, POLISH_OF)
+    if os.path.exists(marker):
+        with open(marker) as f:
+            polished = json.load(f)["stage_update"]
+        if polished != stage_update:
+            raise ValueError(
+                f"{polish_dir} polished {stage_cfg.run_dir} as it was at update {polished}; it now ends at "
+                f"update {stage_update}: move {polish_dir} away to polish the stage again"
+            )
+    else:
+        os.makedirs(polish_dir, exist_ok=True)
+        checkpoint.atomic_write_json(marker, {"stage": stage_cfg.run_dir, "stage_update": stage_update})
     polish_cfg = dataclasses.replace(
         stage_cfg,
         run_dir=polish_dir,

@@ -395,6 +395,14 @@ polish_updates = 2
 polish_lr = 1e-5
 
 [[cells]]
+id = "train-cov3"
+table = 1
+kind = "train"
+task = "coverage"
+agents = 3
+updates = 2
+
+[[cells]]
 id = "curr-cov-rc"
 table = 2
 kind = "curriculum"
@@ -419,9 +427,31 @@ sizes = [3, 4]
 )
 
 
-def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path):
+def _fake_final_eval(policy_path, cell, agents, arch="cpu"):
+    """S% 1.0 for a polished policy, 0.0 for any other: which one a row reports."""
+    polished = os.path.basename(os.path.dirname(policy_path)).endswith("polish")
+    return {"agents": agents, "success_rate": float(polished), "mean_length": 9.0, "dist": 0.1, "episodes": 12,
+            "seed": 777}  # fmt: skip
+
+
+def _table_is_aligned(md: str) -> None:
+    """Every row of every table has as many cells as its header."""
+    header = None
+    for line in md.splitlines():
+        if not line.startswith("|"):
+            header = None
+        elif header is None:
+            header = line.count("|")
+        else:
+            assert line.count("|") == header, line
+
+
+def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path, monkeypatch):
+    import trainer.train as train_mod
+
+    monkeypatch.setattr(cells_mod, "final_eval", _fake_final_eval)
     spec = load_spec(write_spec(tmp_path, text=CHAIN))
-    train_cell, curr_cell, zs_cell = spec.cells
+    train_cell, _, curr_cell, zs_cell = spec.cells
     assert curr_cell.needs == "train-cov" and zs_cell.needs == "curr-cov-rc"
     assert [c.id for c in spec.select(cell_ids=["zs-cov-rc"])] == ["train-cov", "curr-cov-rc", "zs-cov-rc"]
     assert train_cell.budget_updates() == 4 and curr_cell.budget_updates() == 6
@@ -432,13 +462,26 @@ def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path):
         cells_mod.run_cell(curr_cell, 0, root, source=train_cell)
     assert cells_mod.cell_state(root, curr_cell, 0) == "pending"  # the refusal wrote nothing
 
+    real, calls = train_mod.one_update, []
+
+    def killed_in_the_polish(state, *args, **kwargs):  # a kill in the polish's first update
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(state, *args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "one_update", killed_in_the_polish)
+    with pytest.raises(KeyboardInterrupt):
+        cells_mod.run_cell(train_cell, 0, root)
+    assert cells_mod.progress(root, train_cell, 0)["updates"] == 2
     trained = cells_mod.run_cell(train_cell, 0, root)
     (row,) = trained["rows"]
-    assert row["updates"] == 4 and row["polish_updates"] == 2 and set(row["before_polish"]) == {
-        "success_rate", "mean_length", "dist"
-    }  # fmt: skip
+    assert trained["attempts"] == 2
+    assert row["updates"] == 4 and row["polish_updates"] == 2 and row["env_steps"] == 4 * 4 * 8
+    assert row["success_rate"] == 1.0 and row["before_polish"]["success_rate"] == 0.0  # the polished policy reports
     polish_dir = os.path.join(cells_mod.cell_dir(root, train_cell, 0), "polish")
-    assert _metric_updates(polish_dir) == [1, 2]
+    assert _metric_updates(cells_mod.cell_dir(root, train_cell, 0)) == [1, 2]
+    assert _metric_updates(polish_dir) == [1, 2]  # resumed: nothing lost, nothing twice
     polish_cfg = json.loads(open(os.path.join(polish_dir, "config.json")).read())
     assert polish_cfg["ppo"]["lr"] == 1e-5 and polish_cfg["ppo"]["lr_end"] is None
 
@@ -460,7 +503,19 @@ def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path):
     assert [r["agents"] for r in cells_mod.run_cell(zs_cell, 0, root, source=curr_cell)["rows"]] == [3, 4]
 
     md = render_all(spec.cells, [0], root, "tiny")
-    assert md.count("S% before polish") == 2 and "| coverage RC | 3 |" in md
+    assert md.count("S% before polish (+updates)") == 2 and "| 0.0 (+1) | 2 | 3700 |" in md
+    assert "| coverage UC | 2 | 100.0 | 99 | 0.0 (+2) |" in md and "| coverage UC | 3 | not run |" in md
+    _table_is_aligned(md)
+
+    # the upstream trained again: the cell trained from its old policy says so, never reads as done
+    upstream_json = os.path.join(cells_mod.cell_dir(root, train_cell, 0), cells_mod.RESULT)
+    redone = json.loads(open(upstream_json).read()) | {"finished": 1.0}
+    open(upstream_json, "w").write(json.dumps(redone))
+    with pytest.raises(SpecError, match="trained again since .* delete"):
+        cells_mod.read_result(root, curr_cell, 0, train_cell)
+    os.unlink(os.path.join(d, cells_mod.RESULT))  # (a run stopped half-way resumes from the same upstream only)
+    with pytest.raises(SpecError, match="upstream.json: cell 'curr-cov-rc' was trained from a policy"):
+        cells_mod.run_cell(curr_cell, 0, root, source=train_cell)
     # cells without the new keys keep their old definitions (their results stay valid)
     assert {"init_from", "polish_updates"} & set(load_spec("paper").cells[0].definition()) == set()
     assert {"init_from", "init_agents", "polish_updates", "polish_lr"} <= set(curr_cell.definition())

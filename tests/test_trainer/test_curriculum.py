@@ -56,6 +56,14 @@ def test_polish_trains_each_stage_on_and_the_next_stage_starts_from_it(tmp_path,
     again = run_curriculum(*args, fresh_eval_episodes=3, polish_updates=4, polish_lr=1e-5)  # resumed: all done
     assert os.stat(summary).st_mtime_ns == before
     assert [s["polish"]["fresh_eval"] for s in again] == [s["polish"]["fresh_eval"] for s in stages]
+    # a polish of the stage as it ended before (a stage trained on since) is never reused
+    marker = os.path.join(run_dir, "stage-m2-polish", "polish-of.json")
+    with open(marker) as f:
+        assert json.load(f)["stage_update"] == 2
+    with open(marker, "w") as f:
+        json.dump({"stage": os.path.join(run_dir, "stage-m2"), "stage_update": 1}, f)
+    with pytest.raises(ValueError, match="as it was at update 1; it now ends at update 2: move .* away"):
+        run_curriculum(*args, fresh_eval_episodes=3, polish_updates=4, polish_lr=1e-5)
 
 
 def test_without_polish_the_table_has_no_polish_columns(tmp_path, monkeypatch):
