@@ -223,24 +223,38 @@ def plot_curves(table: int, cells: list[Cell], seeds: list[int], root: str, out_
     return _save(fig, os.path.join(out_dir, f"curves-table-{table}.png"))
 
 
-def check_doc_markers(doc_path: str, text: str | None = None) -> None:
-    """Raise ValueError unless ``doc_path`` holds DOC_BEGIN, then DOC_END, once each."""
+def doc_markers(spec_name: str = "paper") -> tuple[str, str]:
+    """The pair of markers a document holds for the tables of ``spec_name`` (one pair per
+    spec, so one document can hold the paper spec's tables and another's)."""
+    if spec_name == "paper":
+        return DOC_BEGIN, DOC_END
+    return (
+        f"<!-- BEGIN swarm reproduce --spec {spec_name} (generated: do not edit by hand) -->",
+        f"<!-- END swarm reproduce --spec {spec_name} -->",
+    )
+
+
+def check_doc_markers(doc_path: str, text: str | None = None, spec_name: str = "paper") -> None:
+    """Raise ValueError unless ``doc_path`` holds the spec's begin marker, then its end
+    marker, once each."""
     if text is None:
         with open(doc_path) as f:
             text = f.read()
-    begin, end = text.find(DOC_BEGIN), text.find(DOC_END)
-    if begin < 0 or end < begin or text.count(DOC_BEGIN) != 1 or text.count(DOC_END) != 1:
-        raise ValueError(f"{doc_path} must hold the markers {DOC_BEGIN!r} and then {DOC_END!r}, once each")
+    begin_mark, end_mark = doc_markers(spec_name)
+    begin, end = text.find(begin_mark), text.find(end_mark)
+    if begin < 0 or end < begin or text.count(begin_mark) != 1 or text.count(end_mark) != 1:
+        raise ValueError(f"{doc_path} must hold the markers {begin_mark!r} and then {end_mark!r}, once each")
 
 
-def update_doc(doc_path: str, markdown: str) -> None:
-    """Replace what lies between DOC_BEGIN and DOC_END in ``doc_path`` (atomically)."""
+def update_doc(doc_path: str, markdown: str, spec_name: str = "paper") -> None:
+    """Replace what lies between the spec's markers in ``doc_path`` (atomically)."""
     from taichi_swarm.files import atomic_write_bytes
 
     with open(doc_path) as f:
         text = f.read()
-    check_doc_markers(doc_path, text)
-    head, rest = text.split(DOC_BEGIN, 1)
-    _, tail = rest.split(DOC_END, 1)
-    new = f"{head}{DOC_BEGIN}\n{markdown.rstrip()}\n{DOC_END}{tail}"
+    check_doc_markers(doc_path, text, spec_name)
+    begin_mark, end_mark = doc_markers(spec_name)
+    head, rest = text.split(begin_mark, 1)
+    _, tail = rest.split(end_mark, 1)
+    new = f"{head}{begin_mark}\n{markdown.rstrip()}\n{end_mark}{tail}"
     atomic_write_bytes(doc_path, lambda f: f.write(new.encode()))

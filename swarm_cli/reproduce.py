@@ -37,13 +37,13 @@ def reproduce_main(argv: list[str]) -> int:
     args = parse(ReproduceOptions, argv, "swarm reproduce", description=DESCRIPTION)
     workers = args.workers or max(1, os.cpu_count() or 1)
     try:
+        spec = load_spec(args.spec)
         if args.update_doc:
             if not os.path.isfile(args.update_doc):
                 raise ValueError(f"--update-doc {args.update_doc} is not a file")
             from reproduce.tables import check_doc_markers
 
-            check_doc_markers(args.update_doc)  # before any cell runs
-        spec = load_spec(args.spec)
+            check_doc_markers(args.update_doc, spec_name=spec.name)  # before any cell runs
         cells = spec.select(list(args.tables) if args.tables else None, list(args.cells) if args.cells else None)
         seeds = list(range(args.seeds))
         root = args.root or os.path.join("runs", "reproduce", spec.name)
@@ -88,7 +88,8 @@ def reproduce_main(argv: list[str]) -> int:
         print(f"(tables: {tables_md})")
         if args.update_doc:
             doc_dir = os.path.dirname(os.path.abspath(args.update_doc))
-            update_doc(args.update_doc, render_all(cells, seeds, root, spec.name, doc_dir, args.figures, command))
+            markdown = render_all(cells, seeds, root, spec.name, doc_dir, args.figures, command)
+            update_doc(args.update_doc, markdown, spec.name)
             print(f"(written into {args.update_doc})")
     except KeyboardInterrupt:
         return 130

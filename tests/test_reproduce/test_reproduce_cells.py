@@ -15,7 +15,7 @@ import pytest
 
 from reproduce import cells as cells_mod
 from reproduce.spec import SpecError, load_spec
-from reproduce.tables import DOC_BEGIN, DOC_END, render_all, update_doc
+from reproduce.tables import DOC_BEGIN, DOC_END, doc_markers, render_all, update_doc
 
 TINY = """
 name = "tiny"
@@ -210,6 +210,14 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
     update_doc(str(doc), md)
     text = doc.read_text()
     assert "old" not in text and "before" in text and "after" in text and "| coverage UC | 2 |" in text
+    # another spec's tables go between that spec's own markers, in the same document
+    begin, end = doc_markers("recipe")
+    doc.write_text(f"{text}\n{begin}\nold recipe\n{end}\n")
+    update_doc(str(doc), "recipe tables", "recipe")
+    both = doc.read_text()
+    assert "old recipe" not in both and f"{begin}\nrecipe tables\n{end}" in both and "| coverage UC | 2 |" in both
+    with pytest.raises(ValueError, match="--spec smoke"):
+        update_doc(str(doc), md, "smoke")
     for bad in ("no markers", f"{DOC_END}\n{DOC_BEGIN}", f"{DOC_BEGIN}{DOC_END}{DOC_BEGIN}{DOC_END}"):
         doc.write_text(bad)
         with pytest.raises(ValueError, match="markers"):
