@@ -36,7 +36,7 @@ def _stat(values: list[float], scale: float = 1.0, digits: int = 1) -> str:
     mean = sum(values) / len(values)
     asked = _SEEDS_ASKED[0]
     of = f"{len(values)} of {asked}" if len(values) < asked else f"{len(values)}"
-    if len(values) == 1:
+    if len(values) == 1 or len(set(values)) == 1:  # one seed, or every seed the same (a budget)
         return f"{mean:.{digits}f}" + (f" ({of})" if asked > 1 else "")
     sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
     return f"{mean:.{digits}f} ± {sd:.{digits}f} ({of})"
@@ -78,7 +78,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
         polished = [r for r in rows if "before_polish" in r]
         if not polished:
             return " - |"
-        added = _stat([r["polish_updates"] for r in polished], digits=0)
+        added = "/".join(str(n) for n in sorted({r["polish_updates"] for r in polished}))
         return f" {_stat([r['before_polish']['success_rate'] for r in polished], 100)} (+{added}) |"
 
     def own_updates(rows: list[dict]) -> str:
