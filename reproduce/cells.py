@@ -229,11 +229,11 @@ def run_cell(
     torch.set_num_threads(1)
     start = time.time()
     if cell.kind == "train":
-        from trainer.curriculum import polish_stage
+        from trainer.curriculum import polish_stage, run_record
         from trainer.train import train_or_resume
 
         cfg = train_config(cell, seed, directory, cell.agents, cell.updates, arch, device, init)
-        record = _training(train_or_resume(cfg))
+        record = _training(run_record(train_or_resume(cfg)))
         if cell.polish_updates:
             polish_dir = os.path.join(directory, POLISH_DIR)
             polish = polish_stage(cfg, polish_dir, cell.polish_updates, cell.polish_lr, 0, 0, record["updates"])
@@ -356,13 +356,10 @@ def _finished_baseline(directory: str, args) -> dict | None:
     return summary if same else None
 
 
-def _training(summary: dict) -> dict:
-    """updates, env_steps, wall_time of a run's summary (or of a curriculum stage's record)."""
-    return {
-        "updates": summary["update"] if "update" in summary else summary["updates"],
-        "env_steps": summary["env_steps"],
-        "wall_time": summary["wall_time"],
-    }
+def _training(record: dict) -> dict:
+    """updates, env_steps, wall_time of a run's record (trainer.curriculum.run_record: a
+    curriculum stage's, a polish's or a train cell's)."""
+    return {k: record[k] for k in ("updates", "env_steps", "wall_time")}
 
 
 def _polished(record: dict, polish: dict, before: dict) -> dict:
