@@ -119,7 +119,7 @@ def train_config(
         updates=updates,
         eval_every=cell.eval_every,
         eval_episodes=cell.eval_episodes,
-        transfer_offsets=(),
+        transfer_offsets=cell.transfer_offsets,
         checkpoint_every=cell.checkpoint_every,
         seed=seed,
         run_dir=run_dir,

@@ -104,6 +104,11 @@ class Cell:
     eval_every: int = 50
     eval_episodes: int = 200
     """Episodes of the evaluations during training (stages advance on them)."""
+    transfer_offsets: tuple[int, ...] = ()
+    """train, curriculum (others ignore it, as [defaults] give it to every cell): the
+    evaluations during training also report S% at these offsets
+    from the training team size (metrics.jsonl ``eval_transfer``, the curves): reporting
+    only, so not part of the definition (adding them leaves existing results valid)."""
     final_episodes: int = 500
     eval_seed: int = 777
     checkpoint_every: int = 25
@@ -116,7 +121,7 @@ class Cell:
     def definition(self) -> dict:
         """Everything that decides what is run (not the paper's numbers or the label)."""
         d = dataclasses.asdict(self)
-        for key in ("paper", "label", "table"):
+        for key in ("paper", "label", "table", "transfer_offsets"):  # reporting only
             d.pop(key)
         if self.kind != "baseline":  # fields only a baseline reads (older results lack them)
             for key in BASELINE_FIELDS:
@@ -244,8 +249,11 @@ def _make_cell(path: str, index: int, entry: dict) -> Cell:
         if key not in entry:
             raise SpecError(f"{where}: missing {key!r}")
     entry = dict(entry)
-    if "sizes" in entry:
-        entry["sizes"] = tuple(entry["sizes"])
+    for key in ("sizes", "transfer_offsets"):
+        if key in entry:
+            if not isinstance(entry[key], list):
+                raise SpecError(f"{where}: {key} must be a list of integers, got {entry[key]!r}")
+            entry[key] = tuple(entry[key])
     try:
         cell = Cell(**entry)
     except TypeError as exc:
@@ -297,6 +305,8 @@ def _check_cell(where: str, c: Cell) -> None:
             bad(f"max_updates_per_stage must be >= 1, got {c.max_updates_per_stage}")
         if not 0 <= c.min_updates_per_stage <= c.max_updates_per_stage:
             bad(f"min_updates_per_stage must be in [0, max_updates_per_stage], got {c.min_updates_per_stage}")
+    if any(not isinstance(d, int) or isinstance(d, bool) or d == 0 or abs(d) > 100 for d in c.transfer_offsets):
+        bad(f"transfer_offsets must be small non-zero team-size offsets, got {list(c.transfer_offsets)}")
     if c.init_from and c.kind not in ("train", "curriculum"):
         bad("only train and curriculum cells have init_from")
     if c.init_agents and not c.init_from:

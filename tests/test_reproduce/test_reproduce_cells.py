@@ -85,7 +85,12 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
     assert all(recipe.cell(c.id).paper == c.paper for c in ours)
     trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
-    assert all(c.preset == "fast" and c.ppo == {"reset_return": False} for c in trained)
+    assert all(c.preset == "fast" and c.ppo["reset_return"] is False for c in trained)
+    # the coverage curricula are fine-tunes throughout: a constant 1e-4 (7e-4 collapsed at RC M = 7)
+    fine_tunes = {"t2-coverage-emp-uc", "t2-coverage-emp-rc"}
+    assert all(c.ppo == {"reset_return": False, "lr": 1e-4, "lr_end": 1e-4} for c in trained if c.id in fine_tunes)
+    assert all(c.ppo == {"reset_return": False} for c in trained if c.id not in fine_tunes)
+    assert all(c.transfer_offsets == (2,) for c in trained)  # the next stage's size, logged while training
     assert all(c.polish_updates == 300 and c.polish_lr == 3e-5 for c in trained)
     assert all(c.updates * 2048 >= 4_500_000 for c in trained if c.kind == "train")  # the paper's budget
     for cid in ("t2-coverage-emp-uc", "t2-coverage-emp-rc"):
@@ -125,12 +130,30 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t.replace("epochs = 1 }", "epochs = 1, epocs = 2 }"), r"ppo has unknown options \['epocs'\]"),
         (lambda t: t.replace('source = "train-cov"', 'source = "train-cov"\ncomm = "rc"'), "differ from its source"),
         (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nalgorithm = "mappo"'), "frames must be >= 1"),
+        (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = [0, 1]"), "small non-zero team-size"),
+        (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = 1"), "transfer_offsets must be a list"),
+        (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = 3"), "sizes must be a list of integers"),
     ],
 )
 def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
     path = write_spec(tmp_path, text=edit(TINY.format(updates=3, eval_every=2)))
     with pytest.raises(SpecError, match=message):
         load_spec(path)
+
+
+def test_transfer_offsets_are_logged_and_leave_the_definition_alone(tmp_path):
+    """A cell's transfer_offsets make its evaluations during training report S% at those
+    neighbouring sizes; they decide nothing that is trained, so results from before stay valid."""
+    text = TINY.format(updates=2, eval_every=2)
+    plain = load_spec(write_spec(tmp_path, text=text)).cell("train-cov")
+    spec = load_spec(write_spec(tmp_path, text=text.replace("agents = 2", "agents = 2\ntransfer_offsets = [1]")))
+    cell = spec.cell("train-cov")
+    assert cell.transfer_offsets == (1,) and cell.digest() == plain.digest()
+    root = str(tmp_path / "root")
+    cells_mod.run_cell(cell, 0, root)
+    with open(os.path.join(cells_mod.cell_dir(root, cell, 0), "metrics.jsonl")) as f:
+        evals = [r for r in map(json.loads, f) if "eval_success_rate" in r]
+    assert evals and set(evals[-1]["eval_transfer"]) == {"3"}
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
