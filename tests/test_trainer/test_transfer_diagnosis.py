@@ -1,0 +1,45 @@
+"""tools/transfer_diagnosis.py: how a coverage policy fails at a team size it was not
+trained at, pinned on two committed M = 3 policies (docs/RESULTS.md, "Why some M = 3
+policies carry and others do not"): the one that does not carry piles agents up."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+
+import pytest
+
+ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
+RECIPE = os.path.join(ROOT, "results", "reproduce-recipe", "t1-coverage-uc-m3")
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location("transfer_diagnosis", os.path.join(ROOT, "tools", "transfer_diagnosis.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_policy_that_does_not_carry_piles_agents_up():
+    from taichi_swarm import runtime
+    from trainer.checkpoint import load_policy
+
+    tool = _tool()
+    runtime.init("cpu")
+    carries, _ = load_policy(os.path.join(RECIPE, "s0", "polish", "policy.pt"))  # 94.2% at M = 5
+    stuck, _ = load_policy(os.path.join(RECIPE, "s1", "polish", "policy.pt"))  # 17.2% at M = 5
+    good = tool.diagnose(carries.eval(), 5, 60, 777, "uc")
+    bad = tool.diagnose(stuck.eval(), 5, 60, 777, "uc")
+    assert bad["failures"] > 2 * good["failures"] > 0
+    for r in (good, bad):
+        assert 0 <= r["covered"] < 5 and 1 <= r["claimed"] <= 5 and 0 <= r["stacked"] <= 5
+    assert bad["claimed"] < good["claimed"] - 0.5 and bad["stacked"] > good["stacked"] + 0.5
+
+
+def test_it_names_what_is_wrong(capsys):
+    tool = _tool()
+    formation = os.path.join(ROOT, "results", "formation-m3-uc", "policy.pt")
+    assert tool.main([formation, "--sizes", "3", "--episodes", "2"]) == 2
+    assert "a formation policy" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        tool.main([formation, "--episodes", "0"])
