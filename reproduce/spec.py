@@ -263,6 +263,8 @@ def _make_cell(path: str, index: int, entry: dict) -> Cell:
 
 
 def _check_cell(where: str, c: Cell) -> None:
+    from trainer.config import MAX_TRANSFER_OFFSET, PRESETS, PPOConfig  # (torch: imported only to check a spec)
+
     def bad(msg: str):
         raise SpecError(f"{where}: {msg}")
 
@@ -305,8 +307,11 @@ def _check_cell(where: str, c: Cell) -> None:
             bad(f"max_updates_per_stage must be >= 1, got {c.max_updates_per_stage}")
         if not 0 <= c.min_updates_per_stage <= c.max_updates_per_stage:
             bad(f"min_updates_per_stage must be in [0, max_updates_per_stage], got {c.min_updates_per_stage}")
-    if any(not isinstance(d, int) or isinstance(d, bool) or d == 0 or abs(d) > 100 for d in c.transfer_offsets):
-        bad(f"transfer_offsets must be small non-zero team-size offsets, got {list(c.transfer_offsets)}")
+    offsets = c.transfer_offsets
+    if any(not isinstance(d, int) or isinstance(d, bool) or d == 0 or abs(d) > MAX_TRANSFER_OFFSET for d in offsets):
+        bad(f"transfer_offsets must be small non-zero team-size offsets, got {list(offsets)}")
+    if len(set(offsets)) != len(offsets):
+        bad(f"transfer_offsets has a repeated offset: {list(offsets)}")
     if c.init_from and c.kind not in ("train", "curriculum"):
         bad("only train and curriculum cells have init_from")
     if c.init_agents and not c.init_from:
@@ -328,7 +333,6 @@ def _check_cell(where: str, c: Cell) -> None:
         bad(f"eval_seed must be in [0, 2**40): training draws its seeds above, got {c.eval_seed}")
     if not isinstance(c.ppo, dict):
         bad("ppo must be a table of PPO options")
-    from trainer.config import PRESETS, PPOConfig  # (torch: imported only to check a spec)
 
     if c.preset not in PRESETS:
         bad(f"preset must be one of {tuple(PRESETS)}, got {c.preset!r}")

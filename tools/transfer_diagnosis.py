@@ -4,13 +4,15 @@ episodes that will time out end.
     python tools/transfer_diagnosis.py POLICY.pt [POLICY.pt ...] --sizes 3 5 --episodes 200
 
 For each policy and team size M it runs ``episodes`` greedy episodes (one per environment,
-fresh seed ``--seed``) for 49 steps (an episode times out at 50) and, over the environments
-still running then (the failures), reports:
+fresh seed ``--seed``, the episodes `swarm zero-shot` runs with that seed) to their end and,
+over the failures (episodes that time out at step 50), reports where the agents were at step
+49, one step before the end:
 
 - ``covered``: landmarks with an agent within the success distance 0.1, out of M;
 - ``claimed``: distinct landmarks that are some agent's nearest, out of M (agents that
   share a nearest landmark leave another without one);
-- ``stacked``: agents within 0.1 of a landmark another agent is nearer to (a pile-up);
+- ``stacked``: agents within 0.2 of their nearest landmark while another agent is nearer to
+  it (a pile-up; two touching agents of radius 0.05 are 0.1 apart);
 - ``far``: agents more than 0.3 from every landmark (wandering or stopped between them).
 
 A policy that carries to M but is slow shows failures with most landmarks covered; one
@@ -27,27 +29,34 @@ import numpy as np
 import torch
 
 SUCCESS_DIST = 0.1  # coverage: every landmark within 0.1 of its matched agent (spec s.3)
+STACK_DIST = 0.2
 FAR = 0.3
-STEPS_BEFORE_TIMEOUT = 49
+EPISODE_STEPS = 50  # an episode times out after 50 steps (spec s.3)
 
 
-def diagnose(policy, agents: int, episodes: int, seed: int, comm: str) -> dict:
+def diagnose(policy, agents: int, episodes: int, seed: int, comm: str, comm_radius: float = 1.0) -> dict:
     import taichi_swarm
 
-    env = taichi_swarm.make("coverage", episodes, agents, comm=comm, arch="cpu", seed=seed)
+    env = taichi_swarm.make("coverage", episodes, agents, comm=comm, comm_radius=comm_radius, arch="cpu", seed=seed)
     fused = policy.fused_weights()
     obs = env.reset()
     running = np.ones(episodes, bool)  # still in its first episode
     with torch.no_grad():
-        for _ in range(STEPS_BEFORE_TIMEOUT):
+        for step in range(1, EPISODE_STEPS + 1):
+            if step == EPISODE_STEPS:
+                state = env.get_state()  # step 49: where the agents are before the last step
+                before_last = running.copy()
             logits, _ = policy(obs["self"], obs["entities"], obs["adj"], fused=fused)
-            obs, _, done, _ = env.step(logits.argmax(-1))
+            obs, _, done, info = env.step(logits.argmax(-1))
             running &= ~np.asarray(done, bool)
-    state = env.get_state()
-    pos = np.asarray(state["pos"])[running]  # [F, M, 2]
-    marks = np.asarray(state["landmarks"])[running]  # [F, M, 2]
+    if running.any():
+        raise RuntimeError(f"{int(running.sum())} episodes ran past {EPISODE_STEPS} steps")
+    succeeded_last = np.asarray(info["episode"]["success"], bool)  # the episodes that ended at step 50
+    failed = before_last & ~succeeded_last
+    pos = np.asarray(state["pos"])[failed]  # [F, M, 2]
+    marks = np.asarray(state["landmarks"])[failed]  # [F, M, 2]
     if not len(pos):
-        return {"agents": agents, "failures": 0}
+        return {"agents": agents, "failures": 0, "success_rate": 1.0}
     d = np.linalg.norm(pos[:, :, None, :] - marks[:, None, :, :], axis=-1)  # [F, agents, landmarks]
     nearest = d.argmin(-1)  # [F, M]
     nearest_d = d.min(-1)
@@ -56,11 +65,12 @@ def diagnose(policy, agents: int, episodes: int, seed: int, comm: str) -> dict:
     # an agent near a landmark that another agent is nearer to
     closest_agent = d.argmin(1)  # [F, L]
     own = np.take_along_axis(closest_agent, nearest, axis=1)  # closest agent of each agent's nearest landmark
-    stacked = ((own != np.arange(agents)) & (nearest_d < SUCCESS_DIST)).sum(-1)
+    stacked = ((own != np.arange(agents)) & (nearest_d < STACK_DIST)).sum(-1)
     far = (nearest_d > FAR).sum(-1)
     return {
         "agents": agents,
         "failures": int(len(pos)),
+        "success_rate": 1.0 - len(pos) / episodes,
         "covered": float(covered.mean()),
         "claimed": float(claimed.mean()),
         "stacked": float(stacked.mean()),
@@ -74,7 +84,8 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=[3, 5])
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=777)
-    parser.add_argument("--comm", default=None, help="uc | rc (default: the policy's own)")
+    parser.add_argument("--comm", choices=("uc", "rc"), default=None, help="default: the policy's own")
+    parser.add_argument("--comm-radius", type=float, default=None, help="default: the policy's own")
     args = parser.parse_args(argv)
     if args.episodes < 1 or any(m < 2 for m in args.sizes):
         parser.error("--episodes must be >= 1 and --sizes team sizes >= 2")
@@ -83,24 +94,24 @@ def main(argv=None) -> int:
 
     runtime.init("cpu")
     torch.set_num_threads(1)
-    print(f"{'policy':60s} {'M':>3s} {'failures':>9s} {'covered':>8s} {'claimed':>8s} {'stacked':>8s} {'far':>6s}")
-    for path in args.policies:
+    loaded = []
+    for path in args.policies:  # every policy checked before any is evaluated
         policy, payload = load_policy(path)
-        policy.eval()
-        task = (payload.get("task") or {}).get("task", "coverage")
-        if task != "coverage":
-            print(f"{path}: a {task} policy; this diagnosis is for coverage", file=sys.stderr)
+        setting = payload.get("task") or {}
+        if setting.get("task", "coverage") != "coverage":
+            print(f"{path}: a {setting['task']} policy; this diagnosis is for coverage", file=sys.stderr)
             return 2
-        comm = args.comm or (payload.get("task") or {}).get("comm", "uc")
+        comm = args.comm or setting.get("comm", "uc")
+        radius = args.comm_radius if args.comm_radius is not None else setting.get("comm_radius", 1.0)
+        loaded.append((path, policy.eval(), comm, radius))
+    print(f"{'policy':60s} {'M':>3s} {'S%':>6s} {'failures':>9s} {'covered':>8s} {'claimed':>8s} {'stacked':>8s} {'far':>6s}")
+    for path, policy, comm, radius in loaded:
         for M in args.sizes:
-            r = diagnose(policy, M, args.episodes, args.seed, comm)
-            if not r["failures"]:
-                print(f"{path[-60:]:60s} {M:3d} {0:9d}")
-                continue
-            print(
-                f"{path[-60:]:60s} {M:3d} {r['failures']:9d} {r['covered']:8.2f} {r['claimed']:8.2f} "
-                f"{r['stacked']:8.2f} {r['far']:6.2f}"
-            )
+            r = diagnose(policy, M, args.episodes, args.seed, comm, radius)
+            line = f"{path[-60:]:60s} {M:3d} {100 * r['success_rate']:6.1f} {r['failures']:9d}"
+            if r["failures"]:
+                line += f" {r['covered']:8.2f} {r['claimed']:8.2f} {r['stacked']:8.2f} {r['far']:6.2f}"
+            print(line)
     return 0
 
 

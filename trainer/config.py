@@ -16,6 +16,7 @@ from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from trainer.model import ENTITY_MODES, ModelConfig
 
 INIT_CARRY = ("weights", "normaliser", "optimiser")  # what --init-from carries, cumulative
+MAX_TRANSFER_OFFSET = 1000  # |d| of a --transfer-offsets entry
 
 
 @dataclass
@@ -214,8 +215,10 @@ class TrainConfig:
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         self.validate_init_carry()
-        if any(abs(d) > 1000 for d in self.transfer_offsets):
+        if any(abs(d) > MAX_TRANSFER_OFFSET for d in self.transfer_offsets):
             raise ValueError(f"transfer_offsets must be small team-size offsets, got {self.transfer_offsets}")
+        if len(set(self.transfer_offsets)) != len(self.transfer_offsets):
+            raise ValueError(f"transfer_offsets has a repeated offset: {self.transfer_offsets}")
         if not math.isfinite(self.comm_radius):
             raise ValueError(f"comm_radius must be finite, got {self.comm_radius}")
         if not 0 <= self.min_updates <= self.updates:

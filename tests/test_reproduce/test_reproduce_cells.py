@@ -132,6 +132,7 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nalgorithm = "mappo"'), "frames must be >= 1"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = [0, 1]"), "small non-zero team-size"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = 1"), "transfer_offsets must be a list"),
+        (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = [2, 2]"), "repeated offset"),
         (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = 3"), "sizes must be a list of integers"),
     ],
 )

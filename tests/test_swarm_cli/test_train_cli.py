@@ -115,6 +115,8 @@ def test_config_validation_names_the_option(tmp_path):
         tiny(tmp_path, ppo=PPOConfig(lr=-1)).validate()
     with pytest.raises(ValueError, match="agents"):
         tiny(tmp_path, agents=0).validate()
+    with pytest.raises(ValueError, match="repeated offset"):  # one key per size in eval_transfer
+        tiny(tmp_path, transfer_offsets=(2, 2)).validate()
 
 
 def swarm(*args, cwd):
