@@ -378,28 +378,41 @@ def progress(root: str, cell: Cell, seed: int) -> dict:
     """How far a cell is, from its files: updates done (all stages), the budget, and the
     training wall-clock so far (for the time-left estimate)."""
     state = cell_state(root, cell, seed)
-    updates, wall, stage = 0, 0.0, None
+    updates, wall, stage, last_eval = 0, 0.0, None, None
     for run in run_dirs(root, cell, seed):
-        last = _last_metrics(os.path.join(run, "metrics.jsonl"))
-        if last:
-            updates += last["update"]
-            wall += last.get("wall_time", 0.0)
+        rows = _last_metrics(os.path.join(run, "metrics.jsonl"))
+        if rows:
+            updates += rows[-1]["update"]
+            wall += rows[-1].get("wall_time", 0.0)
             stage = os.path.basename(run) if cell.kind == "curriculum" else None
-    return {"state": state, "updates": updates, "budget": cell.budget_updates(), "wall_time": wall, "stage": stage}
+            evals = [r for r in rows if r.get("eval_success_rate") is not None]
+            last_eval = (
+                {"update": evals[-1]["update"], "success_rate": evals[-1]["eval_success_rate"]} if evals else None
+            )
+    return {
+        "state": state,
+        "updates": updates,
+        "budget": cell.budget_updates(),
+        "wall_time": wall,
+        "stage": stage,
+        "last_eval": last_eval,  # the latest evaluation during training of the latest run (stage)
+    }
 
 
-def _last_metrics(path: str) -> dict | None:
+def _last_metrics(path: str, tail_bytes: int = 65536) -> list[dict]:
+    """The records in the last ``tail_bytes`` of a metrics.jsonl (enough to hold the
+    latest evaluation), oldest first; [] if there is none."""
     if not os.path.exists(path):
-        return None
-    last = None
+        return []
+    rows = []
     with open(path, "rb") as f:
         try:
-            f.seek(-4096, os.SEEK_END)
+            f.seek(-tail_bytes, os.SEEK_END)
         except OSError:
             f.seek(0)
         for line in f.read().decode(errors="replace").splitlines():
             try:
-                last = json.loads(line)
-            except json.JSONDecodeError:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:  # a line cut by the seek, or one being written
                 continue
-    return last
+    return rows

@@ -146,8 +146,11 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
                     if rate:
                         longest = max(longest, max(budget - p["updates"], 0) * rate)
                         left = _minutes(max(budget - p["updates"], 0) * rate)
-            rows.append((cell.id, str(seed), state, done_txt, _minutes(p["wall_time"]) if p["wall_time"] else "", left))
-    head = ("cell", "seed", "state", "updates", "trained", "left (at most)")
+            last = p["last_eval"]
+            last_txt = f"{100 * last['success_rate']:.1f} @{last['update']}" if last and p["state"] != "done" else ""
+            trained = _minutes(p["wall_time"]) if p["wall_time"] else ""
+            rows.append((cell.id, str(seed), state, done_txt, last_txt, trained, left))
+    head = ("cell", "seed", "state", "updates", "last eval S%", "trained", "left (at most)")
     widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
     lines = ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() for r in [head, *rows]]
     counts = {}

@@ -187,6 +187,12 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
     with pytest.raises(KeyboardInterrupt):
         cells_mod.run_cell(train_cell, 0, root)
     assert cells_mod.cell_state(root, train_cell, 0) == "started"
+    # the progress view shows how far it got and its latest evaluation (eval_every = 2)
+    assert cells_mod.progress(root, train_cell, 0)["last_eval"]["update"] == 2
+    from reproduce.runner import format_progress
+
+    status = format_progress([train_cell], [0], root, workers=1)
+    assert "last eval S%" in status and " @2 " in status
     monkeypatch.setattr(train_mod, "one_update", real)
     # a started cell whose definition changed is refused, not resumed under the old one
     with pytest.raises(SpecError, match=r"differs in \['updates'\]"):
