@@ -400,8 +400,8 @@ def progress(root: str, cell: Cell, seed: int) -> dict:
 
 
 def _last_metrics(path: str, tail_bytes: int = 65536) -> list[dict]:
-    """The records in the last ``tail_bytes`` of a metrics.jsonl (enough to hold the
-    latest evaluation), oldest first; [] if there is none."""
+    """The records in the last ``tail_bytes`` of a metrics.jsonl, oldest first ([] if there
+    is none): the last update's and, at eval_every up to about 100, the latest evaluation's."""
     if not os.path.exists(path):
         return []
     rows = []
