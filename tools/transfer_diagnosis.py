@@ -36,27 +36,26 @@ EPISODE_STEPS = 50  # an episode times out after 50 steps (spec s.3)
 
 def diagnose(policy, agents: int, episodes: int, seed: int, comm: str, comm_radius: float = 1.0) -> dict:
     import taichi_swarm
+    from taichi_swarm.metrics import run_first_episodes
 
     env = taichi_swarm.make("coverage", episodes, agents, comm=comm, comm_radius=comm_radius, arch="cpu", seed=seed)
     fused = policy.fused_weights()
-    obs = env.reset()
-    running = np.ones(episodes, bool)  # still in its first episode
-    with torch.no_grad():
-        for step in range(1, EPISODE_STEPS + 1):
-            if step == EPISODE_STEPS:
-                state = env.get_state()  # step 49: where the agents are before the last step
-                before_last = running.copy()
+    seen = {"steps": 0, "state": None}
+
+    def decide(obs):  # `swarm eval`'s greedy loop, keeping the state before the last step
+        seen["steps"] += 1
+        if seen["steps"] == EPISODE_STEPS:
+            seen["state"] = env.get_state()  # after 49 steps: where a failure's agents end up
+        with torch.no_grad():
             logits, _ = policy(obs["self"], obs["entities"], obs["adj"], fused=fused)
-            obs, _, done, info = env.step(logits.argmax(-1))
-            running &= ~np.asarray(done, bool)
-    if running.any():
-        raise RuntimeError(f"{int(running.sum())} episodes ran past {EPISODE_STEPS} steps")
-    succeeded_last = np.asarray(info["episode"]["success"], bool)  # the episodes that ended at step 50
-    failed = before_last & ~succeeded_last
-    pos = np.asarray(state["pos"])[failed]  # [F, M, 2]
-    marks = np.asarray(state["landmarks"])[failed]  # [F, M, 2]
-    if not len(pos):
+        return logits.argmax(-1), None
+
+    tally = run_first_episodes(env, decide)
+    failed = ~tally.success  # a failure runs all 50 steps, so the state above is its last but one
+    if not failed.any():
         return {"agents": agents, "failures": 0, "success_rate": 1.0}
+    pos = np.asarray(seen["state"]["pos"])[failed]  # [F, M, 2]
+    marks = np.asarray(seen["state"]["landmarks"])[failed]  # [F, M, 2]
     d = np.linalg.norm(pos[:, :, None, :] - marks[:, None, :, :], axis=-1)  # [F, agents, landmarks]
     nearest = d.argmin(-1)  # [F, M]
     nearest_d = d.min(-1)
@@ -89,7 +88,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.episodes < 1 or any(m < 2 for m in args.sizes):
         parser.error("--episodes must be >= 1 and --sizes team sizes >= 2")
-    from taichi_swarm import runtime
+    from taichi_swarm import TaskSetting, runtime
     from trainer.checkpoint import load_policy
 
     runtime.init("cpu")
@@ -97,13 +96,12 @@ def main(argv=None) -> int:
     loaded = []
     for path in args.policies:  # every policy checked before any is evaluated
         policy, payload = load_policy(path)
-        setting = payload.get("task") or {}
-        if setting.get("task", "coverage") != "coverage":
-            print(f"{path}: a {setting['task']} policy; this diagnosis is for coverage", file=sys.stderr)
+        setting = TaskSetting.from_dict(payload.get("task"), path)
+        if setting.task != "coverage":
+            print(f"{path}: a {setting.task} policy; this diagnosis is for coverage", file=sys.stderr)
             return 2
-        comm = args.comm or setting.get("comm", "uc")
-        radius = args.comm_radius if args.comm_radius is not None else setting.get("comm_radius", 1.0)
-        loaded.append((path, policy.eval(), comm, radius))
+        radius = args.comm_radius if args.comm_radius is not None else setting.comm_radius
+        loaded.append((path, policy.eval(), args.comm or setting.comm, radius))
     print(f"{'policy':60s} {'M':>3s} {'S%':>6s} {'failures':>9s} {'covered':>8s} {'claimed':>8s} {'stacked':>8s} {'far':>6s}")
     for path, policy, comm, radius in loaded:
         for M in args.sizes:
