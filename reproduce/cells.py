@@ -30,12 +30,14 @@ import time
 from reproduce.spec import Cell, SpecError
 from taichi_swarm import TASK_SPECS
 from taichi_swarm.files import atomic_write_json
+from trainer.lock import RunDirLock, is_held
 
 RESULT = "result.json"
 ATTEMPTS = "attempts.json"
 DEFINITION = "definition.json"  # written at the first start: a changed cell never mixes with old runs
 POLISH_DIR = "polish"  # a train cell's polish run, inside its run directory
 UPSTREAM = "upstream.json"  # an init_from cell: which result of its upstream it started from
+CELL_LOCK = ".cell.lock"  # held by the process bringing the cell to its result (trainer.lock)
 
 
 def cell_dir(root: str, cell: Cell, seed: int) -> str:
@@ -79,7 +81,8 @@ def check_same_definition(path: str, cell: Cell, stored: dict) -> None:
 
 
 def cell_state(root: str, cell: Cell, seed: int) -> str:
-    """done | started | pending (from the files alone: no process is asked)."""
+    """done | started | pending (from the files alone: no process is asked; whether a
+    started cell is running now: ``progress``)."""
     d = cell_dir(root, cell, seed)
     if os.path.exists(os.path.join(d, RESULT)):
         return "done"
@@ -195,9 +198,8 @@ def run_cell(
     evaluate afresh and write result.json. ``source``: the cell this one reads (a
     zero-shot row's source, a run's init_from: ``cell.needs``); ``arch`` / ``device``:
     where the simulator / the network run (not part of the cell's definition: the same
-    cell on a GPU is the same experiment)."""
-    import torch
-
+    cell on a GPU is the same experiment). One process at a time per (cell, seed): a
+    second is refused while the first holds the cell's lock."""
     done = read_result(root, cell, seed, source)
     if done is not None:
         return done
@@ -211,7 +213,33 @@ def run_cell(
             raise SpecError(f"cell {cell.id!r}: its {role} {source.id!r} (seed {seed}) has not finished")
     init = policy_path(root, source, seed, cell.init_agents or source.agents) if cell.init_from else ""
     directory = cell_dir(root, cell, seed)
-    os.makedirs(directory, exist_ok=True)
+    lock = RunDirLock(
+        directory,
+        CELL_LOCK,
+        holder=f"another `swarm reproduce` running cell {cell.id!r} (seed {seed})",
+        advice="wait for it to finish, or stop it (it resumes where it stopped)",
+    )
+    with lock:
+        return _bring_to_result(cell, seed, root, source, source_result, init, directory, arch, device)
+
+
+def _bring_to_result(
+    cell: Cell,
+    seed: int,
+    root: str,
+    source: Cell | None,
+    source_result: dict | None,
+    init: str,
+    directory: str,
+    arch: str,
+    device: str,
+) -> dict:
+    """run_cell's work, under the cell's lock."""
+    import torch
+
+    done = read_result(root, cell, seed, source)  # (finished by another process meanwhile)
+    if done is not None:
+        return done
     definition_path = os.path.join(directory, DEFINITION)
     if os.path.exists(definition_path):  # started before: by the same definition?
         with open(definition_path) as f:
@@ -375,8 +403,9 @@ def _polished(record: dict, polish: dict, before: dict) -> dict:
 
 
 def progress(root: str, cell: Cell, seed: int) -> dict:
-    """How far a cell is, from its files: updates done (all stages), the budget, and the
-    training wall-clock so far (for the time-left estimate)."""
+    """How far a cell is, from its files: updates done (all stages), the budget, the
+    training wall-clock so far (for the time-left estimate), and whether a process is
+    working on it now (it holds the cell's lock)."""
     state = cell_state(root, cell, seed)
     updates, wall, stage, last_eval = 0, 0.0, None, None
     for run in run_dirs(root, cell, seed):
@@ -391,6 +420,7 @@ def progress(root: str, cell: Cell, seed: int) -> dict:
             )
     return {
         "state": state,
+        "running": state != "done" and is_held(cell_dir(root, cell, seed), CELL_LOCK),
         "updates": updates,
         "budget": cell.budget_updates(),
         "wall_time": wall,

@@ -112,8 +112,9 @@ def _short_error(exc: Exception) -> str:
 
 
 def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int, live: set | None = None) -> str:
-    """Which cells are done, running (``live``: submitted in this run) or waiting, how far
-    each is, and the time left at the measured seconds per update."""
+    """Which cells are done, running (a process holds the cell's lock), queued (``live``:
+    submitted in this run, no worker on it yet), stopped, pending or waiting for their
+    source; how far each is, and the time left at the measured seconds per update."""
     rows, remaining_updates, remaining_fixed, longest = [], 0, 0.0, 0.0
     per_update = []
     info = {}
@@ -128,10 +129,14 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
         for seed in seeds:
             p = info[(cell.id, seed)]
             state = p["state"]
-            if state == "started" and live is not None:  # (from the files alone: running or stopped)
-                state = "running" if (cell.id, seed) in live else "stopped"
-            if state == "pending" and cell.needs and cell_state(root, _find(cells, cell.needs), seed) != "done":
+            if p["running"]:  # a process holds the cell's lock, this one's worker or another's
+                state = "running"
+            elif state == "pending" and cell.needs and cell_state(root, _find(cells, cell.needs), seed) != "done":
                 state = f"waits for {cell.needs}"
+            elif state != "done" and live is not None and (cell.id, seed) in live:
+                state = "queued"  # submitted in this run, waiting for a worker
+            elif state == "started":
+                state = "stopped"  # started before, no process on it now
             budget = p["budget"]
             where = f" ({p['stage']})" if p["stage"] else ""
             done_txt = f"{p['updates']}/{budget}{where}" if budget else "-"

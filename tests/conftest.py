@@ -14,3 +14,41 @@ def taichi_cpu():
     # TAICHI_SWARM_TEST_ARCH=cuda runs the whole suite on a GPU (tests/test_taichi_swarm/test_cuda.py checks it)
     taichi_swarm.init(os.environ.get("TAICHI_SWARM_TEST_ARCH", "cpu"))
     yield
+
+
+@pytest.fixture
+def lock_held_elsewhere():
+    """``with lock_held_elsewhere(directory, name) as pid``: another process holds
+    trainer.lock's lock ``directory/name`` until the block ends, then dies like kill -9
+    (the kernel drops the lock)."""
+    import contextlib
+    import subprocess
+    import sys
+    import textwrap
+
+    @contextlib.contextmanager
+    def hold(directory: str, name: str = ".lock"):
+        holder = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                textwrap.dedent(f"""
+                import time
+                from trainer.lock import RunDirLock
+                RunDirLock({directory!r}, {name!r}).acquire()
+                print("locked", flush=True)
+                time.sleep(120)
+                """),
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=os.path.join(os.path.dirname(__file__), ".."),
+        )
+        try:
+            assert holder.stdout.readline().strip() == "locked"
+            yield holder.pid
+        finally:
+            holder.kill()
+            holder.wait()
+
+    return hold

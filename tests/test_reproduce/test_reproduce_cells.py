@@ -193,6 +193,7 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
 
     status = format_progress([train_cell], [0], root, workers=1)
     assert "last eval S%" in status and " @2 " in status
+    assert "stopped" in status.splitlines()[1]  # started, and no process holds it
     monkeypatch.setattr(train_mod, "one_update", real)
     # a started cell whose definition changed is refused, not resumed under the old one
     with pytest.raises(SpecError, match=r"differs in \['updates'\]"):
@@ -252,6 +253,30 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
         doc.write_text(bad)
         with pytest.raises(ValueError, match="markers"):
             update_doc(str(doc), md)
+
+
+def test_one_process_per_cell_and_the_status_says_which_is_running(tmp_path, lock_held_elsewhere):
+    from reproduce.runner import format_progress
+    from trainer.lock import RunDirLocked
+
+    spec = load_spec(write_spec(tmp_path, updates=2))
+    train_cell, zs_cell = spec.cells
+    root = str(tmp_path / "root")
+    directory = cells_mod.cell_dir(root, train_cell, 0)
+
+    def states(live=None):
+        lines = format_progress(spec.cells, [0], root, workers=1, live=live).splitlines()[1:3]
+        return [line.split()[2] for line in lines]
+
+    assert states() == ["pending", "waits"]
+    assert states(live={("train-cov", 0), ("zs-cov", 0)}) == ["queued", "waits"]
+    with lock_held_elsewhere(directory, cells_mod.CELL_LOCK) as pid:  # another `swarm reproduce` on it
+        assert states() == ["running", "waits"]
+        with pytest.raises(RunDirLocked, match=rf"cell 'train-cov' \(seed 0\) \(pid {pid}"):
+            cells_mod.run_cell(train_cell, 0, root)
+    assert states() == ["pending", "waits"]  # refused before anything was written
+    cells_mod.run_cell(train_cell, 0, root)  # the holder is gone: the cell runs
+    assert states() == ["done", "pending"]
 
 
 def test_cli_dry_run_status_and_errors(tmp_path):

@@ -280,37 +280,19 @@ def test_compiled_update_trains(tmp_path):
     assert summary["update"] == 2
 
 
-def test_second_process_on_a_run_dir_is_refused_and_a_dead_holder_is_taken_over(tmp_path):
-    import textwrap
-
-    from trainer.lock import RunDirLock, RunDirLocked
+def test_second_process_on_a_run_dir_is_refused_and_a_dead_holder_is_taken_over(tmp_path, lock_held_elsewhere):
+    from trainer.lock import RunDirLock, RunDirLocked, is_held
 
     run = str(tmp_path / "run")
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            textwrap.dedent(f"""
-            import sys, time
-            from trainer.lock import RunDirLock
-            RunDirLock({run!r}).acquire()
-            print("locked", flush=True)
-            time.sleep(60)
-            """),
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-        cwd=os.path.join(os.path.dirname(__file__), "..", ".."),
-    )
-    try:
-        assert holder.stdout.readline().strip() == "locked"
-        with pytest.raises(RunDirLocked, match=f"pid {holder.pid}"):
+    assert not is_held(run)  # (no lock file: nothing is created by asking)
+    assert not os.path.exists(run)
+    with lock_held_elsewhere(run) as pid:
+        assert is_held(run)
+        with pytest.raises(RunDirLocked, match=f"pid {pid}"):
             train(tiny(tmp_path, run_dir=run))
-    finally:
-        holder.kill()  # like kill -9: the kernel drops the lock
-        holder.wait()
+    assert not is_held(run)  # the holder was killed: the kernel dropped the lock
     with RunDirLock(run):  # the stale lock is taken over
-        pass
+        assert is_held(run)
     assert train(tiny(tmp_path, run_dir=run, updates=1))["update"] == 1
 
 
