@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -319,6 +320,8 @@ def test_ray_run_survives_a_killed_worker(tmp_path):
             metrics = run_dir / "metrics.jsonl"
             if (run_dir / "attempts.json").exists() and metrics.exists() and len(_metric_updates(str(run_dir))) >= 2:
                 killed_pid = json.loads((run_dir / "attempts.json").read_text())[-1]["pid"]
+                # the cell runs at the driver's priority, not at Ray's worker niceness (15)
+                assert os.getpriority(os.PRIO_PROCESS, killed_pid) == os.getpriority(os.PRIO_PROCESS, proc.pid)
                 os.kill(killed_pid, signal.SIGKILL)  # the Ray worker running the cell
         assert killed_pid is not None, "the cell never got going"
         out, _ = proc.communicate(timeout=600)  # ~45 s on an idle 2-core machine
@@ -326,6 +329,7 @@ def test_ray_run_survives_a_killed_worker(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, out
+    assert re.search(r"train-cov +0 +running", out), out  # the progress view saw its worker on it
     attempts = json.loads((run_dir / "attempts.json").read_text())
     assert len(attempts) == 2 and attempts[0]["pid"] == killed_pid != attempts[1]["pid"]
     assert _metric_updates(str(run_dir)) == list(range(1, 11))  # resumed from its checkpoint
