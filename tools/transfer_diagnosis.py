@@ -102,11 +102,12 @@ def main(argv=None) -> int:
             return 2
         radius = args.comm_radius if args.comm_radius is not None else setting.comm_radius
         loaded.append((path, policy.eval(), args.comm or setting.comm, radius))
-    print(f"{'policy':60s} {'M':>3s} {'S%':>6s} {'failures':>9s} {'covered':>8s} {'claimed':>8s} {'stacked':>8s} {'far':>6s}")
+    width = max(len("policy"), *(len(path) for path, *_ in loaded))  # every path whole
+    print(f"{'policy':{width}s} {'M':>3s} {'S%':>6s} {'failures':>9s} {'covered':>8s} {'claimed':>8s} {'stacked':>8s} {'far':>6s}")
     for path, policy, comm, radius in loaded:
         for M in args.sizes:
             r = diagnose(policy, M, args.episodes, args.seed, comm, radius)
-            line = f"{path[-60:]:60s} {M:3d} {100 * r['success_rate']:6.1f} {r['failures']:9d}"
+            line = f"{path:{width}s} {M:3d} {100 * r['success_rate']:6.1f} {r['failures']:9d}"
             if r["failures"]:
                 line += f" {r['covered']:8.2f} {r['claimed']:8.2f} {r['stacked']:8.2f} {r['far']:6.2f}"
             print(line)
