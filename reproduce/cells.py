@@ -406,6 +406,8 @@ def progress(root: str, cell: Cell, seed: int) -> dict:
     """How far a cell is, from its files: updates done (all stages), the budget, the
     training wall-clock so far (for the time-left estimate), and whether a process is
     working on it now (it holds the cell's lock)."""
+    # the lock before the files: a cell that finishes in between reads done, not stopped
+    running = is_held(cell_dir(root, cell, seed), CELL_LOCK)
     state = cell_state(root, cell, seed)
     updates, wall, stage, last_eval = 0, 0.0, None, None
     for run in run_dirs(root, cell, seed):
@@ -420,7 +422,7 @@ def progress(root: str, cell: Cell, seed: int) -> dict:
             )
     return {
         "state": state,
-        "running": state != "done" and is_held(cell_dir(root, cell, seed), CELL_LOCK),
+        "running": running and state != "done",
         "updates": updates,
         "budget": cell.budget_updates(),
         "wall_time": wall,

@@ -18,7 +18,7 @@ import socket
 import time
 
 
-PROBE_RETRIES = 4  # acquire's retries, 50 ms apart, before it refuses
+PROBE_RETRIES = 25  # acquire's retries, 10 ms apart, before it refuses
 
 
 class RunDirLocked(ValueError):
@@ -40,26 +40,31 @@ class RunDirLock:
     def acquire(self) -> RunDirLock:
         os.makedirs(os.path.dirname(self.path), exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        for attempt in range(PROBE_RETRIES + 1):
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if attempt < PROBE_RETRIES:  # (an is_held probe holds it for microseconds)
-                    time.sleep(0.05)
-        else:
-            try:
-                holder = json.loads(os.read(fd, 4096) or b"{}")
-            except ValueError:
-                holder = {}
-            os.close(fd)
-            who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} since {holder.get('since', '?')}"
-            raise RunDirLocked(
-                f"{os.path.dirname(self.path)} is in use by {self.holder} ({who}); {self.advice}"
-            ) from None
-        os.ftruncate(fd, 0)
-        info = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
-        os.pwrite(fd, json.dumps(info).encode(), 0)
+        try:
+            for attempt in range(PROBE_RETRIES + 1):
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if attempt < PROBE_RETRIES:  # (an is_held probe holds it for microseconds)
+                        time.sleep(0.01)
+            else:
+                try:
+                    holder = json.loads(os.read(fd, 4096) or b"{}")
+                except ValueError:
+                    holder = {}
+                who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} since {holder.get('since', '?')}"
+                raise RunDirLocked(
+                    f"{os.path.dirname(self.path)} is in use by {self.holder} ({who}); {self.advice}"
+                ) from None
+            info = json.dumps(
+                {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+            ).encode()
+            os.pwrite(fd, info, 0)  # written, then cut to length: a reader never sees it empty
+            os.ftruncate(fd, len(info))
+        except BaseException:
+            os.close(fd)  # (closing drops the lock if it was taken: a failed acquire holds nothing)
+            raise
         self.fd = fd
         return self
 
@@ -77,15 +82,19 @@ class RunDirLock:
 
 
 def is_held(directory: str, name: str = ".lock") -> bool:
-    """Whether a live process (this one included) holds ``directory/name`` now."""
+    """Whether a live process holds ``directory/name`` now (False where the file cannot be
+    read: no lock there). Ask from another process than the holder: on NFS, where flock is
+    emulated with POSIX locks, a probe by the holder itself would release its lock."""
     try:
         fd = os.open(os.path.join(directory, name), os.O_RDONLY)
-    except FileNotFoundError:
+    except OSError:  # missing, a path through a file, another user's file
         return False
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
         return True
+    except OSError:  # a file system without locks: nobody can hold one there
+        return False
     finally:
         os.close(fd)  # (closing drops the probe's own shared lock)
     return False

@@ -276,6 +276,7 @@ def test_one_process_per_cell_and_the_status_says_which_is_running(tmp_path, loc
         with pytest.raises(RunDirLocked, match=rf"cell 'train-cov' \(seed 0\) \(pid {pid}"):
             cells_mod.run_cell(train_cell, 0, root)
     assert states() == ["pending", "waits"]  # refused before anything was written
+    assert os.listdir(directory) == [cells_mod.CELL_LOCK]
     cells_mod.run_cell(train_cell, 0, root)  # the holder is gone: the cell runs
     assert states() == ["done", "pending"]
 
