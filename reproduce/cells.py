@@ -211,35 +211,27 @@ def run_cell(
         source_result = read_result(root, source, seed)
         if source_result is None:
             raise SpecError(f"cell {cell.id!r}: its {role} {source.id!r} (seed {seed}) has not finished")
-    init = policy_path(root, source, seed, cell.init_agents or source.agents) if cell.init_from else ""
-    directory = cell_dir(root, cell, seed)
     lock = RunDirLock(
-        directory,
+        cell_dir(root, cell, seed),
         CELL_LOCK,
         holder=f"another `swarm reproduce` running cell {cell.id!r} (seed {seed})",
         advice="wait for it to finish, or stop it (it resumes where it stopped)",
     )
     with lock:
-        return _bring_to_result(cell, seed, root, source, source_result, init, directory, arch, device)
+        return _bring_to_result(cell, seed, root, source, source_result, arch, device)
 
 
 def _bring_to_result(
-    cell: Cell,
-    seed: int,
-    root: str,
-    source: Cell | None,
-    source_result: dict | None,
-    init: str,
-    directory: str,
-    arch: str,
-    device: str,
+    cell: Cell, seed: int, root: str, source: Cell | None, source_result: dict | None, arch: str, device: str
 ) -> dict:
-    """run_cell's work, under the cell's lock."""
+    """run_cell's work, under the cell's lock (its checks of ``source`` done)."""
     import torch
 
     done = read_result(root, cell, seed, source)  # (finished by another process meanwhile)
     if done is not None:
         return done
+    init = policy_path(root, source, seed, cell.init_agents or source.agents) if cell.init_from else ""
+    directory = cell_dir(root, cell, seed)
     definition_path = os.path.join(directory, DEFINITION)
     if os.path.exists(definition_path):  # started before: by the same definition?
         with open(definition_path) as f:

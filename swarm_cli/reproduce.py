@@ -14,10 +14,11 @@ Run the cells of the paper's Tables 1-4 (or a selection) on Ray, resumably, and 
 the tables beside the paper's numbers.
 
 Each (cell, seed) is one Ray task with its own run directory ROOT/<cell>/s<seed>; a
-second call skips finished cells and resumes stopped ones from their checkpoints (also
-after a killed worker: Ray retries the task), and refuses a cell another call is running. Without --address, Ray runs embedded on
-this machine with --workers CPUs (no cluster to start); with --address it joins a
-running cluster (every node needs this package and ROOT on a shared file system).
+second call skips finished cells, resumes stopped ones from their checkpoints (also
+after a killed worker: Ray retries the task) and refuses a cell another call is
+running. Without --address, Ray runs embedded on this machine with --workers CPUs (no
+cluster to start); with --address it joins a running cluster (every node needs this
+package and ROOT on a shared file system).
 
 examples:
   swarm reproduce --spec smoke --workers 2              a tiny spec end to end (~2 min)

@@ -103,7 +103,8 @@ def main(argv=None) -> int:
         radius = args.comm_radius if args.comm_radius is not None else setting.comm_radius
         loaded.append((path, policy.eval(), args.comm or setting.comm, radius))
     width = max(len("policy"), *(len(path) for path, *_ in loaded))  # every path whole
-    print(f"{'policy':{width}s} {'M':>3s} {'S%':>6s} {'failures':>9s} {'covered':>8s} {'claimed':>8s} {'stacked':>8s} {'far':>6s}")
+    head = f"{'M':>3s} {'S%':>6s} {'failures':>9s} {'covered':>8s} {'claimed':>8s} {'stacked':>8s} {'far':>6s}"
+    print(f"{'policy':{width}s} {head}")
     for path, policy, comm, radius in loaded:
         for M in args.sizes:
             r = diagnose(policy, M, args.episodes, args.seed, comm, radius)

@@ -17,7 +17,6 @@ import os
 import socket
 import time
 
-
 PROBE_RETRIES = 25  # acquire's retries, 10 ms apart, before it refuses
 
 

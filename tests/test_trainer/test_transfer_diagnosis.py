@@ -14,7 +14,8 @@ RECIPE = os.path.join(ROOT, "results", "reproduce-recipe", "t1-coverage-uc-m3")
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("transfer_diagnosis", os.path.join(ROOT, "tools", "transfer_diagnosis.py"))
+    path = os.path.join(ROOT, "tools", "transfer_diagnosis.py")
+    spec = importlib.util.spec_from_file_location("transfer_diagnosis", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
