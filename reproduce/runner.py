@@ -72,13 +72,10 @@ def run_on_ray(
     try:
         task = ray.remote(num_cpus=1, num_gpus=gpus_per_cell, max_retries=max_retries)(_run_cell_task)
         refs: dict[tuple[str, int], object] = {}
-        for cell in cells:  # spec order: a source (init_from) is submitted before the cells that read it
-            for seed in seeds:
-                if (cell.id, seed) in finished:
-                    continue
-                source = by_id.get(cell.needs)
-                upstream = [refs[(cell.needs, seed)]] if (cell.needs, seed) in refs else []
-                refs[(cell.id, seed)] = task.remote(cell, seed, root, source, arch, device, *upstream)
+        for cell, seed in submission_order(cells, seeds, root, finished):
+            source = by_id.get(cell.needs)
+            upstream = [refs[(cell.needs, seed)]] if (cell.needs, seed) in refs else []
+            refs[(cell.id, seed)] = task.remote(cell, seed, root, source, arch, device, *upstream)
         key_of = {ref: key for key, ref in refs.items()}
         live = set(refs)  # submitted and not yet returned
         pending = list(refs.values())
@@ -106,6 +103,22 @@ def run_on_ray(
         return {"done": done, "failed": failed}
     finally:
         ray.shutdown()
+
+
+def submission_order(cells: list[Cell], seeds: list[int], root: str, finished: set) -> list[tuple[Cell, int]]:
+    """The unfinished (cell, seed) pairs in the order they are submitted (Ray hands queued
+    tasks to free workers in that order): the started ones first, fewest updates left
+    first, so that a resumed run finishes what it had begun before it begins anything
+    new, then the rest in spec order. A source (``needs``) always comes before the cells
+    that read it: a started cell's source is done, and the sort keeps spec order among
+    the rest."""
+
+    def key(pair: tuple[Cell, int]) -> tuple[bool, int]:
+        p = progress(root, *pair)
+        return (p["state"] != "started", p["budget"] - p["updates"] if p["state"] == "started" else 0)
+
+    todo = [(cell, seed) for cell in cells for seed in seeds if (cell.id, seed) not in finished]
+    return sorted(todo, key=key)
 
 
 def _short_error(exc: Exception) -> str:

@@ -179,22 +179,33 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
 
     real = train_mod.one_update
 
+    stop_after = {"updates": 2}
+
     def interrupted(state, *args, **kwargs):  # Ctrl-C (or a kill) in the middle of update 3
-        if state.counters["update"] == 2:
+        if state.counters["update"] == stop_after["updates"]:
             raise KeyboardInterrupt
         return real(state, *args, **kwargs)
 
     monkeypatch.setattr(train_mod, "one_update", interrupted)
     with pytest.raises(KeyboardInterrupt):
         cells_mod.run_cell(train_cell, 0, root)
+    other_root = str(tmp_path / "other")  # seed 0 stopped after 2 updates there, seed 1 after 1
+    for seed, stop in ((0, 2), (1, 1)):
+        stop_after["updates"] = stop
+        with pytest.raises(KeyboardInterrupt):
+            cells_mod.run_cell(train_cell, seed, other_root)
     assert cells_mod.cell_state(root, train_cell, 0) == "started"
     # the progress view shows how far it got and its latest evaluation (eval_every = 2)
     assert cells_mod.progress(root, train_cell, 0)["last_eval"]["update"] == 2
-    from reproduce.runner import format_progress
+    from reproduce.runner import format_progress, submission_order
 
     status = format_progress([train_cell], [0], root, workers=1)
     assert "last eval S%" in status and " @2 " in status
     assert "stopped" in status.splitlines()[1]  # started, and no process holds it
+    # a resumed run finishes what it had begun first, the nearest to done first; a source
+    # still precedes its readers
+    order = submission_order(spec.cells, [1, 0], other_root, finished=set())
+    assert [(c.id, s) for c, s in order] == [("train-cov", 0), ("train-cov", 1), ("zs-cov", 1), ("zs-cov", 0)]
     monkeypatch.setattr(train_mod, "one_update", real)
     # a started cell whose definition changed is refused, not resumed under the old one
     with pytest.raises(SpecError, match=r"differs in \['updates'\]"):
