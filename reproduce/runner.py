@@ -110,15 +110,23 @@ def submission_order(cells: list[Cell], seeds: list[int], root: str, finished: s
     tasks to free workers in that order): the started ones first, fewest updates left
     first, so that a resumed run finishes what it had begun before it begins anything
     new, then the rest in spec order. A source (``needs``) always comes before the cells
-    that read it: a started cell's source is done, and the sort keeps spec order among
-    the rest."""
+    that read it (a started cell whose source is to run again waits for it)."""
 
     def key(pair: tuple[Cell, int]) -> tuple[bool, int]:
         p = progress(root, *pair)
         return (p["state"] != "started", p["budget"] - p["updates"] if p["state"] == "started" else 0)
 
-    todo = [(cell, seed) for cell in cells for seed in seeds if (cell.id, seed) not in finished]
-    return sorted(todo, key=key)
+    todo = sorted([(c, s) for c in cells for s in seeds if (c.id, s) not in finished], key=key)
+    order, placed = [], set()
+    while todo:  # each pass places every pair whose source is placed or not to run
+        waiting = {(c.id, s) for c, s in todo}
+        ready = [(c, s) for c, s in todo if (c.needs, s) in placed or (c.needs, s) not in waiting]
+        if not ready:  # a cycle of sources, which load_spec refuses; never loop on one
+            raise ValueError(f"cells wait on each other: {sorted(waiting)}")
+        order += ready
+        placed |= {(c.id, s) for c, s in ready}
+        todo = [pair for pair in todo if (pair[0].id, pair[1]) not in placed]
+    return order
 
 
 def _short_error(exc: Exception) -> str:

@@ -205,7 +205,10 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
     assert "last eval S%" in status and " @2 " in status
     assert "stopped" in status.splitlines()[1]  # started, and no process holds it
     # a resumed run finishes what it had begun first, the nearest to done first; a source
-    # still precedes its readers
+    # still precedes its readers, even a started one (its source to run again)
+    zs_dir = cells_mod.cell_dir(other_root, zs_cell, 1)
+    os.makedirs(zs_dir)
+    open(os.path.join(zs_dir, cells_mod.ATTEMPTS), "w").write("[]")
     order = submission_order(spec.cells, [1, 0], other_root, finished=set())
     assert [(c.id, s) for c, s in order] == [("train-cov", 0), ("train-cov", 1), ("zs-cov", 1), ("zs-cov", 0)]
     monkeypatch.setattr(train_mod, "one_update", real)
