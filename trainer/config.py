@@ -136,7 +136,8 @@ class TrainConfig:
     """Train on several team sizes at once (e.g. 3 4 5 6): every rollout has one group of
     num_envs / len(team_sizes) environments per size and every epoch minibatches of each
     size in random order; the network is size-invariant. () trains on ``agents`` alone;
-    ``agents`` stays the size evaluated and recorded."""
+    ``agents`` stays the size evaluated and recorded. For coverage UC, 3 4 (with agents 3)
+    kept the M = 3 policy from piling agents up at M = 5 (docs/RESULTS.md)."""
     transfer_offsets: tuple[int, ...] = (-1, 1, 2)
     """Every evaluation also measures S% at these team sizes relative to ``agents``
     (zero-shot transfer: metrics.jsonl ``eval_transfer``, the progress bar, the plot);
