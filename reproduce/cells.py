@@ -116,6 +116,7 @@ def train_config(
     cfg = TrainConfig(
         task=cell.task,
         agents=agents,
+        team_sizes=cell.team_sizes,
         comm=cell.comm,
         comm_radius=cell.comm_radius,
         preset=cell.preset,

@@ -68,7 +68,10 @@ class Cell:
     ppo: dict = field(default_factory=dict)
     """Overrides of the preset's PPO options (e.g. {num_envs = 8})."""
     agents: int = 0
-    """train, baseline: the team size."""
+    """train, baseline: the team size (train: the size evaluated and reported)."""
+    team_sizes: tuple[int, ...] = ()
+    """train: train on these team sizes at once, one group of environments per size in
+    every rollout (``swarm train --team-sizes``); empty: ``agents`` alone."""
     updates: int = 0
     """train: PPO updates."""
     sizes: tuple[int, ...] = ()
@@ -135,6 +138,10 @@ class Cell:
         if not self.polish_updates:
             d.pop("polish_updates")
             d.pop("polish_lr")
+        if self.team_sizes:
+            d["team_sizes"] = list(self.team_sizes)
+        else:
+            d.pop("team_sizes")
         d["sizes"] = list(self.sizes)
         return d
 
@@ -249,7 +256,7 @@ def _make_cell(path: str, index: int, entry: dict) -> Cell:
         if key not in entry:
             raise SpecError(f"{where}: missing {key!r}")
     entry = dict(entry)
-    for key in ("sizes", "transfer_offsets"):
+    for key in ("sizes", "transfer_offsets", "team_sizes"):
         if key in entry:
             if not isinstance(entry[key], list):
                 raise SpecError(f"{where}: {key} must be a list of integers, got {entry[key]!r}")
@@ -300,6 +307,13 @@ def _check_cell(where: str, c: Cell) -> None:
     if c.kind in ("curriculum", "zero-shot"):
         if not c.sizes or any(not isinstance(m, int) or m < smallest for m in c.sizes):
             bad(f"sizes must be team sizes >= {smallest}, got {list(c.sizes)}")
+    if c.team_sizes:
+        if c.kind != "train":
+            bad(f"only train cells have team_sizes (a {c.kind} cell sets its sizes otherwise)")
+        if any(not isinstance(m, int) or isinstance(m, bool) or m < smallest for m in c.team_sizes):
+            bad(f"team_sizes must be team sizes >= {smallest}, got {list(c.team_sizes)}")
+        if len(set(c.team_sizes)) != len(c.team_sizes):
+            bad(f"team_sizes repeats a size: {list(c.team_sizes)}")
     if c.kind == "curriculum":
         if not 0 < c.threshold <= 1:
             bad(f"threshold must be in (0, 1], got {c.threshold}")
@@ -339,6 +353,13 @@ def _check_cell(where: str, c: Cell) -> None:
     unknown_ppo = sorted(set(c.ppo) - {f.name for f in dataclasses.fields(PPOConfig)})
     if unknown_ppo:
         bad(f"ppo has unknown options {unknown_ppo}")
+    if c.team_sizes:  # each size gets the same share of the environments and of every epoch's minibatches
+        ppo = dataclasses.replace(PRESETS[c.preset], **c.ppo)
+        if ppo.num_envs % len(c.team_sizes) or ppo.minibatches < len(c.team_sizes):
+            bad(
+                f"team_sizes {list(c.team_sizes)} need ppo.num_envs ({ppo.num_envs}) a multiple of their number "
+                f"and ppo.minibatches ({ppo.minibatches}) at least it"
+            )
     if c.entity_mode == "concat" and c.task == "coverage" and c.kind in ("curriculum", "zero-shot"):
         bad("entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size")
     for size, row in c.paper.items():

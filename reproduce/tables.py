@@ -21,6 +21,8 @@ TITLES = {
     2: "Table 2: coverage curriculum, S% and updates N per stage",
     3: "Table 3: formation and line curricula, S% and updates N per stage",
     4: "Table 4: zero-shot S%: one policy at other team sizes, no fine-tuning",
+    5: "Beyond the paper: one size against several at once (S%, T at the evaluated size)",
+    6: "Beyond the paper: zero-shot S% of those policies at other team sizes",
 }
 
 

@@ -116,6 +116,8 @@ def _dry_run(cells, seeds, root, spec_name: str) -> str:
         steps = c.frames if c.kind == "baseline" else c.budget_updates() * per_update
         total_steps += steps * len(seeds)
         sizes = str(c.agents) if c.kind in ("train", "baseline") else " ".join(map(str, c.sizes))
+        if c.team_sizes:
+            sizes += f" (on {' '.join(map(str, c.team_sizes))})"
         if c.kind == "baseline":
             budget = f"{c.algorithm} / {_steps(steps)} steps"
         elif steps:

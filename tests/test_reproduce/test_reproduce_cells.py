@@ -84,9 +84,11 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     with the reset return, as the runs that reproduced it."""
     paper, recipe = load_spec("paper"), load_spec("recipe")
     ours = [c for c in paper.cells if c.kind != "baseline"]
-    assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
+    papers_tables = [c for c in recipe.cells if c.table <= 4]
+    assert sorted(c.id for c in papers_tables) == sorted(c.id for c in ours)
     assert all(recipe.cell(c.id).paper == c.paper for c in ours)
-    trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
+    trained = [c for c in papers_tables if c.kind in ("train", "curriculum")]
+    assert not any(c.team_sizes for c in papers_tables)
     reset = {"t1-line-uc-m6", "t1-line-rc-m6"}  # with the never-reset return line UC M = 6 read 0-1%
     assert all(c.preset == "fast" and c.ppo["reset_return"] is (c.id in reset) for c in trained)
     # the coverage curricula are fine-tunes throughout: a constant 1e-4 (7e-4 collapsed at RC M = 7)
@@ -103,6 +105,14 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
         "t1-coverage-uc-m3", "t2-coverage-emp-rc", "t4-coverage-rc"
     ]  # fmt: skip
     assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in recipe.cells)
+    # beyond the paper: the 10-minute coverage recipe on M = 3 alone against M = 3 and 4 together
+    alone, mixed = recipe.cell("x-coverage-uc-m3"), recipe.cell("x-coverage-uc-m34")
+    assert (alone.team_sizes, mixed.team_sizes) == ((), (3, 4))
+    assert dataclasses.replace(mixed, id=alone.id, team_sizes=(), label=alone.label) == alone  # nothing else differs
+    assert alone.updates == 1100 and alone.polish_updates == 0 and alone.ppo == {"reset_return": False}
+    for cid, source in (("x-zs-coverage-uc-m3", alone), ("x-zs-coverage-uc-m34", mixed)):
+        assert recipe.cell(cid).source == source.id and recipe.cell(cid).sizes == (3, 4, 5, 6)
+    assert recipe.tables() == [1, 2, 3, 4, 5, 6]
 
 
 def test_selection_pulls_in_the_source_of_a_zero_shot_row():
@@ -137,6 +147,11 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = 1"), "transfer_offsets must be a list"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = [2, 2]"), "repeated offset"),
         (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = 3"), "sizes must be a list of integers"),
+        (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = [1]\nteam_sizes = [1, 2]"), "only train cells have team_s"),
+        (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [0, 2]"), "team_sizes must be team sizes >= 1"),
+        (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [2, 2]"), "team_sizes repeats a size"),
+        (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = 2"), "team_sizes must be a list of integers"),
+        (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [2, 3]"), r"ppo.minibatches \(1\) at least"),
     ],
 )
 def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
@@ -158,6 +173,28 @@ def test_transfer_offsets_are_logged_and_leave_the_definition_alone(tmp_path):
     with open(os.path.join(cells_mod.cell_dir(root, cell, 0), "metrics.jsonl")) as f:
         evals = [r for r in map(json.loads, f) if "eval_success_rate" in r]
     assert evals and set(evals[-1]["eval_transfer"]) == {"3"}
+
+
+def test_a_cell_trains_on_several_team_sizes_at_once(tmp_path, capsys):
+    """team_sizes: one group of environments per size in every rollout (the trainer's
+    --team-sizes); part of the definition, so the run differs from the one-size cell."""
+    text = TINY.format(updates=2, eval_every=2).replace("minibatches = 1", "minibatches = 2")
+    plain = load_spec(write_spec(tmp_path, text=text)).cell("train-cov")
+    spec = load_spec(write_spec(tmp_path, text=text.replace("agents = 2", "agents = 2\nteam_sizes = [2, 3]")))
+    cell = spec.cell("train-cov")
+    assert cell.team_sizes == (2, 3) and cell.definition()["team_sizes"] == [2, 3]
+    assert cell.digest() != plain.digest() and "team_sizes" not in plain.definition()  # old results stay valid
+    root = str(tmp_path / "root")
+    (row,) = cells_mod.run_cell(cell, 0, root)["rows"]
+    assert row["agents"] == 2 and row["env_steps"] == 2 * 4 * 8  # reported at agents; 2 envs per size
+    with open(os.path.join(cells_mod.cell_dir(root, cell, 0), "config.json")) as f:
+        assert json.load(f)["team_sizes"] == [2, 3]
+    md = render_all(spec.cells, [0], root, "tiny")
+    assert "| coverage UC | 2 | " in md and "not run" not in md.split("### Table 4")[0]
+    from swarm_cli.main import main
+
+    assert main(["reproduce", "--spec", spec.path, "--root", root, "--dry-run"]) == 0
+    assert re.search(r"train-cov +train +coverage +uc +2 \(on 2 3\) ", capsys.readouterr().out)
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
