@@ -286,7 +286,9 @@ class ReproduceOptions:
     cells: tuple[str, ...] | None = None
     """only these cell ids (and the cells they need)"""
     seeds: int = 1
-    """seeds 0..N-1 of every cell"""
+    """N seeds of every cell: K..K+N-1 (K: --first-seed)"""
+    first_seed: int = 0
+    """K, the first seed (e.g. --first-seed 6 --seeds 2: seeds 6 and 7)"""
     root: Annotated[str | None, Default("runs/reproduce/<spec>")] = None
     """where the runs and results live"""
     workers: int = 0
@@ -314,6 +316,7 @@ class ReproduceOptions:
 
     def __post_init__(self):
         at_least(self.seeds, 1, "seeds")
+        at_least(self.first_seed, 0, "first-seed")
         at_least(self.workers, 0, "workers")
         at_least(self.gpus_per_cell, 0, "gpus-per-cell")
         positive(self.progress_every, "progress-every")

@@ -23,7 +23,8 @@ package and ROOT on a shared file system).
 examples:
   swarm reproduce --spec smoke --workers 2              a tiny spec end to end (~2 min)
   swarm reproduce --tables 1 --dry-run                  what Table 1 would run
-  swarm reproduce --cells t1-coverage-rc-m3 --seeds 3   one cell, three seeds
+  swarm reproduce --cells t1-coverage-rc-m3 --seeds 3   one cell, three seeds (0, 1, 2)
+  swarm reproduce --cells t1-coverage-rc-m3 --seeds 2 --first-seed 3   two more (3, 4)
   swarm reproduce --status                              progress from the files
   swarm reproduce --render --update-doc docs/RESULTS.md the tables into a document
 """
@@ -46,7 +47,7 @@ def reproduce_main(argv: list[str]) -> int:
 
             check_doc_markers(args.update_doc, spec_name=spec.name)  # before any cell runs
         cells = spec.select(list(args.tables) if args.tables else None, list(args.cells) if args.cells else None)
-        seeds = list(range(args.seeds))
+        seeds = list(range(args.first_seed, args.first_seed + args.seeds))
         root = args.root or os.path.join("runs", "reproduce", spec.name)
         if args.dry_run:
             print(_dry_run(cells, seeds, root, spec.name))

@@ -334,7 +334,7 @@ def test_one_process_per_cell_and_the_status_says_which_is_running(tmp_path, loc
     assert states() == ["done", "pending"]
 
 
-def test_cli_dry_run_status_and_errors(tmp_path):
+def test_cli_dry_run_status_and_errors(tmp_path, capsys):
     from swarm_cli.main import main
 
     def reproduce_main(argv):
@@ -343,6 +343,9 @@ def test_cli_dry_run_status_and_errors(tmp_path):
     path = write_spec(tmp_path)
     root = str(tmp_path / "root")
     assert reproduce_main(["--spec", path, "--root", root, "--dry-run"]) == 0
+    assert reproduce_main(["--spec", path, "--root", root, "--dry-run", "--seeds", "2", "--first-seed", "3"]) == 0
+    assert "seeds [3, 4]" in capsys.readouterr().out  # more seeds of a cell: --first-seed
+    assert reproduce_main(["--spec", path, "--first-seed", "-1", "--dry-run"]) == 2
     assert reproduce_main(["--spec", path, "--root", root, "--status"]) == 0
     assert reproduce_main(["--spec", path, "--seeds", "0"]) == 2
     assert reproduce_main(["--spec", path, "--cells", "nope", "--dry-run"]) == 2
