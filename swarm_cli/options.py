@@ -280,7 +280,7 @@ class ReplayOptions(VideoOption):
 @dataclass(kw_only=True)
 class ReproduceOptions:
     spec: str = "paper"
-    """a shipped spec (paper, quick, smoke) or a TOML file"""
+    """a shipped spec (paper, recipe, beyond, quick, smoke) or a TOML file"""
     tables: tuple[int, ...] | None = None
     """only these tables (e.g. 2 3)"""
     cells: tuple[str, ...] | None = None

@@ -84,11 +84,9 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     with the reset return, as the runs that reproduced it."""
     paper, recipe = load_spec("paper"), load_spec("recipe")
     ours = [c for c in paper.cells if c.kind != "baseline"]
-    papers_tables = [c for c in recipe.cells if c.table <= 4]
-    assert sorted(c.id for c in papers_tables) == sorted(c.id for c in ours)
+    assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
     assert all(recipe.cell(c.id).paper == c.paper for c in ours)
-    trained = [c for c in papers_tables if c.kind in ("train", "curriculum")]
-    assert not any(c.team_sizes for c in papers_tables)
+    trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
     reset = {"t1-line-uc-m6", "t1-line-rc-m6"}  # with the never-reset return line UC M = 6 read 0-1%
     assert all(c.preset == "fast" and c.ppo["reset_return"] is (c.id in reset) for c in trained)
     # the coverage curricula are fine-tunes throughout: a constant 1e-4 (7e-4 collapsed at RC M = 7)
@@ -105,14 +103,21 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
         "t1-coverage-uc-m3", "t2-coverage-emp-rc", "t4-coverage-rc"
     ]  # fmt: skip
     assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in recipe.cells)
-    # beyond the paper: the 10-minute coverage recipe on M = 3 alone against M = 3 and 4 together
-    alone, mixed = recipe.cell("x-coverage-uc-m3"), recipe.cell("x-coverage-uc-m34")
+
+
+def test_shipped_beyond_spec_sets_one_team_size_against_two():
+    """`beyond`: the 10-minute coverage recipe (1100 updates, fast preset, never-reset
+    return) on M = 3 alone against M = 3 and 4 together, each evaluated at M = 3..6."""
+    beyond = load_spec("beyond")
+    alone, mixed = beyond.cell("x-coverage-uc-m3"), beyond.cell("x-coverage-uc-m34")
     assert (alone.team_sizes, mixed.team_sizes) == ((), (3, 4))
     assert dataclasses.replace(mixed, id=alone.id, team_sizes=(), label=alone.label) == alone  # nothing else differs
-    assert alone.updates == 1100 and alone.polish_updates == 0 and alone.ppo == {"reset_return": False}
+    assert alone.preset == "fast" and alone.ppo == {"reset_return": False}
+    assert alone.updates == 1100 and alone.polish_updates == 0 and alone.agents == 3
     for cid, source in (("x-zs-coverage-uc-m3", alone), ("x-zs-coverage-uc-m34", mixed)):
-        assert recipe.cell(cid).source == source.id and recipe.cell(cid).sizes == (3, 4, 5, 6)
-    assert recipe.tables() == [1, 2, 3, 4, 5, 6]
+        assert beyond.cell(cid).source == source.id and beyond.cell(cid).sizes == (3, 4, 5, 6)
+    assert beyond.tables() == [5, 6]  # numbered after the paper's four
+    assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in beyond.cells)
 
 
 def test_selection_pulls_in_the_source_of_a_zero_shot_row():
@@ -198,7 +203,7 @@ def test_a_cell_trains_on_several_team_sizes_at_once(tmp_path, capsys):
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
-    with pytest.raises(SpecError, match=r"\(paper, quick, recipe, smoke\)"):
+    with pytest.raises(SpecError, match=r"\(beyond, paper, quick, recipe, smoke\)"):
         load_spec("no-such-spec")
 
 
