@@ -107,14 +107,18 @@ def run_on_ray(
 
 def submission_order(cells: list[Cell], seeds: list[int], root: str, finished: set) -> list[tuple[Cell, int]]:
     """The unfinished (cell, seed) pairs in the order they are submitted (Ray hands queued
-    tasks to free workers in that order): the started ones first, fewest updates left
-    first, so that a resumed run finishes what it had begun before it begins anything
-    new, then the rest in spec order. A source (``needs``) always comes before the cells
-    that read it (a started cell whose source is to run again waits for it)."""
+    tasks to free workers in that order): first the zero-shot rows whose source has
+    finished (minutes each: their numbers come early), then the started cells, fewest
+    updates left first, so that a resumed run finishes what it had begun before it
+    begins anything new, then the rest in spec order. A source (``needs``) always comes
+    before the cells that read it (a started cell whose source is to run again waits for it)."""
 
-    def key(pair: tuple[Cell, int]) -> tuple[bool, int]:
-        p = progress(root, *pair)
-        return (p["state"] != "started", p["budget"] - p["updates"] if p["state"] == "started" else 0)
+    def key(pair: tuple[Cell, int]) -> tuple[int, int]:
+        cell, seed = pair
+        if cell.kind == "zero-shot" and (cell.needs, seed) in finished:
+            return (0, 0)
+        p = progress(root, cell, seed)
+        return (1, p["budget"] - p["updates"]) if p["state"] == "started" else (2, 0)
 
     todo = sorted([(c, s) for c in cells for s in seeds if (c.id, s) not in finished], key=key)
     order, placed = [], set()

@@ -253,6 +253,9 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
     open(os.path.join(zs_dir, cells_mod.ATTEMPTS), "w").write("[]")
     order = submission_order(spec.cells, [1, 0], other_root, finished=set())
     assert [(c.id, s) for c, s in order] == [("train-cov", 0), ("train-cov", 1), ("zs-cov", 1), ("zs-cov", 0)]
+    # a zero-shot row whose source has finished goes first: minutes of evaluation, numbers early
+    order = submission_order(spec.cells, [1, 0], other_root, finished={("train-cov", 0)})
+    assert [(c.id, s) for c, s in order] == [("zs-cov", 0), ("train-cov", 1), ("zs-cov", 1)]
     monkeypatch.setattr(train_mod, "one_update", real)
     # a started cell whose definition changed is refused, not resumed under the old one
     with pytest.raises(SpecError, match=r"differs in \['updates'\]"):
