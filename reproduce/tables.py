@@ -23,6 +23,7 @@ TITLES = {
     4: "Table 4: zero-shot S%: one policy at other team sizes, no fine-tuning",
     5: "Beyond the paper: one size against several at once (S%, T at the evaluated size)",
     6: "Beyond the paper: zero-shot S% of those policies at other team sizes",
+    7: "Beyond the paper: the coverage curriculum 5 -> 7 -> 10 from each of those M = 3 policies",
 }
 
 

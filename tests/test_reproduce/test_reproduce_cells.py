@@ -107,7 +107,8 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
 
 def test_shipped_beyond_spec_sets_one_team_size_against_two():
     """`beyond`: the 10-minute coverage recipe (1100 updates, fast preset, never-reset
-    return) on M = 3 alone against M = 3 and 4 together, each evaluated at M = 3..6."""
+    return) on M = 3 alone against M = 3 and 4 together, each evaluated at M = 3..6 and
+    each the start of the recipe spec's coverage UC curriculum."""
     beyond = load_spec("beyond")
     alone, mixed = beyond.cell("x-coverage-uc-m3"), beyond.cell("x-coverage-uc-m34")
     assert (alone.team_sizes, mixed.team_sizes) == ((), (3, 4))
@@ -116,7 +117,14 @@ def test_shipped_beyond_spec_sets_one_team_size_against_two():
     assert alone.updates == 1100 and alone.polish_updates == 0 and alone.agents == 3
     for cid, source in (("x-zs-coverage-uc-m3", alone), ("x-zs-coverage-uc-m34", mixed)):
         assert beyond.cell(cid).source == source.id and beyond.cell(cid).sizes == (3, 4, 5, 6)
-    assert beyond.tables() == [5, 6]  # numbered after the paper's four
+    # the curriculum from each: the recipe spec's coverage UC chain, only the start differs
+    chain = load_spec("recipe").cell("t2-coverage-emp-uc")
+    for cid, start in (("x-cur-coverage-uc-from-m3", alone), ("x-cur-coverage-uc-from-m34", mixed)):
+        cur = beyond.cell(cid)
+        assert cur.init_from == start.id and cur.kind == "curriculum"
+        same = ("sizes", "ppo", "threshold", "max_updates_per_stage", "polish_updates", "polish_lr", "preset")
+        assert {k: getattr(cur, k) for k in same} == {k: getattr(chain, k) for k in same}
+    assert beyond.tables() == [5, 6, 7]  # numbered after the paper's four
     assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in beyond.cells)
 
 
