@@ -138,7 +138,7 @@ def train_config(
     )
     try:
         cfg.validate()
-    except ValueError as exc:
+    except (ValueError, TypeError) as exc:  # (TypeError: a ppo value of the wrong type)
         raise SpecError(f"cell {cell.id!r}: {exc}") from None
     return cfg
 
@@ -233,6 +233,13 @@ def _bring_to_result(
         return done
     init = policy_path(root, source, seed, cell.init_agents or source.agents) if cell.init_from else ""
     directory = cell_dir(root, cell, seed)
+    # options checked before anything is written: a fixed spec must not find a stale definition
+    if cell.kind == "train":
+        cfg = train_config(cell, seed, directory, cell.agents, cell.updates, arch, device, init)
+    elif cell.kind == "curriculum":
+        cfg = train_config(cell, seed, directory, cell.sizes[0], cell.max_updates_per_stage, arch, device, init)
+    elif cell.kind == "baseline":
+        baseline = baseline_args(cell, seed, directory, device)
     definition_path = os.path.join(directory, DEFINITION)
     if os.path.exists(definition_path):  # started before: by the same definition?
         with open(definition_path) as f:
@@ -253,7 +260,6 @@ def _bring_to_result(
         from trainer.curriculum import polish_stage, run_record
         from trainer.train import train_or_resume
 
-        cfg = train_config(cell, seed, directory, cell.agents, cell.updates, arch, device, init)
         record = _training(run_record(train_or_resume(cfg)))
         if cell.polish_updates:
             polish_dir = os.path.join(directory, POLISH_DIR)
@@ -264,9 +270,8 @@ def _bring_to_result(
     elif cell.kind == "curriculum":
         from trainer.curriculum import run_curriculum
 
-        base = train_config(cell, seed, directory, cell.sizes[0], cell.max_updates_per_stage, arch, device, init)
         stages = run_curriculum(
-            base,
+            cfg,
             list(cell.sizes),
             cell.threshold,
             cell.max_updates_per_stage,
@@ -288,7 +293,7 @@ def _bring_to_result(
                 record = _polished(record, stage["polish"], before)
             rows.append({**final_eval(policy_path(root, cell, seed, M), cell, M, arch), **record})
     elif cell.kind == "baseline":
-        rows = [run_baseline(cell, seed, directory, device)]
+        rows = [run_baseline(cell, baseline)]
     else:
         path = policy_path(root, source, seed, cell.source_agents)
         rows = [final_eval(path, cell, M, arch) for M in cell.sizes]
@@ -309,14 +314,12 @@ def _bring_to_result(
     return result
 
 
-def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> dict:
-    """Train and evaluate a stock BenchMARL algorithm (baselines/run.py) into ``directory``;
-    the row in this module's format. A stopped one resumes from its latest BenchMARL checkpoint
-    (baselines/run.py writes one every 25 iterations)."""
+def baseline_args(cell: Cell, seed: int, directory: str, device: str = "cpu") -> argparse.Namespace:
+    """The options of baselines/run.py for a baseline cell's run into ``directory``."""
     from trainer.train import resolve_device
 
     try:
-        from baselines.run import build_parser, run
+        from baselines.run import build_parser
     except ImportError as exc:
         raise SpecError(
             f'cell {cell.id!r} is a BenchMARL baseline: pip install -c constraints.txt -e ".[baselines]" ({exc})'
@@ -339,7 +342,16 @@ def run_baseline(cell: Cell, seed: int, directory: str, device: str = "cpu") -> 
         raise SpecError(f"cell {cell.id!r}: baseline_options: {exc}") from None
     if unknown:
         raise SpecError(f"cell {cell.id!r}: baseline_options has options run_baselines does not know: {unknown}")
-    summary = _finished_baseline(directory, args)
+    return args
+
+
+def run_baseline(cell: Cell, args: argparse.Namespace) -> dict:
+    """Train and evaluate a stock BenchMARL algorithm (baselines/run.py) with ``args``
+    (baseline_args); the row in this module's format. A stopped one resumes from its latest
+    BenchMARL checkpoint (baselines/run.py writes one every 25 iterations)."""
+    from baselines.run import run
+
+    summary = _finished_baseline(args.out, args)
     if summary is None:  # (a run killed after BenchMARL's results.json is not trained again)
         summary = run(args)
     return {

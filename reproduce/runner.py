@@ -44,9 +44,10 @@ def run_on_ray(
     """Run every unfinished (cell, seed); returns {"done": [...], "failed": {key: error}}."""
     import ray
 
-    if not gpus_per_cell and ("cuda" in (arch, device) or "auto" in (arch, device)):
+    if not gpus_per_cell and {arch, device} & {"cuda", "gpu", "auto"}:
         raise ValueError(
-            "--arch/--device cuda or auto needs --gpus-per-cell > 0: Ray hides the GPUs from tasks that ask for none"
+            "--arch/--device cuda, gpu or auto needs --gpus-per-cell > 0: Ray hides the GPUs from tasks that ask "
+            "for none"
         )
     root = os.path.abspath(root)
     by_id = {c.id: c for c in cells}

@@ -231,6 +231,10 @@ def load_spec(name_or_path: str) -> Spec:
         raise SpecError(f"{path}: unknown top-level keys {extra} (allowed: {sorted(known_top)})")
     defaults = raw.get("defaults", {})
     entries = raw.get("cells", [])
+    if not isinstance(defaults, dict):
+        raise SpecError(f"{path}: [defaults] must be a table of cell keys, got {defaults!r}")
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise SpecError(f"{path}: cells must be [[cells]] tables")
     if not entries:
         raise SpecError(f"{path}: no [[cells]]")
     cells = tuple(_make_cell(path, i, {**defaults, **entry}) for i, entry in enumerate(entries))
@@ -245,6 +249,26 @@ def load_spec(name_or_path: str) -> Spec:
 
 
 _FIELDS = {f.name: f for f in dataclasses.fields(Cell)}
+_SIZE_LISTS = ("sizes", "transfer_offsets", "team_sizes")
+# each field's TOML type, from its default (id, table, kind and task have none)
+_TYPES = {"id": str, "table": int, "kind": str, "task": str}
+for _f in dataclasses.fields(Cell):
+    if _f.name not in _TYPES and _f.name not in _SIZE_LISTS:
+        _default = _f.default_factory() if _f.default is dataclasses.MISSING else _f.default
+        _TYPES[_f.name] = float if isinstance(_default, float) else type(_default)
+_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", dict: "a table"}
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _has_type(value, want: type) -> bool:
+    if want is bool:
+        return isinstance(value, bool)
+    if want is float:
+        return _is_int(value) or isinstance(value, float)
+    return _is_int(value) if want is int else isinstance(value, want)
 
 
 def _make_cell(path: str, index: int, entry: dict) -> Cell:
@@ -256,11 +280,14 @@ def _make_cell(path: str, index: int, entry: dict) -> Cell:
         if key not in entry:
             raise SpecError(f"{where}: missing {key!r}")
     entry = dict(entry)
-    for key in ("sizes", "transfer_offsets", "team_sizes"):
-        if key in entry:
-            if not isinstance(entry[key], list):
-                raise SpecError(f"{where}: {key} must be a list of integers, got {entry[key]!r}")
-            entry[key] = tuple(entry[key])
+    for key, value in entry.items():
+        want = _TYPES.get(key)
+        if key in _SIZE_LISTS:
+            if not isinstance(value, list) or not all(_is_int(v) for v in value):
+                raise SpecError(f"{where}: {key} must be a list of integers, got {value!r}")
+            entry[key] = tuple(value)
+        elif not _has_type(value, want):
+            raise SpecError(f"{where}: {key} must be {_TYPE_NAMES[want]}, got {value!r}")
     try:
         cell = Cell(**entry)
     except TypeError as exc:
@@ -305,12 +332,14 @@ def _check_cell(where: str, c: Cell) -> None:
         if clash:
             bad(f"baseline_options {clash} are set by the cell itself")
     if c.kind in ("curriculum", "zero-shot"):
-        if not c.sizes or any(not isinstance(m, int) or m < smallest for m in c.sizes):
+        if not c.sizes or any(m < smallest for m in c.sizes):
             bad(f"sizes must be team sizes >= {smallest}, got {list(c.sizes)}")
+        if len(set(c.sizes)) != len(c.sizes):
+            bad(f"sizes repeats a size: {list(c.sizes)}")
     if c.team_sizes:
         if c.kind != "train":
             bad(f"only train cells have team_sizes (a {c.kind} cell sets its sizes otherwise)")
-        if any(not isinstance(m, int) or isinstance(m, bool) or m < smallest for m in c.team_sizes):
+        if any(m < smallest for m in c.team_sizes):
             bad(f"team_sizes must be team sizes >= {smallest}, got {list(c.team_sizes)}")
         if len(set(c.team_sizes)) != len(c.team_sizes):
             bad(f"team_sizes repeats a size: {list(c.team_sizes)}")
@@ -322,7 +351,7 @@ def _check_cell(where: str, c: Cell) -> None:
         if not 0 <= c.min_updates_per_stage <= c.max_updates_per_stage:
             bad(f"min_updates_per_stage must be in [0, max_updates_per_stage], got {c.min_updates_per_stage}")
     offsets = c.transfer_offsets
-    if any(not isinstance(d, int) or isinstance(d, bool) or d == 0 or abs(d) > MAX_TRANSFER_OFFSET for d in offsets):
+    if any(d == 0 or abs(d) > MAX_TRANSFER_OFFSET for d in offsets):
         bad(f"transfer_offsets must be small non-zero team-size offsets, got {list(offsets)}")
     if len(set(offsets)) != len(offsets):
         bad(f"transfer_offsets has a repeated offset: {list(offsets)}")
@@ -345,21 +374,26 @@ def _check_cell(where: str, c: Cell) -> None:
             bad(f"{name} must be >= 1, got {getattr(c, name)}")
     if not 0 <= c.eval_seed < 2**40:
         bad(f"eval_seed must be in [0, 2**40): training draws its seeds above, got {c.eval_seed}")
-    if not isinstance(c.ppo, dict):
-        bad("ppo must be a table of PPO options")
-
     if c.preset not in PRESETS:
         bad(f"preset must be one of {tuple(PRESETS)}, got {c.preset!r}")
-    unknown_ppo = sorted(set(c.ppo) - {f.name for f in dataclasses.fields(PPOConfig)})
+    ppo_defaults = dataclasses.asdict(PPOConfig())
+    unknown_ppo = sorted(set(c.ppo) - set(ppo_defaults))
     if unknown_ppo:
         bad(f"ppo has unknown options {unknown_ppo}")
-    if c.team_sizes:  # each size gets the same share of the environments and of every epoch's minibatches
-        ppo = dataclasses.replace(PRESETS[c.preset], **c.ppo)
-        if ppo.num_envs % len(c.team_sizes) or ppo.minibatches < len(c.team_sizes):
-            bad(
-                f"team_sizes {list(c.team_sizes)} need ppo.num_envs ({ppo.num_envs}) a multiple of their number "
-                f"and ppo.minibatches ({ppo.minibatches}) at least it"
-            )
+    for key, value in c.ppo.items():
+        default = ppo_defaults[key]
+        want = float if default is None else type(default)  # (lr_end: None = lr)
+        if not _has_type(value, want):
+            bad(f"ppo.{key} must be {_TYPE_NAMES[want]}, got {value!r}")
+    if c.kind in ("train", "curriculum"):  # the trainer's own checks, now rather than hours into a run
+        from reproduce.cells import train_config
+
+        agents = c.agents if c.kind == "train" else c.sizes[0]
+        updates = c.updates if c.kind == "train" else c.max_updates_per_stage
+        try:
+            train_config(c, 0, "", agents, updates, init_from="(init_from)" if c.init_from else "")
+        except SpecError as exc:
+            bad(str(exc).removeprefix(f"cell {c.id!r}: "))
     if c.entity_mode == "concat" and c.task == "coverage" and c.kind in ("curriculum", "zero-shot"):
         bad("entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size")
     for size, row in c.paper.items():
@@ -387,12 +421,31 @@ def _check_references(spec: Spec) -> None:
                     f"{spec.path}: cell {c.id!r}: source_agents must be one of {c.source!r}'s stage sizes "
                     f"{list(src.sizes)}, got {c.source_agents}"
                 )
+            if src.kind == "train" and c.source_agents not in (0, src.agents):
+                raise SpecError(
+                    f"{spec.path}: cell {c.id!r}: source {c.source!r} is a train cell at M = {src.agents}: "
+                    f"leave source_agents out, got {c.source_agents}"
+                )
+            if src.entity_mode == "concat" and src.task == "coverage":
+                raise SpecError(
+                    f"{spec.path}: cell {c.id!r}: source {c.source!r} has entity_mode 'concat', a fixed number of "
+                    "landmarks: coverage's changes with the team size"
+                )
             if (src.task, src.comm, src.comm_radius) != (c.task, c.comm, c.comm_radius):
                 raise SpecError(
                     f"{spec.path}: cell {c.id!r}: task / comm / comm_radius {c.task, c.comm, c.comm_radius} differ "
                     f"from its source's {src.task, src.comm, src.comm_radius}"
                 )
         seen[c.id] = c
+    layouts: dict[int, tuple[str, str]] = {}  # a table is rendered in one layout: its cells' kinds must share it
+    for c in spec.cells:
+        layout = "train" if c.kind == "baseline" else c.kind
+        first = layouts.setdefault(c.table, (layout, c.id))
+        if first[0] != layout:
+            raise SpecError(
+                f"{spec.path}: cell {c.id!r} is a {c.kind} cell in table {c.table}, whose cell {first[1]!r} is "
+                f"a {first[0]} cell: a table holds train and baseline cells, or curricula, or zero-shot rows"
+            )
 
 
 def _check_init_from(spec: Spec, c: Cell, src: Cell | None) -> None:

@@ -11,7 +11,7 @@ import math
 import os
 
 from reproduce.cells import read_result, run_dirs
-from reproduce.spec import Cell
+from reproduce.spec import Cell, SpecError
 
 DOC_BEGIN = "<!-- BEGIN swarm reproduce (generated: do not edit by hand) -->"
 DOC_END = "<!-- END swarm reproduce -->"
@@ -60,14 +60,36 @@ def _rows_by_size(results: list[dict]) -> dict[int, list[dict]]:
     return out
 
 
-def _results(root: str, cell: Cell, seeds: list[int]) -> list[dict]:
-    return [r for r in (read_result(root, cell, s) for s in seeds) if r is not None]
+def _results(root: str, cell: Cell, seeds: list[int], source: Cell | None, stale: list[str]) -> list[dict]:
+    """The cell's finished results; one made from a policy its ``source`` (zero-shot row)
+    or init_from no longer has, because that has been trained again since, is left out
+    and named in ``stale``."""
+    out = []
+    for s in seeds:
+        try:
+            result = read_result(root, cell, s, source)
+        except SpecError:  # trained from an upstream policy that has been replaced
+            result = None
+            stale.append(f"{cell.id} seed {s}")
+        else:
+            if result is None and source is not None and read_result(root, cell, s) is not None:
+                stale.append(f"{cell.id} seed {s}")
+        if result is not None:
+            out.append(result)
+    return out
 
 
 def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> str:
+    """``cells``: the selection (the table's cells and the cells they read)."""
+    by_id = {c.id: c for c in cells}
     cells = [c for c in cells if c.table == table]
     if not cells:
         return ""
+    stale: list[str] = []
+
+    def _results_of(c: Cell) -> list[dict]:
+        return _results(root, c, seeds, by_id.get(c.needs), stale)
+
     kind = cells[0].kind
     lines = [f"### {TITLES.get(table, f'Table {table}')}", ""]
     # a table with polished cells shows S% before the polish (and how many polish updates);
@@ -94,7 +116,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             f"|---|---|---|---|{pol_rule}---|---|---|---|---|---|---|",
         ]
         for c in cells:
-            res = _results(root, c, seeds)
+            res = _results_of(c)
             if not res:
                 lines.append(
                     f"| {c.row_label()} | {c.agents} | not run | {_paper(c, c.agents, 'S')} |{' - |' if polish else ''}"
@@ -116,7 +138,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             f"|---|---|---|---|{pol_rule}---|---|---|---|---|",
         ]
         for c in cells:
-            by_size = _rows_by_size(_results(root, c, seeds))
+            by_size = _rows_by_size(_results_of(c))
             for M in c.sizes:
                 rows = by_size.get(M, [])
                 if not rows:
@@ -138,7 +160,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             "|---|---|" + "---|" * len(sizes),
         ]
         for c in cells:
-            by_size = _rows_by_size(_results(root, c, seeds))
+            by_size = _rows_by_size(_results_of(c))
             cols = []
             for M in sizes:
                 rows = by_size.get(M, [])
@@ -146,6 +168,12 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
                 cols.append(f"{ours} ({_paper(c, M, 'S')})")
             source = f"{c.source} M={c.source_agents}" if c.source_agents else c.source
             lines.append(f"| {c.row_label()} | {source} | " + " | ".join(cols) + " |")
+    if stale:
+        lines += [
+            "",
+            f"Left out as stale (made from a policy that has been trained again since; `swarm reproduce` "
+            f"redoes them): {', '.join(stale)}.",
+        ]
     if polish:
         lines += [
             "",

@@ -113,6 +113,10 @@ class ResumeOptions:
     """raise the run's total update budget to this"""
     progress: Annotated[bool, Default("the run's own setting")] = True
     """show a progress bar (--no-progress for a run in the background with output to a log)"""
+    arch: Annotated[Arch | None, Default("the run's own")] = None
+    """simulator arch (a run stopped on one machine may go on on another)"""
+    device: Annotated[str | None, Default("the run's own")] = None
+    """torch device: cpu | cuda | auto"""
 
     def __post_init__(self):
         at_least(self.updates, 1, "updates")

@@ -38,11 +38,17 @@ def train_main(argv: list[str]) -> int:
         if "--resume" in argv or any(a.startswith("--resume=") for a in argv):
             opts = parse(ResumeOptions, argv, "swarm train --resume RUN_DIR")
             given = any(a in ("--progress", "--no-progress") for a in argv)  # else the run's own setting
-            summary = train(resume=opts.resume, updates=opts.updates, progress=opts.progress if given else None)
+            summary = train(
+                resume=opts.resume,
+                updates=opts.updates,
+                progress=opts.progress if given else None,
+                arch=opts.arch,
+                device=opts.device,
+            )
         else:
             if "-h" in argv or "--help" in argv:
                 print(
-                    "swarm train --resume RUN_DIR [--updates N] [--no-progress]\n"
+                    "swarm train --resume RUN_DIR [--updates N] [--no-progress] [--arch A] [--device D]\n"
                     "                      continue a stopped run (N raises its update budget)\n"
                     "swarm train [options below]   start a run\n"
                 )

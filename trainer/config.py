@@ -206,7 +206,10 @@ class TrainConfig:
                 f"({len(self.team_sizes)}): each size gets the same number of environments"
             )
         if self.team_sizes and self.ppo.minibatches < len(self.team_sizes):
-            raise ValueError("ppo.minibatches must be >= the number of team_sizes")
+            raise ValueError(
+                f"ppo.minibatches ({self.ppo.minibatches}) must be >= the number of team_sizes "
+                f"({len(self.team_sizes)}): every minibatch holds one size"
+            )
         if self.team_sizes and self.model.entity_mode == "concat" and self.task == "coverage":
             raise ValueError("entity_mode='concat' has a fixed number of landmarks: coverage's L changes with M")
         if self.torch_threads < 1:

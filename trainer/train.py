@@ -326,9 +326,12 @@ def train(
     on_update=None,
     updates: int | None = None,
     progress: bool | None = None,
+    arch: str | None = None,
+    device: str | None = None,
 ) -> dict:
     """Train from ``cfg``, or continue the run in directory ``resume`` (``updates``
-    then raises its total update budget; ``progress`` overrides whether it shows a bar).
+    then raises its total update budget; ``progress`` overrides whether it shows a bar;
+    ``arch`` / ``device``, where it runs: a run may stop on one machine and go on on another).
 
     ``on_update(record)`` is called after every update (tests, curriculum).
     Returns a summary: run_dir, updates done, env steps, wall time, last eval.
@@ -343,7 +346,8 @@ def train(
     else:
         run_dir = cfg.default_run_dir()
     # what a resume may change in the run's config (None: keep the run's own)
-    overrides = {k: v for k, v in (("updates", updates), ("progress", progress)) if v is not None}
+    given = (("updates", updates), ("progress", progress), ("arch", arch), ("device", device))
+    overrides = {k: v for k, v in given if v is not None}
     with RunDirLock(run_dir):
         return _train_locked(cfg, resume, on_update, overrides)
 
@@ -353,7 +357,8 @@ def train_or_resume(cfg: TrainConfig) -> dict:
     finished (summary.json is read back), stopped (resumed from checkpoint.pt) or new.
     A larger ``cfg.updates`` than the run had raises its budget: a stopped run trains to
     it, and so does a finished one that ran out of updates short of its target (a
-    curriculum stage given more updates per stage); one that reached its target stays done."""
+    curriculum stage given more updates per stage); one that reached its target stays done.
+    A resumed run runs on ``cfg``'s arch and device, whatever it ran on before."""
     run = Run(cfg.default_run_dir())
     summary_path = os.path.join(run.path, "summary.json")
     if os.path.exists(summary_path):
@@ -365,7 +370,8 @@ def train_or_resume(cfg: TrainConfig) -> dict:
     if os.path.exists(run.checkpoint):
         with open(run.config) as f:
             budget = json.load(f)["updates"]
-        return train(resume=run.path, updates=cfg.updates if cfg.updates > budget else None)
+        updates = cfg.updates if cfg.updates > budget else None
+        return train(resume=run.path, updates=updates, arch=cfg.arch, device=cfg.device)  # (maybe another machine)
     return train(cfg)
 
 

@@ -164,13 +164,43 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [0, 2]"), "team_sizes must be team sizes >= 1"),
         (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [2, 2]"), "team_sizes repeats a size"),
         (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = 2"), "team_sizes must be a list of integers"),
-        (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [2, 3]"), r"ppo.minibatches \(1\) at least"),
+        (
+            lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [2, 3]"),
+            r"'train-cov': ppo.minibatches \(1\) must be >= the number of team_sizes \(2\)",
+        ),
+        # values of the wrong type name the key, not a traceback
+        (lambda t: t.replace("agents = 2", 'agents = "2"'), "agents must be an integer, got '2'"),
+        (lambda t: t.replace("agents = 2", "agents = true"), "agents must be an integer, got True"),
+        (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = [true, 3]"), "sizes must be a list of integers"),
+        (lambda t: t.replace("compile = false", 'compile = "no"'), "compile must be true or false"),
+        (lambda t: t.replace('paper = { "2" = { S = 99, T = 10.0 } }', "paper = 5"), "paper must be a table, got 5"),
+        (lambda t: "defaults = 3\n" + t[t.index("[[cells]]") :], r"\[defaults\] must be a table"),
+        (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = [1, 2, 1]"), r"sizes repeats a size: \[1, 2, 1\]"),
+        # the trainer's own checks of the values, at load time: not after the cell has written its definition
+        (lambda t: t.replace("epochs = 1 }", "epochs = 0 }"), "'train-cov': ppo.epochs must be >= 1"),
+        (lambda t: t.replace("epochs = 1 }", 'epochs = "1" }'), "'train-cov': ppo.epochs must be an integer, got '1'"),
+        (lambda t: t.replace('source = "train-cov"', 'source = "train-cov"\nsource_agents = 3'), "leave source_agents"),
+        (lambda t: t.replace("table = 4", "table = 1"), "a zero-shot cell in table 1, whose cell 'train-cov'"),
     ],
 )
 def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
     path = write_spec(tmp_path, text=edit(TINY.format(updates=3, eval_every=2)))
     with pytest.raises(SpecError, match=message):
         load_spec(path)
+
+
+def test_table_numbers_are_the_mean_and_sd_over_seeds_and_say_how_many_ran():
+    from reproduce import tables
+
+    tables._SEEDS_ASKED[0] = 3
+    try:
+        assert tables._stat([0.5, 0.7], 100) == "60.0 ± 14.1 (2 of 3)"  # sample sd
+        assert tables._stat([0.5, 0.7, 0.9], 100) == "70.0 ± 20.0 (3)"
+        assert tables._stat([2200.0, 2200.0], digits=0) == "2200 (2 of 3)"  # every seed the same: no sd
+        assert tables._stat([None, float("nan")]) == "-"
+    finally:
+        tables._SEEDS_ASKED[0] = 1
+    assert tables._stat([0.5], 100) == "50.0"
 
 
 def test_transfer_offsets_are_logged_and_leave_the_definition_alone(tmp_path):
@@ -300,11 +330,17 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
 
     # the tables: our numbers beside the paper's; a cell without results says so
     md = render_all(spec.cells, [0, 1], root, "tiny")
-    assert "| coverage UC | 2 |" in md and "| 99 |" in md
-    assert "(50)" in md and "curves-table-1.png" in md
+    assert re.search(r"\| coverage UC \| 2 \| \d+\.\d \(1 of 2\) \| 99 \|", md)  # ours (seeds run of asked), paper
+    assert re.search(r"\| \d+\.\d \(1 of 2\) \(50\) \|", md) and "curves-table-1.png" in md  # zero-shot at M = 3
     assert os.path.exists(os.path.join(root, "curves-table-1.png"))
     md_missing = render_all(spec.cells, [0], str(tmp_path / "empty"), "tiny")
     assert "not run" in md_missing
+    # the source finished again after its zero-shot row ran: the row is left out, and named
+    open(source_json, "w").write(json.dumps(redone | {"finished": 2.0}))
+    md_stale = render_all(spec.cells, [0], root, "tiny")
+    assert "Left out as stale" in md_stale and "zs-cov seed 0" in md_stale
+    assert "| not run (50) |" in md_stale and "| not run (50) |" not in md  # its old numbers are not shown
+    open(source_json, "w").write(json.dumps(redone))
 
     doc = tmp_path / "doc.md"
     doc.write_text(f"# Results\nbefore\n{DOC_BEGIN}\nold\n{DOC_END}\nafter\n")
@@ -441,7 +477,7 @@ paper = { "2" = { S = 42 } }
     assert 0.0 <= row["success_rate"] <= 1.0
     assert os.path.exists(os.path.join(cells_mod.cell_dir(root, cell, 0), "curves.png"))  # BenchMARL's csv drawn
     md = render_all(spec.cells, [0], root, "tiny")
-    assert "| coverage MAPPO (full obs.) | 2 |" in md and "| 42 |" in md
+    assert re.search(r"\| coverage MAPPO \(full obs\.\) \| 2 \| \d+\.\d \| 42 \|", md)
     bad = load_spec(write_spec(tmp_path, text=text.replace("frames_per_batch = 128", "bogus = 1"))).cells[0]
     with pytest.raises(SpecError, match="does not know"):
         cells_mod.run_cell(bad, 0, str(tmp_path / "root2"))
@@ -521,8 +557,10 @@ def test_a_larger_budget_extends_a_run_that_ran_out_short_of_its_target(tmp_path
     assert first["update"] == 4 and not first["reached_target"]
     assert train_mod.train_or_resume(dataclasses.replace(cfg, updates=3)) == first
     rate["value"] = 1.0  # reached at the first evaluation of the extension
-    extended = train_mod.train_or_resume(dataclasses.replace(cfg, updates=10))
+    extended = train_mod.train_or_resume(dataclasses.replace(cfg, updates=10, arch="auto"))
     assert extended["update"] == 6 and extended["reached_target"]
+    with open(tmp_path / "run" / "config.json") as f:
+        assert json.load(f)["arch"] == "auto"  # resumed where the driver runs it now (cells: --arch, --device)
     assert train_mod.train_or_resume(dataclasses.replace(cfg, updates=20))["update"] == 6
 
 

@@ -63,6 +63,12 @@ def test_run_dir_resume_and_refusal_to_overwrite(tmp_path):
     assert json.load(open(os.path.join(run, "config.json")))["progress"] is False
     assert swarm_main(["train", "--resume", run, "--updates", "7"]) == 0  # neither: the run's own setting
     assert json.load(open(os.path.join(run, "config.json")))["progress"] is False
+    # where it runs may change too: a run stopped on one machine goes on on another
+    assert swarm_main(["train", "--resume", run, "--updates", "8", "--arch", "auto", "--device", "auto"]) == 0
+    config = json.load(open(os.path.join(run, "config.json")))
+    assert (config["arch"], config["device"], config["updates"]) == ("auto", "auto", 8)
+    assert swarm_main(["train", "--resume", run, "--updates", "9"]) == 0
+    assert json.load(open(os.path.join(run, "config.json")))["arch"] == "auto"  # kept, as progress is
 
 
 def test_resume_drops_metrics_written_after_the_checkpoint(tmp_path):
