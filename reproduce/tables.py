@@ -164,7 +164,10 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             cols = []
             for M in sizes:
                 rows = by_size.get(M, [])
-                ours = _stat([r["success_rate"] for r in rows], 100) if rows else "not run"
+                if M not in c.sizes:  # another row of the table evaluates this size
+                    ours = "-"
+                else:
+                    ours = _stat([r["success_rate"] for r in rows], 100) if rows else "not run"
                 cols.append(f"{ours} ({_paper(c, M, 'S')})")
             source = f"{c.source} M={c.source_agents}" if c.source_agents else c.source
             lines.append(f"| {c.row_label()} | {source} | " + " | ".join(cols) + " |")

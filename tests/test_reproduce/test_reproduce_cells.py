@@ -203,6 +203,15 @@ def test_table_numbers_are_the_mean_and_sd_over_seeds_and_say_how_many_ran():
     assert tables._stat([0.5], 100) == "50.0"
 
 
+def test_a_zero_shot_table_marks_sizes_a_row_does_not_evaluate(tmp_path):
+    extra = '\n[[cells]]\nid = "zs-cov-2"\ntable = 4\nkind = "zero-shot"\ntask = "coverage"\n'
+    extra += 'source = "train-cov"\nsizes = [2]\n'
+    spec = load_spec(write_spec(tmp_path, text=TINY.format(updates=3, eval_every=2) + extra))
+    md = render_all(spec.cells, [0], str(tmp_path / "root"), "tiny")
+    assert "| coverage UC | train-cov | not run (-) | not run (-) | not run (50) |" in md
+    assert "| coverage UC | train-cov | - (-) | not run (-) | - (-) |" in md  # sizes 1 and 3: not this row's
+
+
 def test_transfer_offsets_are_logged_and_leave_the_definition_alone(tmp_path):
     """A cell's transfer_offsets make its evaluations during training report S% at those
     neighbouring sizes; they decide nothing that is trained, so results from before stay valid."""
