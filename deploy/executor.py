@@ -288,14 +288,16 @@ def resolve_settings(
     **rest,
 ) -> ExecuteSettings:
     """Fill unset options from the manifest's training setting (``taichi_swarm.TaskSetting``)."""
-    from taichi_swarm import TaskSetting
+    from taichi_swarm import TASK_SPECS, TaskSetting
 
     setting = TaskSetting.resolve(
         model.task, "the manifest", task=task, agents=agents, comm=comm, comm_radius=comm_radius
     )
+    team_size = setting.team_size("the manifest")
+    model.check_landmarks(setting.task, TASK_SPECS[setting.task].num_landmarks(team_size))  # before any output opens
     return ExecuteSettings(
         task=setting.task,
-        agents=setting.team_size("the manifest"),
+        agents=team_size,
         comm=setting.comm,
         comm_radius=setting.comm_radius,
         **rest,

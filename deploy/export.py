@@ -176,6 +176,27 @@ def _versions() -> dict:
     }
 
 
+def _check_landmarks_fit(cfg, setting) -> None:
+    """Refuse a task setting the network cannot take (its manifest would name a task no
+    ``swarm execute`` of it could run)."""
+    from taichi_swarm import TASK_SPECS
+    from trainer.model import PADDED_SLOTS
+
+    if setting.agents is None:
+        return
+    L = TASK_SPECS[setting.task].num_landmarks(setting.agents)
+    if cfg.entity_mode == "concat" and L != cfg.num_landmarks:
+        raise CheckpointError(
+            f"this policy concatenates {cfg.num_landmarks} landmark offsets (entity_mode 'concat'); "
+            f"{setting.task} with {setting.agents} agents has {L} landmarks"
+        )
+    if cfg.entity_mode == "padded" and L > PADDED_SLOTS:
+        raise CheckpointError(
+            f"this policy holds at most {PADDED_SLOTS} landmarks (entity_mode 'padded'); "
+            f"{setting.task} with {setting.agents} agents has {L}"
+        )
+
+
 def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
     """Export ``checkpoint`` (file or run dir) into ``out_dir``; returns the manifest.
 
@@ -192,6 +213,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
         setting = TaskSetting.resolve(payload.get("task"), "the checkpoint", **(task or {}))
     except ValueError as exc:
         raise CheckpointError(str(exc)) from None
+    _check_landmarks_fit(cfg, setting)
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise FileExistsError(f"--out {out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)

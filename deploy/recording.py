@@ -23,6 +23,8 @@ Entity paths, per drawn env b (the first ``max_envs_drawn``), timeline "step":
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import rerun as rr
 
@@ -111,7 +113,10 @@ class RolloutRecorder:
         self.agent_radius, self.landmark_radius = spec.agent_radius, spec.landmark_radius
         self.rec = rr.RecordingStream(app_id)
         self.rec.set_log_time_enabled(False)  # no wall clock: the same rollout gives the same data
-        self.rec.save(path, default_blueprint=layout(self.drawn))
+        # written beside the target and moved there by close(): a run that fails or is killed
+        # never leaves a truncated recording, nor replaces a good one
+        self._partial = os.path.join(os.path.dirname(os.path.abspath(path)), f".tmp-{os.path.basename(path)}")
+        self.rec.save(self._partial, default_blueprint=layout(self.drawn))
         self._ended = np.zeros(self.num_envs, bool)  # first episode of the env is over: stop drawing it
         self._successes: list[bool] = []
         self.colors = PALETTE[np.arange(self.num_agents) % len(PALETTE)]  # [M, 3]
@@ -211,8 +216,12 @@ class RolloutRecorder:
                 # no Clear: the env's last state stays on screen (frozen) once its episode ended
         rec.log("all/success_rate", rr.Scalars(float(np.mean(self._successes))))
 
-    def close(self) -> None:
-        """Flush and close the file."""
+    def close(self, ok: bool = True) -> None:
+        """Flush and close the file; it replaces ``path`` only if ``ok`` (else it is removed)."""
         self.rec.flush()
         if hasattr(self.rec, "disconnect"):
             self.rec.disconnect()
+        if ok:
+            os.replace(self._partial, self.path)
+        elif os.path.exists(self._partial):
+            os.unlink(self._partial)

@@ -68,7 +68,10 @@ class FrameRecorder:
                 self._outcome[int(b)] = f"{'success' if success[b] else 'failed'} at step {int(length[b])}"
             self._ended[b] = True
 
-    def close(self) -> None:
+    def close(self, ok: bool = True) -> None:
+        """Render the video, if ``ok`` (a failed run renders nothing: its error is the news)."""
+        if not ok:
+            return
         if self.frames:  # one more frame with every finished env marked, so panels show outcomes
             last = dict(self.frames[-1])
             last["live"] = ~self._ended[: self.drawn].copy()
@@ -244,9 +247,10 @@ class Recorders:
         for r in self.recorders:
             r.log_episode_ends(*args, **kwargs)
 
-    def close(self) -> None:
+    def close(self, ok: bool = True) -> None:
+        """``ok``: the rollout ended normally (else nothing is written, nothing replaced)."""
         for r in self.recorders:
-            r.close()
+            r.close(ok)
 
 
 def frames_from_recording(path: str) -> tuple[list[dict], str, int, dict]:
@@ -259,7 +263,11 @@ def frames_from_recording(path: str) -> tuple[list[dict], str, int, dict]:
 
     data: dict[tuple[int, str], dict[int, object]] = {}  # (env, kind) -> step -> value
     task = "swarm"
-    for chunk in RrdReader(path).stream():
+    try:
+        chunks = list(RrdReader(path).stream())
+    except Exception as exc:  # noqa: BLE001 - the reader raises RuntimeError and others on a bad file
+        raise ValueError(f"cannot read {path} as a Rerun recording ({exc})") from None
+    for chunk in chunks:
         m = re.fullmatch(r"/env_(\d+)(?:/(.+))?", chunk.entity_path)
         if not m:
             continue

@@ -67,10 +67,12 @@ def execute_main(argv: list[str]) -> int:
             recorder = open_recorders(args, s.task, s.episodes, s.agents, s.comm, s.comm_radius) if k == 0 else None
             try:
                 rows.append(run_episodes(model, s, recorder=recorder, threads=args.threads))
-            finally:
+            except BaseException:  # (Ctrl-C too): no recording or video written, none replaced
                 if recorder is not None:
-                    recorder.close()
+                    recorder.close(ok=False)
+                raise
             if recorder is not None:
+                recorder.close()
                 recorder.report()
     except (DeployError, ValueError, OSError) as exc:
         return fail("swarm execute", exc)

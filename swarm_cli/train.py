@@ -100,10 +100,15 @@ def eval_main(argv: list[str]) -> int:
         from deploy.video import open_recorders
 
         recorder = open_recorders(opts, s.task, opts.episodes, agents, s.comm, s.comm_radius)
-        result = evaluate(
-            policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
-            recorder=recorder, actions=opts.actions,
-        )  # fmt: skip
+        try:
+            result = evaluate(
+                policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
+                recorder=recorder, actions=opts.actions,
+            )  # fmt: skip
+        except BaseException:  # (Ctrl-C too): no recording or video written, none replaced
+            if recorder is not None:
+                recorder.close(ok=False)
+            raise
         if recorder is not None:
             recorder.close()
             recorder.report()

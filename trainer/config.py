@@ -141,7 +141,8 @@ class TrainConfig:
     transfer_offsets: tuple[int, ...] = (-1, 1, 2)
     """Every evaluation also measures S% at these team sizes relative to ``agents``
     (zero-shot transfer: metrics.jsonl ``eval_transfer``, the progress bar, the plot);
-    () for none."""
+    () for none. Sizes the network cannot take are left out (entity_mode "concat": another
+    number of landmarks; "padded": more than 10)."""
     checkpoint_every: int = 25
     """Write the checkpoint every this many updates (and at the end, and on Ctrl-C)."""
     seed: int = 0

@@ -87,6 +87,11 @@ def run_curriculum(
         raise ValueError(f"--polish-updates must be >= 0, got {polish_updates}")
     if not polish_lr > 0:
         raise ValueError(f"--polish-lr must be > 0, got {polish_lr}")
+    if base.team_sizes:  # every stage would train on them and be judged at its own size
+        raise ValueError(
+            f"--team-sizes {list(base.team_sizes)} cannot go with a curriculum: each stage trains on its "
+            "own team size (--sizes)"
+        )
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []

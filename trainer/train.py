@@ -17,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
+import threading
 import time
 import warnings
 
@@ -27,7 +29,7 @@ from trainer import checkpoint
 from trainer.config import TrainConfig, to_dict, train_config_from_dict
 from trainer.evaluate import evaluate
 from trainer.lock import RunDirLock
-from trainer.model import ModelConfig, SwarmPolicy
+from trainer.model import PADDED_SLOTS, ModelConfig, SwarmPolicy
 from trainer.ppo import RewardScaler, Rollout, gae, normalize_per_agent, ppo_loss, sample_actions
 
 
@@ -84,7 +86,17 @@ class Run:
         if not os.path.exists(self.metrics):
             return
         with open(self.metrics) as f:
-            keep = [line for line in f if line.strip() and json.loads(line)["update"] <= last_update]
+            lines = [line for line in f if line.strip()]
+        keep = []
+        for number, line in enumerate(lines, 1):
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                if number == len(lines):  # the last line, torn by a kill or a full disk mid-write
+                    break
+                raise ValueError(f"{self.metrics}: line {number} is not JSON; fix or remove it to resume") from None
+            if record["update"] <= last_update:
+                keep.append(line if line.endswith("\n") else line + "\n")
         checkpoint.atomic_write_bytes(self.metrics, lambda f: f.write("".join(keep).encode()))
 
 
@@ -190,9 +202,16 @@ EVAL_SEED_BASE = 10_000_019
 
 
 def transfer_sizes(cfg: TrainConfig) -> list[int]:
-    """The neighbouring team sizes evaluated beside the training size."""
-    smallest = taichi_swarm.TASK_SPECS[cfg.task].min_agents
-    return [cfg.agents + d for d in cfg.transfer_offsets if d != 0 and cfg.agents + d >= smallest]
+    """The neighbouring team sizes evaluated beside the training size: those the task has
+    and the network can take ("concat": the training size's number of landmarks; "padded":
+    at most PADDED_SLOTS landmarks)."""
+    spec = taichi_swarm.TASK_SPECS[cfg.task]
+    sizes = [cfg.agents + d for d in cfg.transfer_offsets if d != 0 and cfg.agents + d >= spec.min_agents]
+    if cfg.model.entity_mode == "concat":
+        sizes = [M for M in sizes if spec.num_landmarks(M) == spec.num_landmarks(cfg.agents)]
+    elif cfg.model.entity_mode == "padded":
+        sizes = [M for M in sizes if spec.num_landmarks(M) <= PADDED_SLOTS]
+    return sizes
 
 
 def evaluate_during_training(policy, cfg: TrainConfig, update: int, device) -> dict:
@@ -282,7 +301,9 @@ def ppo_update(policy, optimizer, groups: list[tuple[Rollout, torch.Tensor, torc
             perm = torch.randperm(n, device=device)
             shuffled = [x[perm] for x in batch]  # one gather per epoch; minibatches are contiguous slices
             start = 0
-            for size in (len(c) for c in perm.chunk(per_group)):
+            for size in (len(c) for c in perm.tensor_split(per_group)):  # (chunk may give fewer)
+                if not size:
+                    continue
                 minibatches.append((shuffled, start, size))
                 start += size
         if len(data) > 1:  # sizes interleaved (one size keeps the RNG stream of a plain run)
@@ -465,6 +486,9 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
         for g, scaler_state in zip(groups, scaler_states, strict=True):
             g.scaler.load_state_dict(scaler_state)
         torch.set_rng_state(payload["torch_rng"])
+        cuda_rng = payload.get("cuda_rng") or []
+        if device.startswith("cuda") and len(cuda_rng) == torch.cuda.device_count():  # (not: another machine)
+            torch.cuda.set_rng_state_all(cuda_rng)
         state.counters = dict(payload["counters"])
         state.evals = list(payload.get("evals", []))
     env_states = (payload or {}).get("env_states")
@@ -524,6 +548,8 @@ def save_checkpoint(run: Run, state: TrainingState, cfg: TrainConfig) -> None:
         "reward_scaler": state.groups[0].scaler.state_dict(),
         "reward_scalers": [g.scaler.state_dict() for g in state.groups],
         "torch_rng": torch.get_rng_state(),
+        # on a GPU, sampling and minibatch shuffles draw from CUDA's generators
+        "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else [],
         "train_config": to_dict(cfg),
     }
     checkpoint.save(run.checkpoint, payload)
@@ -549,7 +575,9 @@ def one_update(state: TrainingState, cfg: TrainConfig, loss_fn, device: str, run
         torch.cuda.synchronize()  # the update's kernels are queued: time them, not their launch
     t_update = time.perf_counter() - tc
     state.counters["skipped_minibatches"] = state.counters.get("skipped_minibatches", 0) + skipped
-    state.bad_updates = state.bad_updates + 1 if skipped == p.epochs * p.minibatches else 0
+    # (a stats row of NaN: no finite minibatch; with several sizes there may be fewer than
+    # epochs * minibatches of them, so the count is not the test)
+    state.bad_updates = state.bad_updates + 1 if bool(torch.isnan(stats).all()) else 0
     if state.bad_updates >= MAX_BAD_UPDATES:
         raise NonFiniteTraining(
             f"every minibatch of the last {state.bad_updates} updates had a NaN/inf loss or gradient; "
@@ -623,6 +651,52 @@ def reached_target(cfg, last_eval: dict | None, update: int) -> bool:
     return hit and update >= cfg.min_updates
 
 
+class StopAtUpdateEnd:
+    """While inside: Ctrl-C (SIGINT) or SIGTERM during an update lets the update, its
+    evaluation and its checkpoint finish, then takes the signal's own path (its previous
+    handler, else a KeyboardInterrupt), so a stopped run resumes from a whole update. A
+    second signal takes that path at once. Signals the process ignores stay ignored; off
+    the main thread (where no signal arrives) it does nothing."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.pending: int | None = None
+        self.previous: dict = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in self.SIGNALS:
+                if signal.getsignal(s) is not signal.SIG_IGN:
+                    self.previous[s] = signal.signal(s, self._note)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._restore()
+
+    def _restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+        self.previous = {}
+
+    def _note(self, signum, frame) -> None:
+        if self.pending is not None:
+            self.take(signum)
+        self.pending = signum
+
+    def check(self) -> None:
+        """At an update's end: stop now if a signal came."""
+        if self.pending is not None:
+            self.take(self.pending)
+
+    def take(self, signum: int) -> None:
+        handler = self.previous.get(signum)
+        self._restore()
+        if callable(handler):
+            handler(signum, None)  # e.g. Python's SIGINT handler, `swarm`'s SIGTERM one: raise KeyboardInterrupt
+        raise KeyboardInterrupt(f"stopped by {signal.Signals(signum).name}")
+
+
 def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
     run, cfg, payload = open_run(cfg, resume, overrides)
     device = resolve_device(cfg.device)
@@ -634,46 +708,55 @@ def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
     start_wall = time.perf_counter() - counters["wall_time"]
     # a run that stopped at its target and was killed before summary.json stays stopped
     reached = reached_target(cfg, last_eval, counters["update"])
-    try:
-        while counters["update"] < cfg.updates and not reached:
-            record = one_update(state, cfg, loss_fn, device, run)
-            done = counters["update"] >= cfg.updates
-            if counters["update"] % cfg.eval_every == 0 or done:
-                last_eval = evaluate_during_training(state.policy, cfg, counters["update"], device)
-                state.evals.append(last_eval)
-                record.update({f"eval_{k}": v for k, v in last_eval.items() if k != "update"})
-                done = done or reached_target(cfg, last_eval, counters["update"])
-            counters["wall_time"] = record["wall_time"] = time.perf_counter() - start_wall
-            reporter.report(record, last_eval)
-            if counters["update"] % cfg.checkpoint_every == 0 or done:
+    saved = counters["update"]  # the update the checkpoint on disk holds
+    with StopAtUpdateEnd() as stop:
+        try:
+            while counters["update"] < cfg.updates and not reached:
+                record = one_update(state, cfg, loss_fn, device, run)
+                done = counters["update"] >= cfg.updates
+                if counters["update"] % cfg.eval_every == 0 or done:
+                    last_eval = evaluate_during_training(state.policy, cfg, counters["update"], device)
+                    state.evals.append(last_eval)
+                    record.update({f"eval_{k}": v for k, v in last_eval.items() if k != "update"})
+                    done = done or reached_target(cfg, last_eval, counters["update"])
+                counters["wall_time"] = record["wall_time"] = time.perf_counter() - start_wall
+                reporter.report(record, last_eval)
+                if counters["update"] % cfg.checkpoint_every == 0 or done or stop.pending is not None:
+                    save_checkpoint(run, state, cfg)
+                    saved = counters["update"]
+                if done:
+                    break
+                stop.check()
+        except KeyboardInterrupt:
+            if stop.pending is None:  # raised in code, not by a signal (a callback, a test): as Ctrl-C was
+                counters["wall_time"] = time.perf_counter() - start_wall
                 save_checkpoint(run, state, cfg)
-            if done:
-                break
-    except KeyboardInterrupt:
-        counters["wall_time"] = time.perf_counter() - start_wall
-        save_checkpoint(run, state, cfg)
+                saved = counters["update"]
+            reporter.close()
+            if saved == counters["update"]:
+                print(
+                    f"\ninterrupted: checkpoint saved at update {saved}; continue with: swarm train --resume {run.path}"
+                )
+            else:  # a second signal, mid-update: the last whole update's checkpoint is kept
+                print(f"\ninterrupted: resume from update {saved} with: swarm train --resume {run.path}")
+            raise
         reporter.close()
-        print(
-            f"\ninterrupted: checkpoint saved at update {counters['update']}; "
-            f"continue with: swarm train --resume {run.path}"
-        )
-        raise
-    reporter.close()
-    save_checkpoint(run, state, cfg)
-    summary = {
-        "run_dir": run.path,
-        **counters,
-        "last_eval": last_eval,
-        "evals": state.evals,
-        "reached_target": reached_target(cfg, last_eval, cfg.updates),
-    }
-    checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)  # the run is done
-    try:
-        from trainer.plot import plot_run
+        save_checkpoint(run, state, cfg)
+        summary = {
+            "run_dir": run.path,
+            **counters,
+            "last_eval": last_eval,
+            "evals": state.evals,
+            "reached_target": reached_target(cfg, last_eval, cfg.updates),
+        }
+        checkpoint.atomic_write_json(os.path.join(run.path, "summary.json"), summary)  # the run is done
+        try:
+            from trainer.plot import plot_run
 
-        plot_run(run.path)
-    except Exception as exc:  # noqa: BLE001 - a missing plot never loses a run
-        print(f"(could not draw curves: {exc})")
+            plot_run(run.path)
+        except Exception as exc:  # noqa: BLE001 - a missing plot never loses a run
+            print(f"(could not draw curves: {exc})")
+        stop.check()  # a signal during the last update: the run is complete, and the caller stops
     return summary
 
 

@@ -159,6 +159,7 @@ def test_delay_first_steps_hear_only_self_then_old_messages(emp):
     np.testing.assert_allclose(got0, _torch_logits(policy, {**s0, "adj": eye}), atol=1e-4, rtol=0)
     got1, _, _ = executor.decide(s1["self"], s1["entities"], s1["adj"])
     assert not np.allclose(got1, _torch_logits(policy, {**s1, "adj": eye}), atol=1e-4)
+    assert not np.allclose(got1, _torch_logits(policy, s1), atol=1e-4)  # not this step's messages either
     # an ended episode discards messages in flight: back to hearing only itself
     executor.bus.reset_envs(np.ones(2, bool))
     got2, _, _ = executor.decide(s1["self"], s1["entities"], s1["adj"])
@@ -253,10 +254,19 @@ def test_corrupted_file_is_refused(emp, tmp_path, capsys):
         ExportedModel(str(bad))
 
 
-def test_wrong_task_for_concat_model(concat, capsys):
+def test_wrong_task_for_concat_model(concat, capsys, tmp_path):
     _, directory = concat
     code, err = _run(execute_main, [directory, "--task", "coverage", "--agents", "5", "--episodes", "1"], capsys)
     assert code == 2 and "concatenates 2 landmark" in err and "coverage" in err
+    # with outputs asked for: the same error, and nothing written or replaced
+    old, gif = tmp_path / "old.rrd", tmp_path / "x.gif"
+    old.write_bytes(b"RRF2 a recording from before")
+    argv = [directory, "--task", "coverage", "--agents", "5", "--episodes", "1"]
+    argv += ["--record", str(old), "--video", str(gif)]
+    code, err = _run(execute_main, argv, capsys)
+    assert code == 2 and "concatenates 2 landmark" in err
+    assert old.read_bytes() == b"RRF2 a recording from before" and not gif.exists()
+    assert sorted(os.listdir(tmp_path)) == ["old.rrd"]  # no temp file left either
 
 
 @pytest.mark.parametrize(
@@ -282,6 +292,17 @@ def test_export_errors(tmp_path, capsys):
     junk.write_bytes(b"not a checkpoint")
     code, err = _run(export_main, [str(junk), "--out", str(tmp_path / "o")], capsys)
     assert code == 2 and "swarm export: error:" in err
+    # a task setting the network cannot take is refused: its manifest would run nowhere
+    policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1, entity_mode="concat", num_landmarks=2)).eval()
+    ckpt = _save(str(tmp_path / "line.pt"), policy, "line", 3)
+    argv = [ckpt, "--out", str(tmp_path / "o2"), "--task", "coverage", "--agents", "5"]
+    code, err = _run(export_main, argv, capsys)
+    assert code == 2 and "concatenates 2 landmark offsets" in err and "coverage with 5 agents has 5" in err
+    assert not (tmp_path / "o2").exists()
+    padded = SwarmPolicy(ModelConfig(hidden=16, rounds=1, entity_mode="padded")).eval()
+    ckpt = _save(str(tmp_path / "padded.pt"), padded, "coverage", 3)
+    code, err = _run(export_main, [ckpt, "--out", str(tmp_path / "o3"), "--agents", "11"], capsys)
+    assert code == 2 and "at most 10 landmarks" in err
 
 
 # ------------------------------------------------------------------------------ no torch

@@ -129,3 +129,7 @@ def test_replay_names_directories_and_non_recordings(tmp_path, capsys):
     assert "is a directory" in capsys.readouterr().err
     assert replay_main([str(text)]) == 2
     assert "not a Rerun recording" in capsys.readouterr().err
+    garbage = tmp_path / "garbage.rrd"  # starts like a recording, is not one
+    garbage.write_bytes(b"RRF2" + bytes(range(256)) * 4)
+    assert replay_main([str(garbage), "--video", str(tmp_path / "g.gif")]) == 2
+    assert "cannot read" in capsys.readouterr().err and not (tmp_path / "g.gif").exists()

@@ -58,12 +58,13 @@ def test_replay_video_rebuilds_the_recorded_rollout(tmp_path, capsys):
     policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1)).eval()
     rrd, gif = str(tmp_path / "r.rrd"), str(tmp_path / "r.gif")
     live = FrameRecorder(gif, "coverage", 5, 3, num_drawn=3)
-    live.close = lambda: None  # keep the frames, skip rendering
+    live.close = lambda ok=True: None  # keep the frames, skip rendering
     rec = Recorders(RolloutRecorder(rrd, "coverage", 5, 3, max_envs_drawn=3), live)
     evaluate(policy, "coverage", 3, episodes=5, seed=3, recorder=rec)
     rec.close()
     frames, task, M, _ = frames_from_recording(rrd)
     assert task == "coverage" and M == 3
+    assert len(frames) == len(live.frames) + 1  # every step, and the last one with the outcomes
     for got, want in zip(frames, live.frames, strict=False):
         assert got["step"] == want["step"]
         for b in range(3):

@@ -80,6 +80,18 @@ def test_resume_drops_metrics_written_after_the_checkpoint(tmp_path):
     train(resume=cfg.run_dir)
     lines = [json.loads(x)["update"] for x in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
     assert lines == [1, 2, 3]
+    # a last line torn by a kill mid-write is dropped; a broken line before it is named
+    metrics = os.path.join(cfg.run_dir, "metrics.jsonl")
+    with open(metrics, "a") as f:
+        f.write('{"update": 4, "rew')
+    train(resume=cfg.run_dir, updates=4)
+    assert [json.loads(x)["update"] for x in open(metrics)] == [1, 2, 3, 4]
+    with open(metrics) as f:
+        text = f.read()
+    with open(metrics, "w") as f:
+        f.write(text.replace('{"update": 2', '{"update": 2 oops', 1))
+    with pytest.raises(ValueError, match=r"metrics.jsonl: line 2 is not JSON"):
+        train(resume=cfg.run_dir, updates=5)
 
 
 def test_bad_checkpoints_give_clear_errors(tmp_path):
@@ -236,6 +248,13 @@ def test_transfer_sizes_are_evaluated_and_logged(tmp_path):
     from trainer.train import transfer_sizes
 
     assert transfer_sizes(line) == [2, 4]  # line needs M >= 2
+    # sizes the network cannot take are left out (else the first evaluation raises, on every resume)
+    padded = dataclasses.replace(cfg, agents=10, transfer_offsets=(-1, 1, 2), model=ModelConfig(entity_mode="padded"))
+    assert transfer_sizes(padded) == [9]  # coverage M = 11, 12: more landmarks than its 10 slots
+    concat_model = ModelConfig(entity_mode="concat", num_landmarks=3)
+    concat = dataclasses.replace(cfg, transfer_offsets=(-1, 1, 2), model=concat_model)
+    assert transfer_sizes(concat) == []  # coverage's number of landmarks changes with M
+    assert transfer_sizes(dataclasses.replace(concat, task="formation")) == [2, 4, 5]  # formation's does not
 
 
 def test_non_finite_loss_never_reaches_the_weights(tmp_path):
@@ -582,3 +601,33 @@ def test_probing_a_lock_never_makes_acquire_refuse(tmp_path):
     finally:
         prober.kill()
         prober.wait()
+
+
+def test_ctrl_c_mid_update_finishes_the_update_then_stops(tmp_path, monkeypatch):
+    """Ctrl-C in the middle of an update's PPO epochs: the update, its evaluation and its
+    checkpoint finish first, so the checkpoint is that of a whole update (the weights of a
+    run that ended there), never a half-stepped one labelled with the update before."""
+    import signal
+
+    import trainer.train as train_mod
+
+    whole = tiny(tmp_path, updates=1, eval_every=1, run_dir=str(tmp_path / "whole"))
+    train(whole)
+    real_clip, calls = torch.nn.utils.clip_grad_norm_, {"n": 0}
+
+    def clip_then_ctrl_c(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 1:  # before the first of update 1's two optimiser steps
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_clip(*args, **kwargs)
+
+    monkeypatch.setattr(torch.nn.utils, "clip_grad_norm_", clip_then_ctrl_c)
+    cut = tiny(tmp_path, updates=5, eval_every=1, checkpoint_every=100, run_dir=str(tmp_path / "cut"))
+    with pytest.raises(KeyboardInterrupt):
+        train_mod.train(cut)
+    assert calls["n"] == 2  # update 1's second step ran after the signal; update 2 never began
+    saved, reference = checkpoint.load(cut.run_dir), checkpoint.load(whole.run_dir)
+    assert saved["counters"]["update"] == 1 and len(saved["evals"]) == 1
+    for name, tensor in reference["model"].items():
+        assert torch.equal(saved["model"][name], tensor), name
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored

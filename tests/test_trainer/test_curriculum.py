@@ -82,3 +82,15 @@ def test_bad_polish_options_are_named(tmp_path, monkeypatch, kwargs, message):
 
     with pytest.raises(ValueError, match=message):
         run_curriculum(tiny_config(tmp_path, monkeypatch), [2], 0.5, 4, str(tmp_path / "cur"), **kwargs)
+
+
+def test_a_curriculum_refuses_several_team_sizes_at_once(tmp_path, monkeypatch):
+    """Every stage would train on --team-sizes and be judged at its own size: refused, named."""
+    import dataclasses
+
+    from trainer.curriculum import run_curriculum
+
+    cfg = dataclasses.replace(tiny_config(tmp_path, monkeypatch), team_sizes=(2, 3))
+    with pytest.raises(ValueError, match=r"--team-sizes \[2, 3\] cannot go with a curriculum"):
+        run_curriculum(cfg, [2, 3], 0.5, 4, str(tmp_path / "cur"))
+    assert not os.path.exists(tmp_path / "cur")  # refused before anything was written
