@@ -31,7 +31,10 @@ class PPOConfig:
     """Adam learning rate."""
     lr_end: float | None = None
     """If set, the learning rate decays linearly from ``lr`` to ``lr_end`` over the run's
-    ``updates`` (None: constant)."""
+    ``updates`` (None: constant). A resume that raises ``updates`` stretches the decay over
+    the new budget, so the rate goes back up to where that schedule is (to train a finished
+    run on at a low rate, start a new run from its weights: ``--init-from``, as the
+    curriculum's polish does)."""
     gamma: float = 0.99
     """Discount factor."""
     gae_lambda: float = 0.95
