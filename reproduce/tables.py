@@ -138,6 +138,17 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             f"|---|---|---|---|{pol_rule}---|---|---|---|---|",
         ]
         for c in cells:
+            start = by_id.get(c.init_from)
+            M0 = (c.init_agents or start.agents) if start else 0
+            if start and str(M0) in c.paper and M0 not in c.sizes:  # the paper's first stage is the chain's start
+                rows = _rows_by_size(_results_of(start)).get(M0, [])
+                ours = _stat([r["success_rate"] for r in rows], 100) if rows else "not run"
+                lines.append(
+                    f"| {c.row_label()} | {M0} | {ours} (the start: {start.id}) | {_paper(c, M0, 'S')} |"
+                    f"{before(rows)} {own_updates(rows)} | {_paper(c, M0, 'N')} | "
+                    f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | "
+                    f"{_stat([r['wall_time'] for r in rows], 1 / 60)} | - |"
+                )
             by_size = _rows_by_size(_results_of(c))
             for M in c.sizes:
                 rows = by_size.get(M, [])

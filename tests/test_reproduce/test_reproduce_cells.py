@@ -633,6 +633,28 @@ def _table_is_aligned(md: str) -> None:
             assert line.count("|") == header, line
 
 
+def test_a_curriculum_table_shows_the_start_the_chain_was_given(tmp_path):
+    """A chain whose first stage is another cell (the paper's M = 3 stage is Table 1's run)
+    shows that cell's number in its M = 3 row, beside the paper's."""
+    text = TINY.format(updates=2, eval_every=2).split('[[cells]]\nid = "zs-cov"')[0] + (
+        '[[cells]]\nid = "chain"\ntable = 2\nkind = "curriculum"\ntask = "coverage"\nsizes = [3]\n'
+        'init_from = "train-cov"\npaper = { "2" = { S = 90, N = 100 }, "3" = { S = 80, N = 200 } }\n'
+    )
+    spec = load_spec(write_spec(tmp_path, text=text))
+    start, chain = spec.cells
+    root = str(tmp_path / "root")
+    row = {"agents": 2, "success_rate": 0.95, "mean_length": 9.0, "dist": 0.1, "updates": 2, "env_steps": 64,
+           "wall_time": 60.0}  # fmt: skip
+    result = {"cell": start.id, "definition": start.definition(), "rows": [row], "finished": 1.0}
+    os.makedirs(cells_mod.cell_dir(root, start, 0))
+    with open(os.path.join(cells_mod.cell_dir(root, start, 0), cells_mod.RESULT), "w") as f:
+        json.dump(result, f)
+    md = render_all(spec.cells, [0], root, "tiny").split("### Table 2")[1]
+    assert "| coverage UC | 2 | 95.0 (the start: train-cov) | 90 | 2 | 100 | 0.00 | 1.0 | - |" in md
+    assert "| coverage UC | 3 | not run | 80 | - | 200 |" in md
+    _table_is_aligned(md)
+
+
 def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path, monkeypatch):
     import trainer.train as train_mod
 
