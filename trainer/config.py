@@ -270,7 +270,8 @@ class CurriculumConfig(TrainConfig):
     """Evaluation success rate that ends a stage (the paper: 85%)."""
     max_updates_per_stage: int = 4000
     """A stage that never reaches the threshold stops here; the next starts from its weights.
-    The same command with a larger value continues the stages that ran out below the threshold."""
+    The same command with a larger value continues the stages that ran out below the threshold
+    (a later stage, trained from such a stage's old weights, is then refused: move it away)."""
     min_updates_per_stage: int = 0
     """A stage trains at least this many updates, past the threshold (0: it ends at its first
     evaluation over the threshold). Longer stages transfer better: our coverage M = 7 stage

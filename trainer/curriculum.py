@@ -29,6 +29,7 @@ from trainer.train import resolve_device, train_or_resume
 MIN_STAGE_EVAL_EPISODES = 200
 FRESH_EVAL_FILE = "fresh-eval.json"
 POLISH_OF = "polish-of.json"  # in a polish run: the stage (and its last update) it polished
+STARTED_FROM = "started-from.json"  # in a stage after the first: the run (and its last update) it started from
 
 
 def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: int, seed: int) -> dict:
@@ -95,9 +96,11 @@ def run_curriculum(
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []
-    previous_ckpt = base.init_from
+    previous_ckpt, previous_update = base.init_from, None
     for stage_index, M in enumerate(sizes):
         stage_dir = os.path.join(run_dir, f"stage-m{M}")
+        if previous_update is not None:
+            _check_started_from(stage_dir, os.path.dirname(previous_ckpt), previous_update)
         stage_cfg = dataclasses.replace(
             base,
             agents=M,
@@ -134,12 +137,32 @@ def run_curriculum(
             results_path, {"task": base.task, "comm": base.comm, "threshold": threshold, "stages": stages}
         )
         previous_ckpt = os.path.join(final_dir, "checkpoint.pt")
+        previous_update = stage["polish"]["updates"] if polish_updates else summary["update"]
         if not summary["reached_target"]:
             print(
                 f"stage M={M} stopped at {summary['update']} updates below the threshold; "
                 "later stages start from its weights anyway"
             )
     return stages
+
+
+def _check_started_from(stage_dir: str, previous_dir: str, previous_update: int) -> None:
+    """A stage is only ever resumed (or read back) from the previous run as it ended when
+    the stage began: if that run has been trained on since (the same command with a larger
+    --max-updates-per-stage continues a stage that ran out below the threshold), this stage
+    and the ones after it were trained from its old weights, and are refused, not reused."""
+    marker = os.path.join(stage_dir, STARTED_FROM)
+    if os.path.exists(marker):
+        with open(marker) as f:
+            started = json.load(f)
+        if started["update"] != previous_update:
+            raise ValueError(
+                f"{stage_dir} started from {previous_dir} as it was at update {started['update']}; it now ends at "
+                f"update {previous_update}: move {stage_dir} and the stages after it away to train them from it"
+            )
+        return
+    os.makedirs(stage_dir, exist_ok=True)
+    checkpoint.atomic_write_json(marker, {"run": previous_dir, "update": previous_update})
 
 
 def run_record(summary: dict) -> dict:

@@ -94,3 +94,23 @@ def test_a_curriculum_refuses_several_team_sizes_at_once(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"--team-sizes \[2, 3\] cannot go with a curriculum"):
         run_curriculum(cfg, [2, 3], 0.5, 4, str(tmp_path / "cur"))
     assert not os.path.exists(tmp_path / "cur")  # refused before anything was written
+
+
+def test_a_stage_trained_from_an_earlier_state_of_the_stage_before_is_refused(tmp_path, monkeypatch):
+    """The same command with a larger --max-updates-per-stage continues a stage that ran out
+    below the threshold; the stages after it had started from its old weights and must not
+    be read back as if they came from the new ones."""
+    from trainer.curriculum import STARTED_FROM, run_curriculum
+
+    cfg = tiny_config(tmp_path, monkeypatch)
+    run_dir = str(tmp_path / "cur")
+    run_curriculum(cfg, [2, 3], 0.5, 4, run_dir)
+    marker = os.path.join(run_dir, "stage-m3", STARTED_FROM)
+    with open(marker) as f:
+        assert json.load(f) == {"run": os.path.join(run_dir, "stage-m2"), "update": 2}
+    assert not os.path.exists(os.path.join(run_dir, "stage-m2", STARTED_FROM))  # the first stage: --init-from
+    run_curriculum(cfg, [2, 3], 0.5, 4, run_dir)  # unchanged: read back
+    with open(marker, "w") as f:
+        json.dump({"run": os.path.join(run_dir, "stage-m2"), "update": 1}, f)  # as if stage M = 2 had grown since
+    with pytest.raises(ValueError, match=r"stage-m3 started from .*stage-m2 as it was at update 1; it now ends at"):
+        run_curriculum(cfg, [2, 3], 0.5, 4, run_dir)
