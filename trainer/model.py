@@ -43,15 +43,15 @@ class ModelConfig:
     offsets concatenated into the agent input (the published code for formation/line,
     fixed L); "padded": the paper's "without EMP" baseline, 10 zero-padded slots."""
     num_landmarks: int = 0
-    """L the "concat" mode was built for (unused otherwise)."""
+    """L the "concat" mode was built for (unused otherwise; 0: the trainer takes the task's)."""
 
     def __post_init__(self):
         if self.entity_mode not in ENTITY_MODES:
             raise ValueError(f"entity_mode must be one of {ENTITY_MODES}, got {self.entity_mode!r}")
         if self.hidden < 1 or self.rounds < 0:
             raise ValueError(f"hidden must be >= 1 and rounds >= 0, got {self.hidden}, {self.rounds}")
-        if self.entity_mode == "concat" and self.num_landmarks < 1:
-            raise ValueError("entity_mode='concat' needs num_landmarks >= 1")
+        if self.num_landmarks < 0:
+            raise ValueError(f"num_landmarks must be >= 0, got {self.num_landmarks}")
 
     def input_dim(self) -> int:
         if self.entity_mode == "concat":
@@ -112,6 +112,8 @@ class SwarmPolicy(nn.Module):
 
     def __init__(self, config: ModelConfig = ModelConfig()):
         super().__init__()
+        if config.entity_mode == "concat" and config.num_landmarks < 1:
+            raise ValueError("entity_mode='concat' needs num_landmarks >= 1 (the trainer takes the task's)")
         self.config = config
         H = config.hidden
         self.agent_encoder = nn.Linear(config.input_dim(), H)

@@ -102,6 +102,14 @@ def test_parameter_count_is_the_papers_and_independent_of_team_size():
     c = SwarmPolicy(ModelConfig(entity_mode="concat", num_landmarks=2))
     with pytest.raises(ValueError, match="concatenates 2"):
         c(*team(1, 3, 3)[:3])
+    # a config may leave L to the trainer (the task's: train.model_config_for); a network cannot
+    with pytest.raises(ValueError, match="needs num_landmarks >= 1"):
+        SwarmPolicy(ModelConfig(entity_mode="concat"))
+    from trainer.config import TrainConfig
+    from trainer.train import model_config_for
+
+    cfg = TrainConfig(task="formation", agents=4, model=ModelConfig(entity_mode="concat"))
+    assert model_config_for(cfg).num_landmarks == 1
 
 
 def test_paper_initialisation():
