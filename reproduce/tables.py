@@ -24,6 +24,8 @@ TITLES = {
     5: "Beyond the paper: one size against several at once (S%, T at the evaluated size)",
     6: "Beyond the paper: zero-shot S% of those policies at other team sizes",
     7: "Beyond the paper: the coverage curriculum 5 -> 7 -> 10 from each of those M = 3 policies",
+    8: "Beyond the paper: formation 3 -> 5 with EMP against the landmark offset concatenated",
+    9: "Beyond the paper: zero-shot S% of those formation M = 5 policies (paper: Table 4's formation UC row)",
 }
 
 

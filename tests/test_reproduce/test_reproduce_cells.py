@@ -124,7 +124,14 @@ def test_shipped_beyond_spec_sets_one_team_size_against_two():
         assert cur.init_from == start.id and cur.kind == "curriculum"
         same = ("sizes", "ppo", "threshold", "max_updates_per_stage", "polish_updates", "polish_lr", "preset")
         assert {k: getattr(cur, k) for k in same} == {k: getattr(chain, k) for k in same}
-    assert beyond.tables() == [5, 6, 7]  # numbered after the paper's four
+    # formation 3 -> 5 with EMP against concat: nothing else differs, the recipe's chain settings
+    emp, concat = beyond.cell("x-cur-formation-uc-emp"), beyond.cell("x-cur-formation-uc-concat")
+    assert (emp.entity_mode, concat.entity_mode) == ("emp", "concat") and emp.sizes == (3, 5)
+    assert dataclasses.replace(concat, id=emp.id, entity_mode="emp", label=emp.label) == emp
+    formation = load_spec("recipe").cell("t3-formation-uc")
+    alike = (*same, "eval_every", "eval_episodes", "final_episodes", "eval_seed")
+    assert {k: getattr(emp, k) for k in alike} == {k: getattr(formation, k) for k in alike} | {"sizes": (3, 5)}
+    assert beyond.tables() == [5, 6, 7, 8, 9]  # numbered after the paper's four
     assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in beyond.cells)
 
 
