@@ -71,3 +71,22 @@ def test_readme_tool_command(argv):
     assert out.returncode == 0, out.stderr
     for option in {t.split("=")[0] for t in argv[2:] if t.startswith("--")}:
         assert option in out.stdout, f"{argv[1]} --help does not list {option}"
+
+
+def _anchor(heading: str) -> str:
+    """GitHub's anchor of a Markdown heading."""
+    text = re.sub(r"[^\w\- ]", "", heading.lstrip("#").strip().lower())
+    return text.replace(" ", "-")
+
+
+def test_results_contents_list_every_section_and_every_link_lands():
+    """docs/RESULTS.md opens with a contents list: each written section is in it (the tables
+    `swarm reproduce` generates are left out), and each of its links names a heading."""
+    text = open(os.path.join(ROOT, "docs", "RESULTS.md")).read()
+    headings = [h for h in re.findall(r"^#{2,3} .+$", text, flags=re.M)]
+    anchors = {_anchor(h) for h in headings}
+    contents = text.split("## At a glance")[0]
+    links = re.findall(r"\]\(#([^)]+)\)", contents)
+    assert links and set(links) <= anchors, sorted(set(links) - anchors)
+    written = [h for h in headings if not re.match(r"### (Table \d|Beyond the paper:)", h)]
+    assert [_anchor(h) for h in written] == links  # all of them, in the document's order
