@@ -81,7 +81,8 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     """`recipe` has the paper spec's tables of our method, with the paper's numbers, run by
     what reproduced them here: fast preset, never-reset return, a polish after every run
     and stage, and the coverage curricula started from Table 1's UC M = 3 run; line M = 6
-    with the reset return, as the runs that reproduced it."""
+    with the reset return, as the runs that reproduced it; formation's curricula with the
+    landmark offset concatenated, whose M = 5 policy carries to M = 4 and 6."""
     paper, recipe = load_spec("paper"), load_spec("recipe")
     ours = [c for c in paper.cells if c.kind != "baseline"]
     assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
@@ -99,6 +100,9 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     for cid in ("t2-coverage-emp-uc", "t2-coverage-emp-rc"):
         assert recipe.cell(cid).init_from == "t1-coverage-uc-m3"
     assert recipe.cell("t2-coverage-emp-rc").sizes == (3, 5, 7, 10)
+    # formation's chains with the authors' network for formation: EMP's M = 5 policy did not carry
+    concat = {c.id for c in recipe.cells if c.entity_mode == "concat"}
+    assert concat == {"t3-formation-uc", "t3-formation-rc"}
     assert [c.id for c in recipe.select(cell_ids=["t4-coverage-rc"])] == [
         "t1-coverage-uc-m3", "t2-coverage-emp-rc", "t4-coverage-rc"
     ]  # fmt: skip
