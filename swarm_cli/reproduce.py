@@ -108,7 +108,7 @@ def _dry_run(cells, seeds, root, spec_name: str) -> str:
     from trainer.config import PRESETS
 
     lines = [f"spec {spec_name}, root {root}, seeds {seeds}", ""]
-    head = f"{'cell':<24} {'kind':<10} {'task':<9} {'comm':<4} {'sizes':<14} {'budget':>22}  state"
+    head = f"{'cell':<24} {'kind':<10} {'task':<9} {'comm':<4} {'net':<7} {'sizes':<14} {'budget':>22}  state"
     lines += [head, "-" * len(head)]
     total_steps = 0
     for c in cells:
@@ -127,7 +127,8 @@ def _dry_run(cells, seeds, root, spec_name: str) -> str:
             budget = f"{c.final_episodes} episodes"
         states = ", ".join(f"s{s} {cell_state(root, c, s)}" for s in seeds)
         states += f"  (reads {c.needs})" if c.needs else ""  # a zero-shot row's source, a run's init_from
-        lines.append(f"{c.id:<24} {c.kind:<10} {c.task:<9} {c.comm:<4} {sizes:<14} {budget:>22}  {states}")
+        net = "-" if c.kind in ("zero-shot", "baseline") else c.entity_mode  # (a zero-shot row: its source's)
+        lines.append(f"{c.id:<24} {c.kind:<10} {c.task:<9} {c.comm:<4} {net:<7} {sizes:<14} {budget:>22}  {states}")
     lines.append(f"\nat most {_steps(total_steps)} env steps in all (curricula at their full stage budgets)")
     return "\n".join(lines)
 

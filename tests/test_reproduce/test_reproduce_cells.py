@@ -257,7 +257,7 @@ def test_a_cell_trains_on_several_team_sizes_at_once(tmp_path, capsys):
     from swarm_cli.main import main
 
     assert main(["reproduce", "--spec", spec.path, "--root", root, "--dry-run"]) == 0
-    assert re.search(r"train-cov +train +coverage +uc +2 \(on 2 3\) ", capsys.readouterr().out)
+    assert re.search(r"train-cov +train +coverage +uc +emp +2 \(on 2 3\) ", capsys.readouterr().out)
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
