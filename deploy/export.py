@@ -180,21 +180,13 @@ def _check_landmarks_fit(cfg, setting) -> None:
     """Refuse a task setting the network cannot take (its manifest would name a task no
     ``swarm execute`` of it could run)."""
     from taichi_swarm import TASK_SPECS
-    from trainer.model import PADDED_SLOTS
 
     if setting.agents is None:
         return
     L = TASK_SPECS[setting.task].num_landmarks(setting.agents)
-    if cfg.entity_mode == "concat" and L != cfg.num_landmarks:
-        raise CheckpointError(
-            f"this policy concatenates {cfg.num_landmarks} landmark offsets (entity_mode 'concat'); "
-            f"{setting.task} with {setting.agents} agents has {L} landmarks"
-        )
-    if cfg.entity_mode == "padded" and L > PADDED_SLOTS:
-        raise CheckpointError(
-            f"this policy holds at most {PADDED_SLOTS} landmarks (entity_mode 'padded'); "
-            f"{setting.task} with {setting.agents} agents has {L}"
-        )
+    misfit = cfg.landmark_misfit(L)
+    if misfit:
+        raise CheckpointError(f"{misfit} ({setting.task} with {setting.agents} agents has {L} landmarks)")
 
 
 def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:

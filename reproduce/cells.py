@@ -20,15 +20,12 @@ stopped training.
 from __future__ import annotations
 
 import argparse
-import copy
-import dataclasses
 import json
 import os
 import socket
 import time
 
-from reproduce.spec import Cell, SpecError
-from taichi_swarm import TASK_SPECS
+from reproduce.spec import Cell, SpecError, train_config
 from taichi_swarm.files import atomic_write_json
 from trainer.lock import RunDirLock, is_held
 
@@ -89,58 +86,6 @@ def cell_state(root: str, cell: Cell, seed: int) -> str:
     if os.path.exists(os.path.join(d, ATTEMPTS)):
         return "started"
     return "pending"
-
-
-def train_config(
-    cell: Cell,
-    seed: int,
-    run_dir: str,
-    agents: int,
-    updates: int,
-    arch: str = "cpu",
-    device: str = "cpu",
-    init_from: str = "",
-):
-    """The TrainConfig of a cell's run (a curriculum changes agents/run_dir per stage);
-    ``init_from``: a policy whose weights the run starts from."""
-    from trainer.config import PRESETS, TrainConfig
-    from trainer.model import ModelConfig
-
-    try:
-        ppo = dataclasses.replace(copy.deepcopy(PRESETS[cell.preset]), **cell.ppo)
-    except KeyError:
-        raise SpecError(f"cell {cell.id!r}: preset must be one of {tuple(PRESETS)}, got {cell.preset!r}") from None
-    except TypeError as exc:
-        raise SpecError(f"cell {cell.id!r}: ppo has an unknown option ({exc})") from None
-    landmarks = TASK_SPECS[cell.task].num_landmarks(agents) if cell.entity_mode == "concat" else 0
-    cfg = TrainConfig(
-        task=cell.task,
-        agents=agents,
-        team_sizes=cell.team_sizes,
-        comm=cell.comm,
-        comm_radius=cell.comm_radius,
-        preset=cell.preset,
-        updates=updates,
-        eval_every=cell.eval_every,
-        eval_episodes=cell.eval_episodes,
-        transfer_offsets=cell.transfer_offsets,
-        checkpoint_every=cell.checkpoint_every,
-        seed=seed,
-        run_dir=run_dir,
-        init_from=init_from,
-        init_carry="weights",
-        compile=cell.compile,
-        progress=False,
-        arch=arch,
-        device=device,
-        model=ModelConfig(entity_mode=cell.entity_mode, num_landmarks=landmarks),
-        ppo=ppo,
-    )
-    try:
-        cfg.validate()
-    except (ValueError, TypeError) as exc:  # (TypeError: a ppo value of the wrong type)
-        raise SpecError(f"cell {cell.id!r}: {exc}") from None
-    return cfg
 
 
 def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> dict:

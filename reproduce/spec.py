@@ -29,6 +29,7 @@ decided when a stage stopped.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -386,19 +387,68 @@ def _check_cell(where: str, c: Cell) -> None:
         if not _has_type(value, want):
             bad(f"ppo.{key} must be {_TYPE_NAMES[want]}, got {value!r}")
     if c.kind in ("train", "curriculum"):  # the trainer's own checks, now rather than hours into a run
-        from reproduce.cells import train_config
-
         agents = c.agents if c.kind == "train" else c.sizes[0]
         updates = c.updates if c.kind == "train" else c.max_updates_per_stage
-        try:
-            train_config(c, 0, "", agents, updates, init_from="(init_from)" if c.init_from else "")
-        except SpecError as exc:
-            bad(str(exc).removeprefix(f"cell {c.id!r}: "))
+        train_config(c, 0, "", agents, updates, init_from="(init_from)" if c.init_from else "", where=where)
     if c.entity_mode == "concat" and c.task == "coverage" and c.kind in ("curriculum", "zero-shot"):
         bad("entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size")
     for size, row in c.paper.items():
         if not str(size).isdigit() or not isinstance(row, dict):
             bad(f"paper must map team sizes to tables of numbers, got {size!r} = {row!r}")
+
+
+def train_config(
+    cell: Cell,
+    seed: int,
+    run_dir: str,
+    agents: int,
+    updates: int,
+    arch: str = "cpu",
+    device: str = "cpu",
+    init_from: str = "",
+    where: str = "",
+):
+    """The TrainConfig of a cell's run (a curriculum changes agents/run_dir per stage),
+    checked by the trainer; ``init_from``: a policy whose weights the run starts from;
+    ``where``: how an error names the cell (default: its id)."""
+    from trainer.config import PRESETS, TrainConfig
+    from trainer.model import ModelConfig
+
+    where = where or f"cell {cell.id!r}"
+    try:
+        ppo = dataclasses.replace(copy.deepcopy(PRESETS[cell.preset]), **cell.ppo)
+    except KeyError:
+        raise SpecError(f"{where}: preset must be one of {tuple(PRESETS)}, got {cell.preset!r}") from None
+    except TypeError as exc:
+        raise SpecError(f"{where}: ppo has an unknown option ({exc})") from None
+    cfg = TrainConfig(
+        task=cell.task,
+        agents=agents,
+        team_sizes=cell.team_sizes,
+        comm=cell.comm,
+        comm_radius=cell.comm_radius,
+        preset=cell.preset,
+        updates=updates,
+        eval_every=cell.eval_every,
+        eval_episodes=cell.eval_episodes,
+        transfer_offsets=cell.transfer_offsets,
+        checkpoint_every=cell.checkpoint_every,
+        seed=seed,
+        run_dir=run_dir,
+        init_from=init_from,
+        init_carry="weights",
+        compile=cell.compile,
+        progress=False,
+        arch=arch,
+        device=device,
+        model=ModelConfig(entity_mode=cell.entity_mode),  # (concat: the trainer takes the task's L)
+        ppo=ppo,
+    )
+    try:
+        cfg.validate()
+    except (ValueError, TypeError) as exc:  # (TypeError: a ppo value of the wrong type)
+        raise SpecError(f"{where}: {exc}") from None
+    return cfg
 
 
 def _check_references(spec: Spec) -> None:

@@ -100,7 +100,13 @@ def run_curriculum(
     for stage_index, M in enumerate(sizes):
         stage_dir = os.path.join(run_dir, f"stage-m{M}")
         if previous_update is not None:
-            _check_started_from(stage_dir, os.path.dirname(previous_ckpt), previous_update)
+            previous_dir = os.path.dirname(previous_ckpt)
+            then = _pin_upstream(stage_dir, STARTED_FROM, {"run": previous_dir, "update": previous_update}, "update")
+            if then is not None:
+                raise ValueError(
+                    f"{stage_dir} started from {previous_dir} as it was at update {then}; it now ends at update "
+                    f"{previous_update}: move {stage_dir} and the stages after it away to train them from it"
+                )
         stage_cfg = dataclasses.replace(
             base,
             agents=M,
@@ -146,23 +152,21 @@ def run_curriculum(
     return stages
 
 
-def _check_started_from(stage_dir: str, previous_dir: str, previous_update: int) -> None:
-    """A stage is only ever resumed (or read back) from the previous run as it ended when
-    the stage began: if that run has been trained on since (the same command with a larger
-    --max-updates-per-stage continues a stage that ran out below the threshold), this stage
-    and the ones after it were trained from its old weights, and are refused, not reused."""
-    marker = os.path.join(stage_dir, STARTED_FROM)
-    if os.path.exists(marker):
-        with open(marker) as f:
-            started = json.load(f)
-        if started["update"] != previous_update:
-            raise ValueError(
-                f"{stage_dir} started from {previous_dir} as it was at update {started['update']}; it now ends at "
-                f"update {previous_update}: move {stage_dir} and the stages after it away to train them from it"
-            )
-        return
-    os.makedirs(stage_dir, exist_ok=True)
-    checkpoint.atomic_write_json(marker, {"run": previous_dir, "update": previous_update})
+def _pin_upstream(run_dir: str, marker: str, record: dict, key: str) -> int | None:
+    """A run made from another (a stage from the stage before it, a polish from its stage)
+    is only ever resumed or read back from that run as it ended when this one began: the
+    first time, ``record`` (that run's last update at ``key``) is written to ``marker``.
+    Returns the update it was made from if that differs from ``record[key]`` now (the caller
+    refuses: a stage continued with a larger --max-updates-per-stage would otherwise hand its
+    old weights' successors on as if made from the new ones), else None."""
+    path = os.path.join(run_dir, marker)
+    if os.path.exists(path):
+        with open(path) as f:
+            then = json.load(f)[key]
+        return then if then != record[key] else None
+    os.makedirs(run_dir, exist_ok=True)
+    checkpoint.atomic_write_json(path, record)
+    return None
 
 
 def run_record(summary: dict) -> dict:
@@ -192,18 +196,14 @@ def polish_stage(
     resumes like a stage. ``stage_update``: where the stage ended; a polish of the stage as
     it ended before (a stage given more updates since) is an error, never reused. Returns
     its record for curriculum.json."""
-    marker = os.path.join(polish_dir, POLISH_OF)
-    if os.path.exists(marker):
-        with open(marker) as f:
-            polished = json.load(f)["stage_update"]
-        if polished != stage_update:
-            raise ValueError(
-                f"{polish_dir} polished {stage_cfg.run_dir} as it was at update {polished}; it now ends at "
-                f"update {stage_update}: move {polish_dir} away to polish the stage again"
-            )
-    else:
-        os.makedirs(polish_dir, exist_ok=True)
-        checkpoint.atomic_write_json(marker, {"stage": stage_cfg.run_dir, "stage_update": stage_update})
+    then = _pin_upstream(
+        polish_dir, POLISH_OF, {"stage": stage_cfg.run_dir, "stage_update": stage_update}, "stage_update"
+    )
+    if then is not None:
+        raise ValueError(
+            f"{polish_dir} polished {stage_cfg.run_dir} as it was at update {then}; it now ends at "
+            f"update {stage_update}: move {polish_dir} away to polish the stage again"
+        )
     polish_cfg = dataclasses.replace(
         stage_cfg,
         run_dir=polish_dir,

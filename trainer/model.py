@@ -53,6 +53,14 @@ class ModelConfig:
         if self.num_landmarks < 0:
             raise ValueError(f"num_landmarks must be >= 0, got {self.num_landmarks}")
 
+    def landmark_misfit(self, L: int) -> str:
+        """Why this network cannot take ``L`` landmarks ("" when it can)."""
+        if self.entity_mode == "padded" and L > PADDED_SLOTS:
+            return f"entity_mode 'padded' holds at most {PADDED_SLOTS} landmarks, got {L}"
+        if self.entity_mode == "concat" and L != self.num_landmarks:
+            return f"this policy concatenates {self.num_landmarks} landmark offsets, got {L}"
+        return ""
+
     def input_dim(self) -> int:
         if self.entity_mode == "concat":
             return SELF_DIM + 2 * self.num_landmarks
@@ -152,15 +160,12 @@ class SwarmPolicy(nn.Module):
             m_e, _ = att.attend(q, att.w_k(e), att.w_v(e))
             return torch.relu(self.entity_update(torch.cat([h, m_e.squeeze(-2)], dim=-1)))
         flat = entities.flatten(-2)  # [..., 2L]
+        L = entities.shape[-2]
+        misfit = self.config.landmark_misfit(L)
+        if misfit:
+            raise ValueError(misfit)
         if mode == "padded":
-            L = entities.shape[-2]
-            if L > PADDED_SLOTS:
-                raise ValueError(f"entity_mode='padded' holds at most {PADDED_SLOTS} landmarks, got {L}")
             flat = nn.functional.pad(flat, (0, 2 * (PADDED_SLOTS - L)))
-        elif entities.shape[-2] != self.config.num_landmarks:
-            raise ValueError(
-                f"this policy concatenates {self.config.num_landmarks} landmarks, got {entities.shape[-2]}"
-            )
         return torch.relu(self.agent_encoder(torch.cat([self_obs, flat], dim=-1)))
 
     def message(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

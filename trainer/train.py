@@ -29,7 +29,7 @@ from trainer import checkpoint
 from trainer.config import TrainConfig, to_dict, train_config_from_dict
 from trainer.evaluate import evaluate
 from trainer.lock import RunDirLock
-from trainer.model import PADDED_SLOTS, ModelConfig, SwarmPolicy
+from trainer.model import ModelConfig, SwarmPolicy
 from trainer.ppo import RewardScaler, Rollout, gae, normalize_per_agent, ppo_loss, sample_actions
 
 
@@ -205,13 +205,9 @@ def transfer_sizes(cfg: TrainConfig) -> list[int]:
     """The neighbouring team sizes evaluated beside the training size: those the task has
     and the network can take ("concat": the training size's number of landmarks; "padded":
     at most PADDED_SLOTS landmarks)."""
-    spec = taichi_swarm.TASK_SPECS[cfg.task]
+    spec, model = taichi_swarm.TASK_SPECS[cfg.task], model_config_for(cfg)
     sizes = [cfg.agents + d for d in cfg.transfer_offsets if d != 0 and cfg.agents + d >= spec.min_agents]
-    if cfg.model.entity_mode == "concat":
-        sizes = [M for M in sizes if spec.num_landmarks(M) == spec.num_landmarks(cfg.agents)]
-    elif cfg.model.entity_mode == "padded":
-        sizes = [M for M in sizes if spec.num_landmarks(M) <= PADDED_SLOTS]
-    return sizes
+    return [M for M in sizes if not model.landmark_misfit(spec.num_landmarks(M))]
 
 
 def evaluate_during_training(policy, cfg: TrainConfig, update: int, device) -> dict:
