@@ -6,6 +6,7 @@ import argparse
 import copy
 import dataclasses
 import json
+import sys
 
 from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ResumeOptions, ZeroShotOptions, fail, parse
 from trainer.checkpoint import CheckpointError, atomic_write_json, ensure_writable
@@ -176,6 +177,8 @@ def curriculum_main(argv: list[str]) -> int:
             cfg.fresh_eval_episodes, cfg.fresh_eval_seed, cfg.polish_updates, cfg.polish_lr,
         )  # fmt: skip
     except KeyboardInterrupt:
+        # the stage said how to resume it alone; the curriculum resumes it and the stages after
+        print("swarm curriculum: stopped; the same swarm curriculum command resumes it", file=sys.stderr)
         return 130
     except USER_ERRORS as exc:
         return fail("swarm curriculum", exc)

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The training that is slow on two CPU cores, prepared for a GPU lent for a few minutes:
-# Table 1's M = 6 cells from scratch, the RC curricula by the paper's protocol and Table 2's
-# no-EMP curricula (the first 8 jobs of --list run by default), each a
+# Table 2's coverage curricula without and with EMP (UC and RC, all from scratch) and
+# formation's curricula with the landmark offset concatenated (the authors' network), the
+# first 6 jobs of --list by default; Table 1's M = 6 cells and the other RC curricula on
+# request. Each a
 # `swarm` command with the `gpu` preset on CUDA, several at a time on the one GPU.
 #
 #   tools/gpu_campaign.sh --list                      # the jobs and their commands
@@ -29,11 +31,14 @@ declare -A JOBS=(
     [curr-form-rc]="curriculum --task formation --comm rc $curr"
     [curr-line-rc]="curriculum --task line --comm rc $curr"
     [curr-form-uc]="curriculum --task formation --comm uc $curr"
+    [curr-cov-uc]="curriculum --task coverage --comm uc $curr"
+    [curr-form-uc-concat]="curriculum --task formation --comm uc --model.entity-mode concat $curr"
+    [curr-form-rc-concat]="curriculum --task formation --comm rc --model.entity-mode concat $curr"
     [curr-cov-uc-noemp]="curriculum --task coverage --comm uc --model.entity-mode padded $curr"
     [curr-cov-rc-noemp]="curriculum --task coverage --comm rc --model.entity-mode padded $curr"
 )
-ORDER="table1-cov6-uc curr-cov-rc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-cov-uc-noemp curr-cov-rc-noemp curr-form-uc table1-cov3-rc"
-DEFAULT="table1-cov6-uc curr-cov-rc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-cov-uc-noemp curr-cov-rc-noemp"
+ORDER="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat table1-cov6-uc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc"
+DEFAULT="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat"
 
 dry_run=0
 device=cuda

@@ -183,13 +183,15 @@ def test_gpu_campaign_script_arguments():
     r = subprocess.run([script, "--list"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     jobs = dict(line.split(": swarm ", 1) for line in r.stdout.splitlines())
-    assert len(jobs) == 10 and {"table1-cov6-uc", "curr-cov-rc", "curr-cov-uc-noemp"} <= set(jobs)
+    assert len(jobs) == 13 and {"table1-cov6-uc", "curr-cov-rc", "curr-cov-uc-noemp"} <= set(jobs)
     for name, command in jobs.items():
         argv = shlex.split(command)
         config_type = TrainConfig if argv[0] == "train" else CurriculumConfig
         cfg = _config_from_argv(argv[1:], f"swarm {argv[0]}", config_type)
         assert cfg.preset == "gpu" and cfg.device == "cuda" and cfg.arch == "cuda", name
         assert cfg.ppo.num_envs == 4096 and cfg.ppo.minibatches == 16, name
+        want_mode = "concat" if name.endswith("-concat") else "padded" if name.endswith("-noemp") else "emp"
+        assert cfg.model.entity_mode == want_mode, name
     r = subprocess.run([script, "--dry-run", "--device", "cpu", "curr-form-uc"], capture_output=True, text=True)
     lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
     assert r.returncode == 0 and len(lines) == 1 and "curriculum --task formation --comm uc" in lines[0]
@@ -197,7 +199,7 @@ def test_gpu_campaign_script_arguments():
         "+ timeout --preserve-status -k 60 -s INT 240 "
     )
     r = subprocess.run([script, "--dry-run"], capture_output=True, text=True)
-    assert r.returncode == 0 and sum(x.startswith("+ ") for x in r.stdout.splitlines()) == 8  # the default jobs
+    assert r.returncode == 0 and sum(x.startswith("+ ") for x in r.stdout.splitlines()) == 6  # the default jobs
     bad_args = (
         ["bogus-job"],
         ["--seconds", "0"],

@@ -631,3 +631,31 @@ def test_ctrl_c_mid_update_finishes_the_update_then_stops(tmp_path, monkeypatch)
     for name, tensor in reference["model"].items():
         assert torch.equal(saved["model"][name], tensor), name
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers restored
+
+
+def test_an_interrupted_curriculum_says_the_same_command_resumes_it(tmp_path, monkeypatch, capsys):
+    """Ctrl-C (or the campaign's `timeout -s INT`) inside a stage: exit 130, the stage's own
+    resume line and the curriculum's, and the same command then finishes every stage."""
+    import trainer.train as train_mod
+    from swarm_cli.train import curriculum_main
+
+    argv = ["--task", "coverage", "--sizes", "2", "3", "--threshold", "0.99", "--max-updates-per-stage", "2",
+            "--eval-every", "2", "--eval-episodes", "4", "--fresh-eval-episodes", "4", "--no-progress",
+            "--ppo.num-envs", "4", "--ppo.num-steps", "8", "--ppo.minibatches", "2", "--ppo.epochs", "1",
+            "--model.hidden", "16", "--model.rounds", "1", "--no-compile",
+            "--run-dir", str(tmp_path / "cur")]  # fmt: skip
+    real = train_mod.one_update
+
+    def interrupted(state, cfg, *args, **kwargs):  # Ctrl-C in the middle of stage M = 3's first update
+        if cfg.agents == 3:
+            raise KeyboardInterrupt
+        return real(state, cfg, *args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "one_update", interrupted)
+    assert curriculum_main(argv) == 130
+    out = capsys.readouterr()
+    assert "swarm train --resume" in out.out and "the same swarm curriculum command resumes it" in out.err
+    monkeypatch.setattr(train_mod, "one_update", real)
+    assert curriculum_main(argv) == 0
+    stages = json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"]
+    assert [s["agents"] for s in stages] == [2, 3] and [s["updates"] for s in stages] == [2, 2]
