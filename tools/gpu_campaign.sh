@@ -10,6 +10,8 @@
 #   tools/gpu_campaign.sh --dry-run                   # print what would run
 #   tools/gpu_campaign.sh --python python3 --seconds 240 --parallel 4 --out "$OUT" [JOB ...]
 #   tools/gpu_campaign.sh --device cpu --seconds 20 table1-cov3-rc   # a smoke test without a GPU
+#   tools/gpu_campaign.sh --python python3 --work /tmp/campaign --seconds 400 --out "$OUT"
+#       (the same --work again, on a machine still warm, resumes each job where it stopped)
 #
 # Each job stops at its own end or after --seconds (Ctrl-C: the trainer keeps its
 # checkpoint; killed 60 s later if still there). Then each run directory, without
@@ -46,6 +48,7 @@ python=python
 seconds=240
 parallel=4
 out=runs/gpu-campaign
+work=
 jobs=()
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -56,6 +59,7 @@ while [ $# -gt 0 ]; do
         --seconds) seconds="${2:?--seconds needs a value}"; shift ;;
         --parallel) parallel="${2:?--parallel needs a value}"; shift ;;
         --out) out="${2:?--out needs a value}"; shift ;;
+        --work) work="${2:?--work needs a value}"; shift ;;
         -h|--help) usage; exit 0 ;;
         -*) echo "gpu_campaign.sh: unknown option '$1'" >&2; usage >&2; exit 2 ;;
         *)
@@ -81,9 +85,16 @@ if [ ${#jobs[@]} -gt 8 ]; then
 fi
 
 out=$(realpath -m "$out")  # relative to where the script was called from
+[ -n "$work" ] && work=$(realpath -m "$work")
 cd "$(dirname "$0")/.."
-work=/tmp/gpu-campaign.DRY-RUN
-[ "$dry_run" = 0 ] && work=$(mktemp -d /tmp/gpu-campaign.XXXXXX) && mkdir -p "$out"
+if [ -n "$work" ]; then
+    [ "$dry_run" = 0 ] && mkdir -p "$work" "$out"
+elif [ "$dry_run" = 1 ]; then
+    work=/tmp/gpu-campaign.DRY-RUN
+else
+    work=$(mktemp -d /tmp/gpu-campaign.XXXXXX) && mkdir -p "$out"
+fi
+echo "run directories under $work (--work $work again resumes them)"
 run_job() {  # JOB: its command under the time limit, then its run directory packed
     local j=$1 dir="$work/$1"
     # shellcheck disable=SC2086  # the job's arguments are a word list
@@ -91,7 +102,7 @@ run_job() {  # JOB: its command under the time limit, then its run directory pac
         --device "$device" --arch "$device" --run-dir "$dir"
     echo "+ $*"
     [ "$dry_run" = 1 ] && return 0
-    "$@" > "$work/$j.log" 2>&1
+    "$@" >> "$work/$j.log" 2>&1  # appended: a resumed job's log holds every call
     local rc=$?
     case $rc in 0) echo "$j: finished" ;; 130) echo "$j: stopped at the $seconds s limit" ;; *) echo "$j: FAILED (exit $rc)" ;; esac
     local pack=("$j.log")

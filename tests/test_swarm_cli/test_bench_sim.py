@@ -198,6 +198,8 @@ def test_gpu_campaign_script_arguments():
     assert "--device cpu --arch cpu" in lines[0] and lines[0].startswith(
         "+ timeout --preserve-status -k 60 -s INT 240 "
     )
+    r = subprocess.run([script, "--dry-run", "--work", "w", "curr-cov-rc"], capture_output=True, text=True, cwd="/")
+    assert r.returncode == 0 and "--run-dir /w/curr-cov-rc" in r.stdout and "--work /w again resumes" in r.stdout
     r = subprocess.run([script, "--dry-run"], capture_output=True, text=True)
     assert r.returncode == 0 and sum(x.startswith("+ ") for x in r.stdout.splitlines()) == 6  # the default jobs
     bad_args = (
