@@ -81,14 +81,15 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     """`recipe` has the paper spec's tables of our method, with the paper's numbers, run by
     what reproduced them here: fast preset, never-reset return, a polish after every run
     and stage, and the coverage curricula started from Table 1's UC M = 3 run; line M = 6
-    with the reset return, as the runs that reproduced it; formation's curricula with the
+    and line's curricula with the reset return, as the runs that reproduced them; formation's curricula with the
     landmark offset concatenated, whose M = 5 policy carries to M = 4 and 6."""
     paper, recipe = load_spec("paper"), load_spec("recipe")
     ours = [c for c in paper.cells if c.kind != "baseline"]
     assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
     assert all(recipe.cell(c.id).paper == c.paper for c in ours)
     trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
-    reset = {"t1-line-uc-m6", "t1-line-rc-m6"}  # with the never-reset return line UC M = 6 read 0-1%
+    # with the never-reset return line UC M = 6 read 0-1%, the line chains stalled at UC M = 10, RC M = 7
+    reset = {"t1-line-uc-m6", "t1-line-rc-m6", "t3-line-uc", "t3-line-rc"}
     assert all(c.preset == "fast" and c.ppo["reset_return"] is (c.id in reset) for c in trained)
     # the coverage curricula are fine-tunes throughout: a constant 1e-4 (7e-4 collapsed at RC M = 7)
     fine_tunes = {"t2-coverage-emp-uc", "t2-coverage-emp-rc"}
