@@ -21,7 +21,7 @@
 #   swarm eval RUN/policy.pt --episodes 500 --seed 777
 set -uo pipefail
 
-usage() { sed -n '2,17p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,/^set -uo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; }
 common="--preset gpu --no-compile --no-progress --eval-every 10 --eval-episodes 500"
 curr="--max-updates-per-stage 200 --fresh-eval-episodes 500 --fresh-eval-seed 777 --transfer-offsets"
 declare -A JOBS=(
@@ -87,19 +87,26 @@ fi
 out=$(realpath -m "$out")  # relative to where the script was called from
 [ -n "$work" ] && work=$(realpath -m "$work")
 cd "$(dirname "$0")/.."
+resume_hint=$dry_run  # a dry run without --work names no directory that will exist
 if [ -n "$work" ]; then
+    resume_hint=0
     [ "$dry_run" = 0 ] && mkdir -p "$work" "$out"
 elif [ "$dry_run" = 1 ]; then
     work=/tmp/gpu-campaign.DRY-RUN
 else
     work=$(mktemp -d /tmp/gpu-campaign.XXXXXX) && mkdir -p "$out"
 fi
-echo "run directories under $work (--work $work again resumes them)"
+[ "$resume_hint" = 0 ] && printf 'run directories under %s (--work %q again resumes them)\n' "$work" "$work"
 run_job() {  # JOB: its command under the time limit, then its run directory packed
     local j=$1 dir="$work/$1"
     # shellcheck disable=SC2086  # the job's arguments are a word list
-    set -- timeout --preserve-status -k 60 -s INT "$seconds" "$python" -m swarm_cli ${JOBS[$j]} $common \
-        --device "$device" --arch "$device" --run-dir "$dir"
+    set -- timeout --preserve-status -k 60 -s INT "$seconds" "$python" -m swarm_cli
+    if [[ ${JOBS[$j]} == train\ * && -e "$dir/checkpoint.pt" ]]; then  # a train run continues by --resume
+        set -- "$@" train --resume "$dir" --no-progress --device "$device" --arch "$device"
+    else  # (a curriculum resumes by the same command)
+        # shellcheck disable=SC2086  # the job's arguments are a word list
+        set -- "$@" ${JOBS[$j]} $common --device "$device" --arch "$device" --run-dir "$dir"
+    fi
     echo "+ $*"
     [ "$dry_run" = 1 ] && return 0
     "$@" >> "$work/$j.log" 2>&1  # appended: a resumed job's log holds every call

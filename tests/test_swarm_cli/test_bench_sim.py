@@ -171,7 +171,7 @@ def test_bench_train_measures_a_preset_with_overrides():
     assert row["env_steps_per_s"] > 0 and 0 < row["share_update"] < 1
 
 
-def test_gpu_campaign_script_arguments():
+def test_gpu_campaign_script_arguments(tmp_path):
     """tools/gpu_campaign.sh: the jobs it lists are swarm commands that parse here, on the CPU."""
     import shlex
     import subprocess
@@ -200,6 +200,17 @@ def test_gpu_campaign_script_arguments():
     )
     r = subprocess.run([script, "--dry-run", "--work", "w", "curr-cov-rc"], capture_output=True, text=True, cwd="/")
     assert r.returncode == 0 and "--run-dir /w/curr-cov-rc" in r.stdout and "--work /w again resumes" in r.stdout
+    work = tmp_path / "work"  # a train job whose run has a checkpoint continues it; a curriculum reruns its command
+    (work / "table1-cov3-rc").mkdir(parents=True)
+    (work / "table1-cov3-rc" / "checkpoint.pt").write_bytes(b"")
+    r = subprocess.run(
+        [script, "--dry-run", "--work", str(work), "table1-cov3-rc", "table1-cov6-uc"], capture_output=True, text=True
+    )
+    lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
+    assert r.returncode == 0 and f"train --resume {work}/table1-cov3-rc --no-progress --device cuda" in lines[0]
+    assert "train --task coverage --agents 6 --comm uc" in lines[1] and f"--run-dir {work}/table1-cov6-uc" in lines[1]
+    r = subprocess.run([script, "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.rstrip().endswith("swarm eval RUN/policy.pt --episodes 500 --seed 777")
     r = subprocess.run([script, "--dry-run"], capture_output=True, text=True)
     assert r.returncode == 0 and sum(x.startswith("+ ") for x in r.stdout.splitlines()) == 6  # the default jobs
     bad_args = (

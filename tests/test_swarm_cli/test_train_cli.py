@@ -646,8 +646,8 @@ def test_an_interrupted_curriculum_says_the_same_command_resumes_it(tmp_path, mo
             "--run-dir", str(tmp_path / "cur")]  # fmt: skip
     real = train_mod.one_update
 
-    def interrupted(state, cfg, *args, **kwargs):  # Ctrl-C in the middle of stage M = 3's first update
-        if cfg.agents == 3:
+    def interrupted(state, cfg, *args, **kwargs):  # Ctrl-C in the middle of stage M = 3's second update
+        if cfg.agents == 3 and state.counters["update"] == 1:
             raise KeyboardInterrupt
         return real(state, cfg, *args, **kwargs)
 
@@ -655,7 +655,11 @@ def test_an_interrupted_curriculum_says_the_same_command_resumes_it(tmp_path, mo
     assert curriculum_main(argv) == 130
     out = capsys.readouterr()
     assert "swarm train --resume" in out.out and "the same swarm curriculum command resumes it" in out.err
+    metrics = tmp_path / "cur" / "stage-m3" / "metrics.jsonl"
+    first = metrics.read_text().splitlines()
+    assert len(first) == 1  # update 1 of stage M = 3, saved
     monkeypatch.setattr(train_mod, "one_update", real)
     assert curriculum_main(argv) == 0
+    assert metrics.read_text().splitlines()[:1] == first  # resumed, not restarted (wall_time would differ)
     stages = json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"]
     assert [s["agents"] for s in stages] == [2, 3] and [s["updates"] for s in stages] == [2, 2]
