@@ -99,7 +99,6 @@ fi
 [ "$resume_hint" = 0 ] && printf 'run directories under %s (--work %q again resumes them)\n' "$work" "$work"
 run_job() {  # JOB: its command under the time limit, then its run directory packed
     local j=$1 dir="$work/$1"
-    # shellcheck disable=SC2086  # the job's arguments are a word list
     set -- timeout --preserve-status -k 60 -s INT "$seconds" "$python" -m swarm_cli
     if [[ ${JOBS[$j]} == train\ * && -e "$dir/checkpoint.pt" ]]; then  # a train run continues by --resume
         set -- "$@" train --resume "$dir" --no-progress --device "$device" --arch "$device"
