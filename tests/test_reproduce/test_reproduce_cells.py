@@ -81,18 +81,20 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     """`recipe` has the paper spec's tables of our method, with the paper's numbers, run by
     what reproduced them here: fast preset, never-reset return, a polish after every run
     and stage, and the coverage curricula started from Table 1's UC M = 3 run; line M = 6
-    and line's curricula with the reset return, as the runs that reproduced them; formation's curricula with the
-    landmark offset concatenated, whose M = 5 policy carries to M = 4 and 6."""
+    with the reset return, as the runs that reproduced it; the line curricula started from Table 1's line M = 3
+    run of their mode; formation's curricula with the landmark offset concatenated, whose M = 5 policy carries
+    to M = 4 and 6."""
     paper, recipe = load_spec("paper"), load_spec("recipe")
     ours = [c for c in paper.cells if c.kind != "baseline"]
     assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
     assert all(recipe.cell(c.id).paper == c.paper for c in ours)
     trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
-    # with the never-reset return line UC M = 6 read 0-1%, the line chains stalled at UC M = 10, RC M = 7
-    reset = {"t1-line-uc-m6", "t1-line-rc-m6", "t3-line-uc", "t3-line-rc"}
+    # with the never-reset return line UC M = 6 read 0-1% in 1550 updates
+    reset = {"t1-line-uc-m6", "t1-line-rc-m6"}
     assert all(c.preset == "fast" and c.ppo["reset_return"] is (c.id in reset) for c in trained)
-    # the coverage curricula are fine-tunes throughout: a constant 1e-4 (7e-4 collapsed at RC M = 7)
-    fine_tunes = {"t2-coverage-emp-uc", "t2-coverage-emp-rc"}
+    # the coverage and line curricula are fine-tunes throughout: a constant 1e-4 (at 7e-4 coverage RC
+    # collapsed at M = 7; line stalled at UC M = 7 or 10 and RC M = 5 or 7, with either return)
+    fine_tunes = {"t2-coverage-emp-uc", "t2-coverage-emp-rc", "t3-line-uc", "t3-line-rc"}
     assert all(c.ppo == {"reset_return": False, "lr": 1e-4, "lr_end": 1e-4} for c in trained if c.id in fine_tunes)
     assert all(len(c.ppo) == 1 for c in trained if c.id not in fine_tunes)
     assert all(c.transfer_offsets == (2,) for c in trained)  # the next stage's size, logged while training
@@ -101,6 +103,9 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     for cid in ("t2-coverage-emp-uc", "t2-coverage-emp-rc"):
         assert recipe.cell(cid).init_from == "t1-coverage-uc-m3"
     assert recipe.cell("t2-coverage-emp-rc").sizes == (3, 5, 7, 10)
+    for mode in ("uc", "rc"):  # line's M = 3 stage is Table 1's line M = 3 run of the same mode
+        line = recipe.cell(f"t3-line-{mode}")
+        assert line.init_from == f"t1-line-{mode}-m3" and line.sizes == (5, 7, 10) and "3" in line.paper
     # formation's chains with the authors' network for formation: EMP's M = 5 policy did not carry
     concat = {c.id for c in recipe.cells if c.entity_mode == "concat"}
     assert concat == {"t3-formation-uc", "t3-formation-rc"}
