@@ -603,7 +603,18 @@ def test_probing_a_lock_never_makes_acquire_refuse(tmp_path):
         prober.wait()
 
 
-def test_ctrl_c_mid_update_finishes_the_update_then_stops(tmp_path, monkeypatch):
+@pytest.fixture
+def python_ctrl_c():
+    """Python's own Ctrl-C handler while a test sends SIGINT: a shell's background job (`.ci/run &`)
+    inherits SIGINT ignored, and the trainer rightly leaves an ignored signal ignored."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_ctrl_c_mid_update_finishes_the_update_then_stops(tmp_path, monkeypatch, python_ctrl_c):
     """Ctrl-C in the middle of an update's PPO epochs: the update, its evaluation and its
     checkpoint finish first, so the checkpoint is that of a whole update (the weights of a
     run that ended there), never a half-stepped one labelled with the update before."""
