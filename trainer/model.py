@@ -8,9 +8,17 @@ Per agent i (all agents of a team batched, N teams, M agents, L landmarks):
     K rounds (same weights): m_i = Attn(h_i, {h_j : j in N(i), i included})
          h_i = ReLU(W_c [h_i ; m_i])
     logits_i = pi(h_i) [5];  value_i = V(h_i)
-Everything is dense and masked (no scatter), so the same modules export to
-ONNX; the parameter count depends on neither M nor L (except the "concat"
-entity mode, whose input width is fixed by the task's L).
+The graph comes in one of two layouts, the same function on both:
+- dense: adj [N, M, M] bool (adj[n, i, j]: i hears j, the diagonal true), every
+  agent attending over all M (masked); what the paper's team sizes use;
+- neighbour lists: nbr [N, M, K] int (indices of the agents i hears, self
+  excluded) with nbr_mask [N, M, K] bool; each round gathers the K listed
+  agents' embeddings and attends over [self; listed], so the cost per agent
+  depends on K, not on M. ``entity_mask`` [N, M, L] marks the landmark slots an
+  agent senses (landmark lists); a masked slot is the same as a landmark left out.
+Masked, with no scatter in the per-agent pieces, so they export to ONNX; the
+parameter count depends on neither M nor L (except the "concat" entity mode,
+whose input width is fixed by the task's L).
 """
 
 from __future__ import annotations
@@ -28,6 +36,60 @@ from taichi_swarm.physics import NUM_ACTIONS
 PADDED_SLOTS = 10  # the paper's "without EMP" baseline: 10 landmarks x 2 = 20 inputs
 MASK_FILL = -1e9  # finite: an all-masked row must not turn into NaN (and exports cleanly)
 ENTITY_MODES = ("emp", "concat", "padded")
+
+# the simulator's observation keys -> the forward's arguments (``policy_inputs``)
+OBS_INPUTS = {
+    "self": "self_obs",
+    "entities": "entities",
+    "adj": "adj",
+    "nbr": "nbr",
+    "nbr_mask": "nbr_mask",
+    "entity_mask": "entity_mask",
+}
+
+
+def policy_inputs(obs: dict, device=None) -> dict:
+    """An observation dict of the simulator (dense or neighbour lists) -> the keyword
+    arguments of ``SwarmPolicy.forward`` (the keys the observation has, on ``device``)."""
+    out = {arg: obs[key] for key, arg in OBS_INPUTS.items() if key in obs}
+    if "adj" not in out and "nbr" not in out:
+        raise ValueError("the observation has neither 'adj' nor 'nbr': no communication graph")
+    if device is not None:
+        out = {k: v.to(device) for k, v in out.items()}
+    return out
+
+
+def neighbour_slots(nbr: torch.Tensor, nbr_mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """nbr, nbr_mask [N, M, K] -> (slots [N, M, 1 + K] int64, mask [N, M, 1 + K] bool):
+    the agent itself first (always heard, as the dense adj's diagonal), then its list.
+
+    A padded slot (masked, any index, -1 included) points at the agent itself so the
+    gather stays in range; a listed index equal to the agent's own is masked, so self
+    is never counted twice whatever the simulator pads with.
+    """
+    if nbr.shape != nbr_mask.shape or nbr.dim() != 3:
+        raise ValueError(f"nbr and nbr_mask must both be [N, M, K], got {tuple(nbr.shape)} and {tuple(nbr_mask.shape)}")
+    N, M, _ = nbr.shape
+    me = torch.arange(M, device=nbr.device).view(1, M, 1).expand(N, M, 1)
+    nbr = nbr.long()
+    mask = nbr_mask.bool() & (nbr != me) & (nbr >= 0) & (nbr < M)
+    slots = torch.cat([me, torch.where(mask, nbr, me)], dim=-1)
+    return slots, torch.cat([torch.ones_like(me, dtype=torch.bool), mask], dim=-1)
+
+
+def gather_agents(x: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
+    """x [N, M, D], slots [N, M, S] (agent indices within each team) -> [N, M, S, D]."""
+    N, M, D = x.shape
+    S = slots.shape[-1]
+    flat = (slots + torch.arange(N, device=slots.device).view(N, 1, 1) * M).reshape(-1)
+    return x.reshape(N * M, D).index_select(0, flat).view(N, M, S, D)
+
+
+def lists_to_dense(weights: torch.Tensor, slots: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Attention over [self; listed] [N, M, S] -> the dense [N, M, M] (what recordings draw)."""
+    N, M, _ = weights.shape
+    dense = weights.new_zeros(N, M, M)
+    return dense.scatter_add_(-1, slots, weights * mask.to(weights.dtype))
 
 
 @dataclass(frozen=True)
@@ -112,7 +174,8 @@ class FusedWeights(NamedTuple):
 
 
 class SwarmPolicy(nn.Module):
-    """Shared actor-critic: ``forward(self_obs, entities, adj) -> (logits, value)``.
+    """Shared actor-critic: ``forward(self_obs, entities, adj) -> (logits, value)``, or
+    ``forward(self_obs, entities, nbr=..., nbr_mask=..., entity_mask=...)`` on lists.
 
     self_obs [N, M, 4], entities [N, M, L, 2], adj [N, M, M] bool (adj[n, i, j]: i hears j)
     -> logits [N, M, 5], value [N, M].
@@ -149,16 +212,23 @@ class SwarmPolicy(nn.Module):
                 nn.init.zeros_(module.bias)
 
     # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
-    def encode(self, self_obs: torch.Tensor, entities: torch.Tensor) -> torch.Tensor:
-        """[..., 4], [..., L, 2] -> h [..., H]: agent encoder and entity message passing."""
+    def encode(
+        self, self_obs: torch.Tensor, entities: torch.Tensor, entity_mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """[..., 4], [..., L, 2] (and the sensed slots [..., L] bool) -> h [..., H]: agent
+        encoder and entity message passing."""
         mode = self.config.entity_mode
+        self._check_entity_mask(entities, entity_mask)
         if mode == "emp":
             h = torch.relu(self.agent_encoder(self_obs))
             e = torch.relu(self.entity_encoder(entities))  # [..., L, H]
             att = self.entity_attention
             q = att.w_q(h).unsqueeze(-2)  # [..., 1, H]
-            m_e, _ = att.attend(q, att.w_k(e), att.w_v(e))
+            mask = None if entity_mask is None else entity_mask.unsqueeze(-2)  # [..., 1, L]
+            m_e, _ = att.attend(q, att.w_k(e), att.w_v(e), mask)
             return torch.relu(self.entity_update(torch.cat([h, m_e.squeeze(-2)], dim=-1)))
+        if entity_mask is not None:  # "padded": an unsensed slot is a zero slot, as the padding is
+            entities = entities * entity_mask.unsqueeze(-1).to(entities.dtype)
         flat = entities.flatten(-2)  # [..., 2L]
         L = entities.shape[-2]
         misfit = self.config.landmark_misfit(L)
@@ -167,6 +237,16 @@ class SwarmPolicy(nn.Module):
         if mode == "padded":
             flat = nn.functional.pad(flat, (0, 2 * (PADDED_SLOTS - L)))
         return torch.relu(self.agent_encoder(torch.cat([self_obs, flat], dim=-1)))
+
+    def _check_entity_mask(self, entities: torch.Tensor, entity_mask: torch.Tensor | None) -> None:
+        if entity_mask is None:
+            return
+        if self.config.entity_mode == "concat":
+            raise ValueError(
+                "entity_mode 'concat' takes every landmark; landmark lists (entity_mask) need 'emp' or 'padded'"
+            )
+        if entity_mask.shape != entities.shape[:-1]:
+            raise ValueError(f"entity_mask must be {tuple(entities.shape[:-1])}, got {tuple(entity_mask.shape)}")
 
     def message(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """What an agent sends its neighbours: its attention key and value [..., H] each."""
@@ -205,16 +285,37 @@ class SwarmPolicy(nn.Module):
         heads = (torch.cat([p0.weight, v0.weight]).t(), torch.cat([p0.bias, v0.bias]))  # [H, 2H], [2H]
         return FusedWeights(entity, comm, heads)
 
+    def _graph(self, self_obs, adj, nbr, nbr_mask):
+        """The communication graph in either layout -> (slots, mask) of the lists, or None (dense)."""
+        if (adj is None) == (nbr is None):
+            raise ValueError("give the communication graph either dense (adj) or as lists (nbr, nbr_mask), not both")
+        N, M = self_obs.shape[:2]
+        if adj is not None:
+            if adj.shape != (N, M, M):
+                raise ValueError(f"adj must be [N, M, M] = {(N, M, M)}, got {tuple(adj.shape)}")
+            return None
+        if nbr_mask is None:
+            raise ValueError("nbr needs nbr_mask (which of the K slots hold a heard agent)")
+        if nbr.shape[:2] != (N, M):
+            raise ValueError(f"nbr must be [N, M, K] with N, M = {N}, {M}, got {tuple(nbr.shape)}")
+        return neighbour_slots(nbr, nbr_mask)
+
     def forward(
         self,
         self_obs: torch.Tensor,
         entities: torch.Tensor,
-        adj: torch.Tensor,
+        adj: torch.Tensor | None = None,
         return_attention: bool = False,
         fused: FusedWeights | None = None,
+        *,
+        nbr: torch.Tensor | None = None,
+        nbr_mask: torch.Tensor | None = None,
+        entity_mask: torch.Tensor | None = None,
     ):
-        """self_obs [N, M, 4], entities [N, M, L, 2], adj [N, M, M] -> logits [N, M, 5], value [N, M]
-        (and the K attention matrices [N, M, M] with ``return_attention``).
+        """self_obs [N, M, 4], entities [N, M, L, 2], and the graph: adj [N, M, M] or
+        nbr, nbr_mask [N, M, K] (``entity_mask`` [N, M, L] with landmark lists)
+        -> logits [N, M, 5], value [N, M] (and the K rounds' attention with
+        ``return_attention``: [N, M, M] dense, [N, M, 1 + K] on [self; listed] with lists).
 
         The same function as ``forward_reference`` (to float rounding), rearranged so that
         nothing is projected per landmark or per neighbour: the attention scores use
@@ -223,6 +324,8 @@ class SwarmPolicy(nn.Module):
         ``fused``: ``fused_weights()`` computed once and reused while the weights do not
         change (rollouts, evaluation); recomputed per call otherwise (training).
         """
+        lists = self._graph(self_obs, adj, nbr, nbr_mask)
+        self._check_entity_mask(entities, entity_mask)
         fw = self.fused_weights() if fused is None else fused
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]
@@ -234,21 +337,38 @@ class SwarmPolicy(nn.Module):
             # NOTE: broadcast-multiply-sum, not bmm: batched GEMMs of these tiny matrices
             # ran 3x slower forward+backward on the CPU (docs/BENCHMARKS.md, training)
             scores = (e * q_own[:, None, :H]).sum(-1)  # [NM, L]
-            weights = torch.softmax(scores, dim=-1)
+            if entity_mask is None:
+                weights = torch.softmax(scores, dim=-1)
+            else:
+                sensed = entity_mask.reshape(N * M, -1)
+                weights = torch.softmax(scores.masked_fill(~sensed, MASK_FILL), dim=-1) * sensed.to(h.dtype)
             pooled = (weights.unsqueeze(-1) * e).sum(1)  # [NM, H]
             h = torch.relu(torch.addmm(q_own[:, H:], pooled, heard))
         else:
-            h = self.encode(self_obs, entities).reshape(N * M, H)
+            h = self.encode(self_obs, entities, entity_mask).reshape(N * M, H)
         own, own_bias, heard = fw.comm
-        blocked = ~adj  # [N, M, M]
-        heard_mask = adj.to(h.dtype)
+        if lists is None:
+            blocked = ~adj  # [N, M, M]
+            heard_mask = adj.to(h.dtype)
+        else:
+            slots, listed = lists  # [N, M, S]: self, then the K listed
+            S = slots.shape[-1]
+            blocked = ~listed.view(N * M, S)
+            heard_mask = listed.view(N * M, S).to(h.dtype)
         attention = []
         for _ in range(self.config.rounds):
             q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
-            h3 = h.view(N, 1, M, H)
-            scores = (q_own[:, :H].reshape(N, M, 1, H) * h3).sum(-1)  # [N, M, M]
-            weights = torch.softmax(scores.masked_fill(blocked, MASK_FILL), dim=-1) * heard_mask
-            pooled = (weights.unsqueeze(-1) * h3).sum(2).view(N * M, H)
+            if lists is None:
+                h3 = h.view(N, 1, M, H)
+                scores = (q_own[:, :H].reshape(N, M, 1, H) * h3).sum(-1)  # [N, M, M]
+                weights = torch.softmax(scores.masked_fill(blocked, MASK_FILL), dim=-1) * heard_mask
+                pooled = (weights.unsqueeze(-1) * h3).sum(2).view(N * M, H)
+            else:  # a gather of the S = 1 + K heard embeddings per agent: O(K), whatever M
+                hs = gather_agents(h.view(N, M, H), slots).view(N * M, S, H)
+                scores = (q_own[:, None, :H] * hs).sum(-1)  # [NM, S]
+                weights = torch.softmax(scores.masked_fill(blocked, MASK_FILL), dim=-1) * heard_mask
+                pooled = (weights.unsqueeze(-1) * hs).sum(1)  # [NM, H]
+                weights = weights.view(N, M, S)
             h = torch.relu(torch.addmm(q_own[:, H:], pooled, heard))
             attention.append(weights)
         w_heads, b_heads = fw.heads
@@ -256,20 +376,30 @@ class SwarmPolicy(nn.Module):
         logits = self.policy_head[2](z[:, :H]).view(N, M, -1)
         value = self.value_head[2](z[:, H:]).view(N, M)
         if return_attention:
-            return logits, value, attention  # K x [N, M, M]
+            return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
         return logits, value
 
-    def forward_reference(self, self_obs, entities, adj, return_attention=False):
-        """The network written as the paper states it (the per-agent pieces deploy exports)."""
-        h = self.encode(self_obs, entities)  # [N, M, H]
+    def forward_reference(
+        self, self_obs, entities, adj=None, return_attention=False, *, nbr=None, nbr_mask=None, entity_mask=None
+    ):
+        """The network written as the paper states it (the per-agent pieces deploy exports):
+        with lists, each agent's query attends over the keys and values of [self; listed]."""
+        lists = self._graph(self_obs, adj, nbr, nbr_mask)
+        h = self.encode(self_obs, entities, entity_mask)  # [N, M, H]
         attention = []
         for _ in range(self.config.rounds):
             keys, values = self.message(h)
-            h, w = self.update(h, keys, values, adj)
+            if lists is None:
+                h, w = self.update(h, keys, values, adj)
+            else:
+                slots, listed = lists
+                heard_k, heard_v = gather_agents(keys, slots), gather_agents(values, slots)  # [N, M, S, H]
+                h, w = self.update(h.unsqueeze(-2), heard_k, heard_v, listed.unsqueeze(-2))
+                h, w = h.squeeze(-2), w.squeeze(-2)
             attention.append(w)
         logits, value = self.heads(h)
         if return_attention:
-            return logits, value, attention  # K x [N, M, M]
+            return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
         return logits, value
 
     def num_parameters(self) -> int:
