@@ -17,6 +17,7 @@ COMMANDS = {
     "eval": ("swarm_cli.train:eval_main", "evaluate a checkpoint: S%, T, DIST at any team size"),
     "curriculum": ("swarm_cli.train:curriculum_main", "train stage by stage over team sizes (3 5 7 10)"),
     "zero-shot": ("swarm_cli.train:zero_shot_main", "evaluate one checkpoint at many team sizes"),
+    "models": ("swarm_cli.models:models_main", "the model zoo: list, show a card, re-evaluate (--check)"),
     "plot": ("swarm_cli.train:plot_main", "draw the learning curves of a run directory"),
     "reproduce": ("swarm_cli.reproduce:reproduce_main", "the paper's tables as one resumable run on Ray"),
     "import": ("swarm_cli.train:import_main", "convert a checkpoint of the paper authors' published format"),

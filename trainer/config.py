@@ -90,9 +90,10 @@ class PPOConfig:
 
 PRESETS: dict[str, PPOConfig] = {
     "paper": PPOConfig(),
-    # Measured on coverage, formation and line M=3 UC (docs/RESULTS.md): bigger steps on
-    # fewer, bigger minibatches; short rollouts from many envs; bootstrap at the time
-    # limit; a lower learning rate late in the run for the last few percent of success.
+    # The recipe behind the zoo's policies (docs/FINDINGS.md): bigger steps on fewer, bigger
+    # minibatches; short rollouts from many envs; bootstrap at the time limit; a lower
+    # learning rate late in the run for the last few percent of success; and the published
+    # code's never-reset running return, which kept coverage M = 3 policies carrying to M = 5.
     "fast": PPOConfig(
         num_envs=64,
         num_steps=32,
@@ -101,14 +102,17 @@ PRESETS: dict[str, PPOConfig] = {
         epochs=4,
         minibatches=4,
         bootstrap_time_limit=True,
-        reset_return=True,
+        reset_return=False,
     ),
 }
 # Large batches for one GPU (docs/BENCHMARKS.md, GPU): `fast` with 4096 environments x 16
-# steps = 65536 env steps per update, in 16 minibatches of 4096 teams. Measured on one H200
-# (docs/RESULTS.md, "A curriculum on one GPU"): coverage M = 3 from scratch at 97.6% greedy after
-# 40 updates (2.6 M env steps, 30 s); with 4 minibatches it took 220 updates (14.4 M, 68 s).
+# steps = 65536 env steps per update, in 16 minibatches of 4096 teams; coverage M = 3 from
+# scratch reached 97.6% greedy after 40 updates (2.6 M env steps, 30 s on one H200).
 PRESETS["gpu"] = dataclasses.replace(PRESETS["fast"], num_envs=4096, num_steps=16, minibatches=16)
+# A preset's update budget, the default of --updates: the paper's 1100 updates of 4096 env
+# steps; fast's 2200 of 2048 (the same 4.5 M env steps); gpu's 300 of 65536.
+PRESET_UPDATES = {"paper": 1100, "fast": 2200, "gpu": 300}
+DEFAULT_PRESET = "fast"  # what `swarm train` and `swarm curriculum` start from
 
 
 @dataclass
@@ -124,9 +128,10 @@ class TrainConfig:
     comm_radius: float = 1.0
     """Communication radius of "rc"."""
     preset: str = "paper"
-    """PPO preset the ``ppo`` options start from: paper | fast | gpu (4096 environments, for one GPU)."""
+    """PPO preset the ``ppo`` options and ``updates`` start from: fast (the recipe behind the model
+    zoo) | paper (the paper's schedule) | gpu (4096 environments, for one GPU)."""
     updates: int = 1100
-    """PPO updates to run (the paper's coverage M=3 took 1100)."""
+    """PPO updates to run (default: the preset's budget, 4.5 M env steps for fast and paper)."""
     target_success: float = 0.0
     """Stop early once the evaluation success rate reaches this (0 = never)."""
     min_updates: int = 0
