@@ -86,6 +86,38 @@ class SettingOptions:
 
 
 @dataclass(kw_only=True)
+class SwarmOptions:
+    """The simulator's neighbour lists and density scaling (all unset: the dense layout and
+    the paper's geometry)."""
+
+    neighbours: Annotated[int | None, Default("dense", "K")] = None
+    """each agent hears its K nearest (within --comm-radius under rc) as lists, not the dense graph"""
+    landmark_neighbours: Annotated[int | None, Default("every landmark", "KL")] = None
+    """each agent senses its KL nearest landmarks within --sense-radius"""
+    sense_radius: Annotated[float | None, Default("the simulator's", "R")] = None
+    """landmark sensing radius of --landmark-neighbours"""
+    scale: Annotated[Literal["density"] | None, Default("the paper's geometry")] = None
+    """density: the arena and shapes grow with M so agents per unit area stay as at M = 10"""
+
+    def __post_init__(self):
+        at_least(self.neighbours, 1, "neighbours")
+        at_least(self.landmark_neighbours, 1, "landmark-neighbours")
+        positive(self.sense_radius, "sense-radius")
+
+    def swarm_kwargs(self) -> dict:
+        return {
+            k: v
+            for k, v in (
+                ("neighbours", self.neighbours),
+                ("landmark_neighbours", self.landmark_neighbours),
+                ("sense_radius", self.sense_radius),
+                ("scale", self.scale),
+            )
+            if v is not None
+        }
+
+
+@dataclass(kw_only=True)
 class VideoOption:
     video: Annotated[str | None, tyro.conf.arg(aliases=("--gif", "--mp4"))] = None
     """render to a .gif or .mp4 (a path without extension: a directory of PNG frames)"""
@@ -123,7 +155,7 @@ class ResumeOptions:
 
 
 @dataclass(kw_only=True)
-class EvaluationOptions(SettingOptions):
+class EvaluationOptions(SettingOptions, SwarmOptions):
     """What every evaluation of a checkpoint takes (swarm eval, swarm zero-shot)."""
 
     checkpoint: Annotated[str, Positional, tyro.conf.arg(metavar="CHECKPOINT")]
@@ -143,6 +175,7 @@ class EvaluationOptions(SettingOptions):
 
     def __post_init__(self):
         SettingOptions.__post_init__(self)
+        SwarmOptions.__post_init__(self)
         at_least(self.episodes, 1, "episodes")
 
     @property

@@ -104,7 +104,7 @@ def eval_main(argv: list[str]) -> int:
         try:
             result = evaluate(
                 policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
-                recorder=recorder, actions=opts.actions,
+                recorder=recorder, actions=opts.actions, swarm=opts.swarm_kwargs(),
             )  # fmt: skip
         except BaseException:  # (Ctrl-C too): no recording or video written, none replaced
             if recorder is not None:
@@ -140,7 +140,7 @@ def zero_shot_main(argv: list[str]) -> int:
         rows = []
         for M in sizes:
             rows.append(evaluate(policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed,
-                                 arch=opts.arch, actions=opts.actions))  # fmt: skip
+                                 arch=opts.arch, actions=opts.actions, swarm=opts.swarm_kwargs()))  # fmt: skip
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return fail("swarm zero-shot", exc)

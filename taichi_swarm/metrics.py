@@ -23,6 +23,7 @@ class FirstEpisodes:
         self.success = np.zeros(num_envs, bool)
         self.length = np.zeros(num_envs, np.int64)
         self.dist = np.zeros(num_envs, np.float64)
+        self.covered = None  # [B]: fraction of landmarks covered at the end, where the simulator reports it
 
     def all_done(self) -> bool:
         return bool(self.finished.all())
@@ -35,11 +36,15 @@ class FirstEpisodes:
             self.success[new] = _np(episode_info["success"])[new]
             self.length[new] = _np(episode_info["length"])[new]
             self.dist[new] = _np(episode_info["dist"])[new]
+            if "covered" in episode_info:
+                if self.covered is None:
+                    self.covered = np.zeros(len(self.finished), np.float64)
+                self.covered[new] = _np(episode_info["covered"])[new]
         self.finished |= done
         return new
 
     def summary(self, task: str) -> dict:
-        return {
+        out = {
             "success_rate": float(self.success.mean()),
             "mean_length": float(self.length.mean()),
             "dist": float(self.dist.mean()) if TASK_SPECS[task].reports_dist else None,
@@ -49,6 +54,10 @@ class FirstEpisodes:
                 "dist": self.dist.tolist(),
             },
         }
+        if self.covered is not None:  # beside S%: at M = 1000 a single miss fails S%
+            out["covered"] = float(self.covered.mean())
+            out["per_episode"]["covered"] = self.covered.tolist()
+        return out
 
 
 def run_first_episodes(env, decide, recorder=None, on_done=None) -> FirstEpisodes:

@@ -6,8 +6,26 @@ import torch
 
 import taichi_swarm
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
+from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 
 ACTION_MODES = ("greedy", "sampled")
+SWARM_KEYS = ("neighbours", "landmark_neighbours", "sense_radius", "scale")
+
+
+def swarm_options(neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None) -> dict:
+    """The simulator's neighbour-list and scaling options that are set, as ``make()`` keywords
+    (none set: the dense layout and the paper's geometry)."""
+    given = dict(neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale)
+    for key in ("neighbours", "landmark_neighbours"):
+        v = given[key]
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ValueError(f"{key} must be an integer >= 1, got {v!r}")
+    r = given["sense_radius"]
+    if r is not None and not (isinstance(r, int | float) and 0 < r < float("inf")):
+        raise ValueError(f"sense_radius must be a positive finite number, got {r!r}")
+    if scale is not None and scale != "density":
+        raise ValueError(f"scale must be 'density' (or unset: the paper's geometry), got {scale!r}")
+    return {k: v for k, v in given.items() if v is not None}
 
 
 @torch.no_grad()
@@ -23,6 +41,7 @@ def evaluate(
     device="cpu",
     recorder=None,
     actions: str = "greedy",
+    swarm: dict | None = None,
 ) -> dict:
     """Run ``episodes`` episodes in parallel, one per environment, with argmax actions
     (``actions="sampled"``: drawn from the policy's distribution instead, from a generator
@@ -31,20 +50,27 @@ def evaluate(
     Each agent's action depends only on its own observation and the messages of the
     agents it hears (the network's masked attention), so this is decentralised
     execution. Returns success_rate, mean_length (T; 50 for failures), dist (DIST,
-    coverage), and per-episode arrays.
+    coverage), covered (the mean fraction of landmarks covered at the end, where the
+    simulator reports it) and per-episode arrays.
+
+    ``swarm``: ``swarm_options(...)``, the simulator's neighbour lists and density
+    scaling (unset: the dense layout); the policy then runs on the lists.
     """
     if actions not in ACTION_MODES:
         raise ValueError(f"actions must be one of {ACTION_MODES}, got {actions!r}")
+    swarm = swarm_options(**(swarm or {}))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small batched forwards: more threads stall on a busy 2-core machine
     try:
-        return _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions)
+        return _evaluate(
+            policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm
+        )
     finally:
         torch.set_num_threads(threads)
 
 
-def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions) -> dict:
-    env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed)
+def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm) -> dict:
+    env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed, **swarm)
     fused = policy.fused_weights()  # computed once: the weights do not change here
     generator = torch.Generator(device).manual_seed(seed) if actions == "sampled" else None
 
@@ -55,23 +81,29 @@ def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, dev
         return torch.multinomial(probs, 1, generator=generator).view(logits.shape[:-1])
 
     def decide(obs):
-        inputs = (obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device))
+        inputs = policy_inputs(obs, device)
         if recorder is None:
-            logits, _ = policy(*inputs, fused=fused)
+            logits, _ = policy(**inputs, fused=fused)
             attention = None
         else:  # the last round's attention weights are drawn on the communication edges
-            logits, _, rounds = policy(*inputs, fused=fused, return_attention=True)
+            logits, _, rounds = policy(**inputs, fused=fused, return_attention=True)
             attention = rounds[-1] if rounds else None
+            if attention is not None and "nbr" in inputs:  # [B, M, 1 + K] -> [D, M, M], drawn envs only
+                D = getattr(recorder, "drawn", attention.shape[0])
+                slots, mask = neighbour_slots(inputs["nbr"][:D], inputs["nbr_mask"][:D])
+                attention = lists_to_dense(attention[:D], slots, mask)
         return act(logits).to(env.device), attention
 
     tally = run_first_episodes(env, decide, recorder)
     header = result_header(task, agents, comm, comm_radius, episodes, seed)
-    return {**header, "actions": actions, **tally.summary(task)}
+    return {**header, **swarm, "actions": actions, **tally.summary(task)}
 
 
 def format_table(rows: list[dict]) -> str:
-    """Rows of evaluate() results as an aligned text table (S% and T as in the paper)."""
-    return format_results(rows)
+    """Rows of evaluate() results as an aligned text table (S% and T as in the paper; the
+    fraction of landmarks covered beside them where every row has it)."""
+    extra = ("covered",) if rows and all(r.get("covered") is not None for r in rows) else ()
+    return format_results(rows, extra)
 
 
 def parse_sizes(spec: list[str]) -> list[int]:
@@ -97,4 +129,4 @@ def parse_sizes(spec: list[str]) -> list[int]:
     return list(dict.fromkeys(sizes))
 
 
-__all__ = ["ACTION_MODES", "evaluate", "format_table", "parse_sizes"]
+__all__ = ["ACTION_MODES", "SWARM_KEYS", "evaluate", "format_table", "parse_sizes", "swarm_options"]

@@ -229,3 +229,47 @@ def test_committed_policies_give_the_same_outputs_on_full_lists(rel):
         lists = policy(s, e, nbr=nbr, nbr_mask=mask)
     torch.testing.assert_close(lists[0], dense[0], atol=1e-4, rtol=1e-5)
     torch.testing.assert_close(lists[1], dense[1], atol=1e-4, rtol=1e-5)
+
+
+class ListsFromAdj:
+    """A simulator whose observations carry the neighbour lists (everyone heard, in a
+    shuffled order) instead of adj: what ``make(..., neighbours=K)`` gives with K >= M - 1."""
+
+    def __init__(self, env, K):
+        self.env, self.K = env, K
+
+    def __getattr__(self, name):
+        return getattr(self.env, name)
+
+    def lists(self, obs):
+        nbr, mask = lists_from_adj(obs["adj"].bool(), self.K, seed=int(obs["self"].abs().sum() * 1e3) % 1000)
+        out = {k: v.clone() for k, v in obs.items() if k != "adj"}
+        return {**out, "nbr": nbr, "nbr_mask": mask}
+
+    def reset(self):
+        return self.lists(self.env.reset())
+
+    def step(self, actions):
+        obs, reward, done, info = self.env.step(actions)
+        if "terminal_obs" in info:
+            info = {**info, "terminal_obs": self.lists(info["terminal_obs"])}
+        return self.lists(obs), reward, done, info
+
+
+@pytest.mark.parametrize("comm,M", [("uc", 3), ("rc", 5)])
+def test_a_committed_policy_scores_on_full_lists_what_it_scores_dense(monkeypatch, comm, M):
+    """results/coverage-m3-uc-transfer, evaluated greedily: every episode's success,
+    length and DIST the same on lists as on the dense graph."""
+    import taichi_swarm
+    from trainer import checkpoint, evaluate
+
+    payload = checkpoint.load(os.path.join(ROOT, "results/coverage-m3-uc-transfer/policy.pt"), trust_unsigned=True)
+    policy = checkpoint.policy_from_payload(payload).eval()
+    common = dict(task="coverage", agents=M, comm=comm, comm_radius=0.8, episodes=12, seed=4321)
+    dense = evaluate.evaluate(policy, **common)
+    make = taichi_swarm.make
+    monkeypatch.setattr(taichi_swarm, "make", lambda *a, **k: ListsFromAdj(make(*a, **k), M + 1))
+    lists = evaluate.evaluate(policy, **common)
+    assert lists["per_episode"] == dense["per_episode"]
+    assert 0 < dense["success_rate"] or comm == "rc"  # (a policy that does something)
+    assert lists["success_rate"] == dense["success_rate"] and lists["dist"] == dense["dist"]
