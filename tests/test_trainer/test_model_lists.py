@@ -209,16 +209,17 @@ def test_policy_inputs_maps_the_simulator_keys():
 @pytest.mark.parametrize(
     "rel",
     [
-        "results/coverage-m3-uc-transfer/policy.pt",  # emp
-        "results/coverage-m3-uc-noemp/policy.pt",  # padded
-        "results/reproduce-beyond/x-cur-formation-uc-concat/s2/stage-m5/policy.pt",  # concat
+        "coverage-uc-m3",  # emp (a model zoo name)
+        "formation-uc-m5",  # concat
+        "results/gpu-h200-s19/curriculum-cov-rc-noemp/m5/policy.pt",  # padded
     ],
 )
 def test_committed_policies_give_the_same_outputs_on_full_lists(rel):
     from trainer import checkpoint
 
     # committed files are read as they are (some carry no digest): never rewritten
-    payload = checkpoint.load(os.path.join(ROOT, rel), trust_unsigned=True)
+    path = os.path.join(ROOT, rel) if rel.startswith("results/") else rel
+    payload = checkpoint.load(path, trust_unsigned=True)
     policy = checkpoint.policy_from_payload(payload).eval()
     L = policy.config.num_landmarks or 3
     M = 5 if policy.config.entity_mode == "concat" else 6
@@ -258,12 +259,12 @@ class ListsFromAdj:
 
 @pytest.mark.parametrize("comm,M", [("uc", 3), ("rc", 5)])
 def test_a_committed_policy_scores_on_full_lists_what_it_scores_dense(monkeypatch, comm, M):
-    """results/coverage-m3-uc-transfer, evaluated greedily: every episode's success,
-    length and DIST the same on lists as on the dense graph."""
+    """The zoo's coverage-uc-m3, evaluated greedily: every episode's success, length and
+    DIST the same on lists as on the dense graph."""
     import taichi_swarm
     from trainer import checkpoint, evaluate
 
-    payload = checkpoint.load(os.path.join(ROOT, "results/coverage-m3-uc-transfer/policy.pt"), trust_unsigned=True)
+    payload = checkpoint.load("coverage-uc-m3")
     policy = checkpoint.policy_from_payload(payload).eval()
     common = dict(task="coverage", agents=M, comm=comm, comm_radius=0.8, episodes=12, seed=4321)
     dense = evaluate.evaluate(policy, **common)
