@@ -127,6 +127,16 @@ class TrainConfig:
     """uc (everyone hears everyone) | rc (only within comm_radius)."""
     comm_radius: float = 1.0
     """Communication radius of "rc"."""
+    neighbours: int | None = None
+    """K: each agent hears its K nearest (within comm_radius under rc) as neighbour lists, not the
+    dense M x M graph; the network's cost per agent then depends on K, not M (None: dense)."""
+    landmark_neighbours: int | None = None
+    """KL: each agent senses its KL nearest landmarks within sense_radius (None: every landmark)."""
+    sense_radius: float | None = None
+    """Landmark sensing radius of ``landmark_neighbours`` (None: the simulator's)."""
+    scale: Literal["density"] | None = None
+    """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
+    (None: the paper's geometry)."""
     preset: str = "paper"
     """PPO preset the ``ppo`` options and ``updates`` start from: fast (the recipe behind the model
     zoo) | paper (the paper's schedule) | gpu (4096 environments, for one GPU)."""
@@ -241,6 +251,7 @@ class TrainConfig:
         if self.comm_radius < 0:
             raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
         self.ppo.validate()
+        self.swarm_options()
 
     carry_needs_init_from: ClassVar[bool] = True
     """A run carries from its --init-from; a curriculum (False) from each last stage."""
@@ -250,6 +261,12 @@ class TrainConfig:
             raise ValueError(f"init_carry must be one of {INIT_CARRY}, got {self.init_carry!r}")
         if self.carry_needs_init_from and self.init_carry != "weights" and not self.init_from:
             raise ValueError(f"init_carry={self.init_carry!r} needs init_from (a checkpoint.pt to carry it from)")
+
+    def swarm_options(self) -> dict:
+        """The simulator's neighbour-list and density options that are set (``make()`` keywords)."""
+        from trainer.evaluate import swarm_options
+
+        return swarm_options(self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale)
 
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""

@@ -73,32 +73,80 @@ class RewardScaler:
         self.rms.load_state_dict(d["rms"])
 
 
+# the observation tensors a rollout stores, by the policy's argument names (trainer.model.OBS_INPUTS)
+DENSE_INPUTS = ("self_obs", "entities", "adj")
+LIST_INPUTS = ("self_obs", "entities", "nbr", "nbr_mask")
+
+
 @dataclass
 class Rollout:
-    """Preallocated rollout storage, time first: [T, E, M, ...]."""
+    """Preallocated rollout storage, time first: [T, E, M, ...]. The communication graph is
+    either dense (``adj``) or neighbour lists (``nbr``, ``nbr_mask``; ``entity_mask`` with
+    landmark lists), as the simulator observes it."""
 
     self_obs: torch.Tensor  # [T, E, M, 4]
-    entities: torch.Tensor  # [T, E, M, L, 2]
-    adj: torch.Tensor  # [T, E, M, M] bool
+    entities: torch.Tensor  # [T, E, M, L, 2] (L: KL with landmark lists)
+    adj: torch.Tensor | None  # [T, E, M, M] bool (dense)
     actions: torch.Tensor  # [T, E, M] int64
     logprobs: torch.Tensor  # [T, E, M]
     values: torch.Tensor  # [T, E, M]
     rewards: torch.Tensor  # [T, E] (scaled team reward)
     dones: torch.Tensor  # [T, E] bool: the episode ended at this step
+    nbr: torch.Tensor | None = None  # [T, E, M, K] int32 (lists)
+    nbr_mask: torch.Tensor | None = None  # [T, E, M, K] bool
+    entity_mask: torch.Tensor | None = None  # [T, E, M, KL] bool (landmark lists)
 
     @classmethod
-    def allocate(cls, T: int, E: int, M: int, L: int, device="cpu") -> Rollout:
+    def allocate(
+        cls, T: int, E: int, M: int, L: int, device="cpu", neighbours: int | None = None, entity_mask: bool = False
+    ) -> Rollout:
+        """``neighbours``: K of the simulator's lists (None: dense adj); ``entity_mask``: the
+        observation has landmark lists (L is then their KL)."""
         z = dict(device=device)
+        lists = neighbours is not None
         return cls(
             self_obs=torch.zeros(T, E, M, 4, **z),
             entities=torch.zeros(T, E, M, L, 2, **z),
-            adj=torch.zeros(T, E, M, M, dtype=torch.bool, **z),
+            adj=None if lists else torch.zeros(T, E, M, M, dtype=torch.bool, **z),
             actions=torch.zeros(T, E, M, dtype=torch.int64, **z),
             logprobs=torch.zeros(T, E, M, **z),
             values=torch.zeros(T, E, M, **z),
             rewards=torch.zeros(T, E, **z),
             dones=torch.zeros(T, E, dtype=torch.bool, **z),
+            nbr=torch.zeros(T, E, M, neighbours, dtype=torch.int32, **z) if lists else None,
+            nbr_mask=torch.zeros(T, E, M, neighbours, dtype=torch.bool, **z) if lists else None,
+            entity_mask=torch.zeros(T, E, M, L, dtype=torch.bool, **z) if entity_mask else None,
         )
+
+    @classmethod
+    def for_env(cls, T: int, env, device="cpu") -> Rollout:
+        """Storage shaped like ``env``'s observation (dense or lists)."""
+        obs = env.obs
+        nbr = obs.get("nbr")
+        return cls.allocate(
+            T, env.num_envs, env.num_agents, obs["entities"].shape[-2], device,
+            neighbours=None if nbr is None else nbr.shape[-1], entity_mask="entity_mask" in obs,
+        )  # fmt: skip
+
+    def input_names(self) -> tuple[str, ...]:
+        """The policy arguments stored, in order (what ``inputs`` returns)."""
+        names = DENSE_INPUTS if self.adj is not None else LIST_INPUTS
+        return names + (("entity_mask",) if self.entity_mask is not None else ())
+
+    def inputs(self) -> list[torch.Tensor]:
+        """The stored observation tensors [T, E, M, ...], in ``input_names`` order."""
+        return [getattr(self, k) for k in self.input_names()]
+
+    def store(self, t: int, obs: dict) -> dict:
+        """Copy the simulator's observation into step ``t``; returns the policy's keyword
+        arguments at that step (views of the buffers)."""
+        keys = {"self_obs": "self", "entities": "entities"}
+        out = {}
+        for name in self.input_names():
+            buf = getattr(self, name)[t]
+            buf.copy_(obs[keys.get(name, name)])
+            out[name] = buf
+        return out
 
 
 def gae(rewards, values, dones, next_value, gamma: float, lam: float):

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import threading
 import time
@@ -29,8 +30,8 @@ from trainer import checkpoint
 from trainer.config import TrainConfig, to_dict, train_config_from_dict
 from trainer.evaluate import evaluate
 from trainer.lock import RunDirLock
-from trainer.model import ModelConfig, SwarmPolicy
-from trainer.ppo import RewardScaler, Rollout, gae, normalize_per_agent, ppo_loss, sample_actions
+from trainer.model import ModelConfig, SwarmPolicy, policy_inputs
+from trainer.ppo import DENSE_INPUTS, RewardScaler, Rollout, gae, normalize_per_agent, ppo_loss, sample_actions
 
 
 def resolve_device(device: str) -> str:
@@ -41,6 +42,14 @@ def resolve_device(device: str) -> str:
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError("device='cuda' but torch finds no CUDA GPU")
     return device
+
+
+def check_arch(arch: str) -> str:
+    """Refuse ``arch="cuda"`` where torch finds no CUDA GPU (Taichi would fall back to the CPU,
+    and torch fail later inside the simulator's CUDA buffers)."""
+    if arch in ("cuda", "gpu") and not torch.cuda.is_available():
+        raise ValueError(f"arch={arch!r} but torch finds no CUDA GPU on this machine: use --arch cpu")
+    return arch
 
 
 class TensorBoardLog:
@@ -141,11 +150,9 @@ def collect_rollout(policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, 
     raw_reward = torch.zeros((), device=device)  # summed on device: no host sync per step
     t_sim = t_policy = 0.0
     for t in range(T):
-        buf.self_obs[t].copy_(obs["self"])
-        buf.entities[t].copy_(obs["entities"])
-        buf.adj[t].copy_(obs["adj"])
+        inputs = buf.store(t, obs)  # dense adj or neighbour lists, as the simulator observes
         ta = time.perf_counter()
-        logits, value = policy(buf.self_obs[t], buf.entities[t], buf.adj[t], fused=fused)
+        logits, value = policy(**inputs, fused=fused)
         action, logprob = sample_actions(logits)  # [E, M]
         buf.actions[t] = action
         buf.logprobs[t] = logprob
@@ -165,13 +172,11 @@ def collect_rollout(policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, 
                 cut = done & ep["truncated"].to(device)
                 if bool(cut.any()):
                     term = info["terminal_obs"]
-                    _, v_term = policy(
-                        term["self"].to(device), term["entities"].to(device), term["adj"].to(device), fused=fused
-                    )
+                    _, v_term = policy(**policy_inputs(term, device), fused=fused)
                     scaled = scaled + p.gamma * v_term.mean(-1) * cut.float()
         buf.rewards[t] = scaled
         buf.dones[t] = done
-    _, next_value = policy(obs["self"].to(device), obs["entities"].to(device), obs["adj"].to(device), fused=fused)
+    _, next_value = policy(**policy_inputs(obs, device), fused=fused)
     advantages, returns = gae(buf.rewards, buf.values, buf.dones, next_value, p.gamma, p.gae_lambda)
     return RolloutResult(
         next_obs=obs,
@@ -215,6 +220,7 @@ def evaluate_during_training(policy, cfg: TrainConfig, update: int, device) -> d
     policy.eval()
     seed = EVAL_SEED_BASE + update
     common = dict(comm=cfg.comm, comm_radius=cfg.comm_radius, seed=seed, arch=cfg.arch, device=device)
+    common["swarm"] = cfg.swarm_options()
     result = evaluate(policy, cfg.task, cfg.agents, episodes=cfg.eval_episodes, **common)
     out = {k: result[k] for k in ("success_rate", "mean_length", "dist")}
     out["update"] = update
@@ -240,18 +246,22 @@ def rollout_stats(rollouts: list[RolloutResult]) -> dict:
     }
 
 
-def make_loss_fn(policy, p, compile: bool = False, precision: str = "fp32"):
+def make_loss_fn(policy, p, compile: bool = False, precision: str = "fp32", inputs=DENSE_INPUTS):
     """``loss_fn(batch) -> (loss, stats [5])``: the policy's forward and the clipped PPO
     loss on one minibatch of whole teams; with ``compile``, through torch.compile (fused
     elementwise loops around the GEMMs: 1.3-1.7x per minibatch on this CPU), falling back
     to eager with a warning where compilation fails (no C++ compiler, say). ``precision``
-    "bf16": the forward under bfloat16 autocast (the loss itself in fp32)."""
+    "bf16": the forward under bfloat16 autocast (the loss itself in fp32). ``inputs``: the
+    names of the observation tensors the batch starts with (``Rollout.input_names``)."""
     if precision not in ("fp32", "bf16"):
         raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
+    n_in = len(inputs)
 
-    def loss_fn(self_obs, entities, adj, *batch):  # batch: actions, old log-probs and values, advantages, returns
-        with torch.autocast(self_obs.device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
-            logits, values = policy(self_obs, entities, adj)
+    def loss_fn(*batch):  # the observation tensors, then actions, old log-probs and values, advantages, returns
+        obs = dict(zip(inputs, batch[:n_in], strict=True))
+        with torch.autocast(batch[0].device.type, dtype=torch.bfloat16, enabled=precision == "bf16"):
+            logits, values = policy(**obs)
+        batch = batch[n_in:]
         logits, values = logits.float(), values.float()
         loss, info = ppo_loss(logits, values, *batch, p.clip, p.value_coef, p.entropy_coef)
         return loss, torch.stack([info.policy, info.value, info.entropy, info.approx_kl, info.clipfrac])
@@ -285,9 +295,10 @@ def ppo_update(policy, optimizer, groups: list[tuple[Rollout, torch.Tensor, torc
     policy.train()
     data = []
     for buf, advantages, returns in groups:
-        batch = [teams(x) for x in (buf.self_obs, buf.entities, buf.adj, buf.actions, buf.logprobs, buf.values)]
+        batch = [teams(x) for x in (*buf.inputs(), buf.actions, buf.logprobs, buf.values)]
         data.append(batch + [teams(advantages), teams(returns)])
     device = groups[0][1].device
+    params = [q for q in policy.parameters() if q.requires_grad]
     per_group = max(1, p.minibatches // len(groups))
     stats, steps, skipped = torch.zeros(5, device=device), 0, 0
     for _ in range(p.epochs):
@@ -312,12 +323,27 @@ def ppo_update(policy, optimizer, groups: list[tuple[Rollout, torch.Tensor, torc
             if not torch.isfinite(norm):  # a NaN/inf loss or gradient never reaches the weights
                 skipped += 1
                 continue
+            before = [q.detach().clone() for q in params]
             optimizer.step()
+            if not all_finite(params):  # finite gradients, yet NaN/inf weights: Adam's own state is not finite
+                with torch.no_grad():
+                    for q, b in zip(params, before, strict=True):
+                        q.copy_(b)
+                raise NonFiniteTraining(
+                    "an optimiser step made the weights NaN/inf from finite gradients (Adam's moments or the "
+                    "learning rate are not finite); the weights were put back and nothing was written"
+                )
             stats += s.detach()
             steps += 1
     if steps == 0:
         return torch.full((5,), float("nan")), skipped
     return stats / steps, skipped
+
+
+def all_finite(tensors) -> bool:
+    """Whether every float tensor of ``tensors`` is finite (one host sync)."""
+    flags = [torch.isfinite(t).all() for t in tensors if t.is_floating_point()]
+    return bool(torch.stack(flags).all()) if flags else True
 
 
 def env_state(env) -> dict:
@@ -362,11 +388,21 @@ def train(
         raise ValueError("train() needs a config or a run directory to resume")
     else:
         run_dir = cfg.default_run_dir()
+        cfg.validate()  # a refused config leaves no run directory behind
     # what a resume may change in the run's config (None: keep the run's own)
     given = (("updates", updates), ("progress", progress), ("arch", arch), ("device", device))
     overrides = {k: v for k, v in given if v is not None}
+    if "arch" in overrides or cfg is not None:
+        check_arch(overrides.get("arch", cfg.arch if cfg is not None else "cpu"))
+    resolve_device(overrides.get("device", cfg.device if cfg is not None else "cpu"))
+    created = not os.path.exists(run_dir)
     with RunDirLock(run_dir):
-        return _train_locked(cfg, resume, on_update, overrides)
+        try:
+            return _train_locked(cfg, resume, on_update, overrides)
+        except BaseException:
+            if created and not os.path.exists(os.path.join(run_dir, "checkpoint.pt")):
+                shutil.rmtree(run_dir, ignore_errors=True)  # a run that failed before its first checkpoint
+            raise
 
 
 def train_or_resume(cfg: TrainConfig) -> dict:
@@ -417,6 +453,7 @@ def open_run(cfg: TrainConfig | None, resume: str | None, overrides: dict | None
     lacking = [k for k in RESUME_KEYS if k not in payload]
     if lacking:
         raise checkpoint.CheckpointError(f"{run.checkpoint} cannot resume a run: it lacks {lacking}")
+    checkpoint.check_counters(run.checkpoint, payload["counters"])  # (before policy.pt is repaired from them)
     try:
         cfg = train_config_from_dict(payload["train_config"])
     except (TypeError, ValueError) as exc:
@@ -465,38 +502,55 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     E = p.num_envs // len(sizes)  # validate() checks that the sizes share num_envs evenly
     groups = []
     for size in sizes:
-        env = taichi_swarm.make(cfg.task, E, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch)
-        scaler = RewardScaler(E, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
-        groups.append(
-            TeamGroup(size, env, {}, Rollout.allocate(p.num_steps, E, size, env.num_landmarks, device), scaler)
+        env = taichi_swarm.make(
+            cfg.task, E, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch, **cfg.swarm_options()
         )
+        scaler = RewardScaler(E, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
+        groups.append(TeamGroup(size, env, {}, Rollout.for_env(p.num_steps, env, device), scaler))
     state = TrainingState(policy, optimizer, groups, {"update": 0, "env_steps": 0, "wall_time": 0.0}, [])
     if init_payload is not None and cfg.init_carry != "weights":
         carry_training_state(init_payload, cfg, state)
-    if payload is not None:
+    if payload is not None:  # every piece checked (shape, dtype, finite) before it is used
         checkpoint.load_weights(policy, payload["model"])
+        checkpoint.check_optimizer_state("checkpoint", payload["optimizer"], policy)
         optimizer.load_state_dict(payload["optimizer"])
         scaler_states = reward_scaler_states(payload)
-        if len(scaler_states) != len(groups):
-            raise checkpoint.CheckpointError(f"the checkpoint holds {len(scaler_states)} reward scalers")
+        if not isinstance(scaler_states, list) or len(scaler_states) != len(groups):
+            raise checkpoint.CheckpointError(f"the checkpoint does not hold one reward scaler per team size {sizes}")
         for g, scaler_state in zip(groups, scaler_states, strict=True):
+            checkpoint.check_scaler_state("checkpoint", scaler_state, E)
             g.scaler.load_state_dict(scaler_state)
-        torch.set_rng_state(payload["torch_rng"])
+        torch.set_rng_state(checkpoint.check_rng_state("checkpoint torch_rng", payload["torch_rng"]))
         cuda_rng = payload.get("cuda_rng") or []
+        for i, t in enumerate(cuda_rng):
+            checkpoint.check_tensor(f"checkpoint cuda_rng[{i}]", t, dtype=torch.uint8)
         if device.startswith("cuda") and len(cuda_rng) == torch.cuda.device_count():  # (not: another machine)
             torch.cuda.set_rng_state_all(cuda_rng)
-        state.counters = dict(payload["counters"])
+        state.counters = dict(checkpoint.check_counters("checkpoint", payload["counters"]))
         state.evals = list(payload.get("evals", []))
     env_states = (payload or {}).get("env_states")
+    if env_states is not None and (not isinstance(env_states, list) or len(env_states) != len(groups)):
+        raise checkpoint.CheckpointError(f"the checkpoint's env_states do not hold one state per team size {sizes}")
     for k, g in enumerate(groups):
-        if env_states is not None and len(env_states) == len(groups):
-            # resume bit-identically: the environments' buffers as they were at the checkpoint
-            buffers = {name: t.numpy() for name, t in env_states[k]["buffers"].items()}
-            g.obs = g.env.restore({"shape": tuple(env_states[k]["shape"]), "buffers": buffers})
+        if env_states is not None:  # resume bit-identically: the environments' buffers as they were
+            g.obs = restore_env(g.env, env_states[k], f"env_states[{k}]")
         else:  # a fresh run (or a checkpoint from before env states were saved)
             seed = TRAIN_SEED_BASE + cfg.seed * 1_000_003 + state.counters["update"] + 7_919 * k
             g.obs = g.env.reset(seed=seed)
     return state
+
+
+def restore_env(env, saved, where: str) -> dict:
+    """``env.restore`` from a checkpoint's entry (its buffers checked by ``restore``)."""
+    if not isinstance(saved, dict) or not isinstance(saved.get("buffers"), dict):
+        raise checkpoint.CheckpointError(f"checkpoint {where} is not an environment state")
+    buffers = {}
+    for name, t in saved["buffers"].items():
+        buffers[name] = checkpoint.check_tensor(f"{where}.buffers.{name}", t, finite=False).numpy()
+    try:
+        return env.restore({"shape": tuple(saved.get("shape", ())), "buffers": buffers})
+    except ValueError as exc:
+        raise checkpoint.CheckpointError(f"checkpoint {where}: {exc}") from None
 
 
 def reward_scaler_states(payload: dict) -> list[dict]:
@@ -523,8 +577,11 @@ def carry_training_state(init_payload: dict, cfg: TrainConfig, state: TrainingSt
             f"this run has {len(state.groups)} team sizes (carry needs 1 or as many)"
         )
     for k, g in enumerate(state.groups):
-        g.scaler.rms.load_state_dict(scaler_states[k if len(scaler_states) > 1 else 0]["rms"])
+        scaler_state = scaler_states[k if len(scaler_states) > 1 else 0]
+        checkpoint.check_scaler_state(f"--init-from {cfg.init_from}", scaler_state, None)
+        g.scaler.rms.load_state_dict(scaler_state["rms"])
     if cfg.init_carry == "optimiser":
+        checkpoint.check_optimizer_state(f"--init-from {cfg.init_from}", init_payload["optimizer"], state.policy)
         state.optimizer.load_state_dict(init_payload["optimizer"])
         for group in state.optimizer.param_groups:
             group["lr"] = cfg.ppo.lr
@@ -532,7 +589,13 @@ def carry_training_state(init_payload: dict, cfg: TrainConfig, state: TrainingSt
 
 def save_checkpoint(run: Run, state: TrainingState, cfg: TrainConfig) -> None:
     """checkpoint.pt (everything to resume bit-identically), then policy.pt (weights only:
-    small enough to commit; loads in `swarm eval` / `export`)."""
+    small enough to commit; loads in `swarm eval` / `export`). A state holding NaN/inf is
+    never written: the last good checkpoint stays."""
+    moments = [t for entry in state.optimizer.state.values() for t in entry.values() if isinstance(t, torch.Tensor)]
+    if not all_finite(list(state.policy.parameters()) + moments):
+        raise NonFiniteTraining(
+            f"the weights or Adam's moments hold NaN/inf: not written (last good checkpoint: {run.checkpoint})"
+        )
     payload = {
         "model_config": state.policy.config.to_dict(),
         "model": state.policy.state_dict(),
@@ -695,9 +758,11 @@ class StopAtUpdateEnd:
 
 def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
     run, cfg, payload = open_run(cfg, resume, overrides)
+    check_arch(cfg.arch)
     device = resolve_device(cfg.device)
     state = build_state(cfg, payload, device)
-    loss_fn = make_loss_fn(state.policy, cfg.ppo, compile=cfg.compile, precision=cfg.precision)
+    inputs = state.groups[0].buf.input_names()
+    loss_fn = make_loss_fn(state.policy, cfg.ppo, compile=cfg.compile, precision=cfg.precision, inputs=inputs)
     counters = state.counters
     reporter = Reporter(run, cfg, counters["update"], on_update)
     last_eval = state.evals[-1] if state.evals else None
