@@ -12,8 +12,8 @@ cost[i, j] = |p_i - t_j| (agent i, target j). Two exact methods:
     actions, against about 4 from scratch).
 
 Each environment solves its own M x M problem serially inside the parallel
-loop over environments: the large-M cost matrix is cached in the packed
-buffers, the solver's work arrays live on the thread's stack. ``solve`` writes the
+loop over environments: the large-M cost matrix and the solver's work arrays
+are blocks of the packed buffers. ``solve`` writes the
 assignment and the matched distances d*_i = cost[i, assignment[i]].
 """
 
@@ -25,6 +25,11 @@ from .layout import (
     H_M,
     O_ASSIGN,
     O_COST,
+    O_LAP_COLS,
+    O_LAP_DIST,
+    O_LAP_PRED,
+    O_LAP_X,
+    O_LAP_Y,
     O_MATCHED,
     O_POS,
     O_PRICES,
@@ -37,18 +42,17 @@ PERMUTATIONS = {n: tuple(itertools.permutations(range(n))) for n in range(1, SMA
 
 
 @ti.func
-def solve(cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def solve(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Writes assignment[b, i] = the target of agent i, minimising the total distance,
     and matched_dist[b, i] = its distance.
 
     ``sm`` (compile-time) is M when the kernels are specialised for it (then M <=
-    SMALL_M: enumeration), else 0; ``cap`` (>= M + 1: see ``capacity``) sizes the
-    large-M solver's per-thread work arrays.
+    SMALL_M: enumeration), else 0.
     """
     if ti.static(0 < sm <= SMALL_M):
         _enumerate(sm, f, ib, b)
     else:
-        _solve_large(f, ib, cap, b)
+        _solve_large(f, ib, b)
 
 
 @ti.func
@@ -79,7 +83,7 @@ def _enumerate(n: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32)
 
 
 @ti.func
-def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.i32):
+def _solve_large(f: ti.template(), ib: ti.template(), b: ti.i32):
     """Shortest augmenting paths (Jonker & Volgenant 1987, dense LAPJV), warm-started;
     any M >= 1 (M from the header).
 
@@ -92,19 +96,19 @@ def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
     each free row finds the shortest augmenting path by Dijkstra over
     the columns, scanning whole levels of equal distance at once, and only the
     settled columns' prices move. Exact for any starting prices.
+
+    The work arrays are blocks of the packed buffers (not the thread's stack), so the
+    kernels compile to the same code for every M.
     """
     M = ib[H_M]
     C = ib[O_COST] + b * M * M  # cost[i, j] = |p_i - t_j|, row-major, 0-based
-    P0, T0, V0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
-    v = ti.Vector.zero(ti.f32, cap)  # column prices
-    d = ti.Vector.zero(ti.f32, cap)  # path lengths to each column
-    x = ti.Vector.zero(ti.i32, cap)  # x[i]: column of row i (-1: free)
-    y = ti.Vector.zero(ti.i32, cap)  # y[j]: row of column j (-1: free)
-    cols = ti.Vector.zero(ti.i32, cap)  # [0, lo) settled, [lo, hi) to scan, [hi, M) to do
-    pred = ti.Vector.zero(ti.i32, cap)  # the row before column j on the path
+    P0, T0, V = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M  # f[V + j]: price of column j
+    D = ib[O_LAP_DIST] + b * M  # f[D + j]: path length to column j
+    X, Y = ib[O_LAP_X] + b * M, ib[O_LAP_Y] + b * M  # ib[X + i]: column of row i, ib[Y + j]: its row (-1: free)
+    COLS = ib[O_LAP_COLS] + b * M  # columns: [0, lo) settled, [lo, hi) to scan, [hi, M) to do
+    PRED = ib[O_LAP_PRED] + b * M  # the row before column j on the path
     for j in range(M):
-        v[j] = f[V0 + j]
-        y[j] = -1
+        ib[Y + j] = -1
     num_free = 0
     for i in range(M):
         px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
@@ -113,81 +117,84 @@ def _solve_large(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
             dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
             c = ti.sqrt(dx * dx + dy * dy)
             f[C + i * M + j] = c
-            reduced = c - v[j]
+            reduced = c - f[V + j]
             if reduced < best:
                 best, arg = reduced, j
-        x[i] = -1
-        if y[arg] < 0:
-            x[i] = arg
-            y[arg] = i
+        ib[X + i] = -1
+        if ib[Y + arg] < 0:
+            ib[X + i] = arg
+            ib[Y + arg] = i
         else:
             num_free += 1
     if num_free > 0:
         for free_row in range(M):
-            if x[free_row] >= 0:
+            if ib[X + free_row] >= 0:
                 continue
             row = C + free_row * M
             for k in range(M):
-                cols[k] = k
-                pred[k] = free_row
-                d[k] = f[row + k] - v[k]
+                ib[COLS + k] = k
+                ib[PRED + k] = free_row
+                f[D + k] = f[row + k] - f[V + k]
             lo, hi, num_settled, final_j = 0, 0, 0, -1
             mind = 0.0
             while final_j < 0:
                 if lo == hi:  # next level: the to-do columns of smallest d move to [lo, hi)
                     num_settled = lo
                     hi = lo + 1
-                    mind = d[cols[lo]]
+                    mind = f[D + ib[COLS + lo]]
                     for k in range(lo + 1, M):
-                        j = cols[k]
-                        if d[j] <= mind:
-                            if d[j] < mind:
+                        j = ib[COLS + k]
+                        if f[D + j] <= mind:
+                            if f[D + j] < mind:
                                 hi = lo
-                                mind = d[j]
-                            cols[k] = cols[hi]
-                            cols[hi] = j
+                                mind = f[D + j]
+                            ib[COLS + k] = ib[COLS + hi]
+                            ib[COLS + hi] = j
                             hi += 1
                     for k in range(lo, hi):
-                        if y[cols[k]] < 0:
-                            final_j = cols[k]
+                        if ib[Y + ib[COLS + k]] < 0:
+                            final_j = ib[COLS + k]
                 while final_j < 0 and lo != hi:  # scan the level: relax through each column's row
-                    j = cols[lo]
+                    j = ib[COLS + lo]
                     lo += 1
-                    i = y[j]
+                    i = ib[Y + j]
                     row_i = C + i * M
-                    h = f[row_i + j] - v[j] - mind
+                    h = f[row_i + j] - f[V + j] - mind
                     for k in range(hi, M):
-                        jj = cols[k]
-                        reduced = f[row_i + jj] - v[jj] - h
-                        if reduced < d[jj]:
-                            d[jj] = reduced
-                            pred[jj] = i
+                        jj = ib[COLS + k]
+                        reduced = f[row_i + jj] - f[V + jj] - h
+                        if reduced < f[D + jj]:
+                            f[D + jj] = reduced
+                            ib[PRED + jj] = i
                             if reduced == mind:
-                                if y[jj] < 0:
+                                if ib[Y + jj] < 0:
                                     final_j = jj
                                     break
-                                cols[k] = cols[hi]
-                                cols[hi] = jj
+                                ib[COLS + k] = ib[COLS + hi]
+                                ib[COLS + hi] = jj
                                 hi += 1
             for k in range(num_settled):  # prices of the columns settled before the last level
-                j = cols[k]
-                v[j] += d[j] - mind
+                j = ib[COLS + k]
+                # plain read-modify-write (``+=`` on an ndarray element is an atomic add)
+                f[V + j] = f[V + j] + (f[D + j] - mind)
             i, j = -1, final_j
             while i != free_row:  # flip the path
-                i = pred[j]
-                y[j] = i
-                x[i], j = j, x[i]
+                i = ib[PRED + j]
+                ib[Y + j] = i
+                nxt = ib[X + i]
+                ib[X + i] = j
+                j = nxt
         # Prices only ever fall: shift them so that the largest is 0 (a common shift
         # changes no row's order of reduced costs) to keep float32 precision over time.
         top = -INF
         for j in range(M):
-            top = ti.max(top, v[j])
+            top = ti.max(top, f[V + j])
         for j in range(M):
-            f[V0 + j] = v[j] - top
-    A, D = ib[O_ASSIGN] + b * M, ib[O_MATCHED] + b * M
+            f[V + j] = f[V + j] - top
+    A, MD = ib[O_ASSIGN] + b * M, ib[O_MATCHED] + b * M
     for i in range(M):
-        ib[A + i] = x[i]
-        f[D + i] = f[C + i * M + x[i]]
+        ib[A + i] = ib[X + i]
+        f[MD + i] = f[C + i * M + ib[X + i]]
 
 
 def capacity(num_agents: int) -> int:

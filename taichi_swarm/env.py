@@ -4,6 +4,14 @@ Shapes: B environments, M agents, L landmarks.
     obs["self"]      float32 [B, M, 4]     (vx, vy, px, py) of each agent
     obs["entities"]  float32 [B, M, L, 2]  landmark position - agent position
     obs["adj"]       bool    [B, M, M]     adj[b, i, j]: agent i hears agent j
+  with neighbour lists (``neighbours=K``; no M x M block is allocated, obs has no "adj"):
+    obs["nbr"]       int32   [B, M, K]     the K nearest agents i hears, nearest first,
+                                           itself excluded; unused slots hold i itself
+    obs["nbr_mask"]  bool    [B, M, K]     which slots hold a neighbour
+  with landmark lists (``landmark_neighbours=KL``, ``sense_radius``):
+    obs["entities"]  float32 [B, M, KL, 2] the KL nearest landmarks within sense_radius,
+                                           nearest first, zeros where none
+    obs["entity_mask"] bool  [B, M, KL]
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
@@ -19,22 +27,29 @@ import sys
 
 import numpy as np
 
-from . import assignment, kernels, rng, runtime
+from . import assignment, kernels, neighbours, rng, runtime
 from .layout import (
+    FLOAT_HEADER,
     H_COMM_RC,
     H_MAX_STEPS,
     P_AGENT_RADIUS,
+    P_ARENA,
+    P_CELL,
     P_COMM_RADIUS,
+    P_LCELL,
+    P_SENSE,
     P_SUCCESS,
     P_TASK_PARAM,
     Layout,
     static_team_size,
 )
-from .physics import ACTION_DIM, ACTION_SPACES, NUM_ACTIONS
+from .physics import ACTION_DIM, ACTION_SPACES, CONTACT_MARGIN, CUTOFF_MARGINS, NUM_ACTIONS
 from .tasks import COMMON_PARAMS, TASK_SPECS
 
 COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
+SCALES = (None, "density")
+DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
 # (crossover measured at M = 3, 5, 10 on 2 cores: B*M^2 between ~13k and ~37k).
@@ -88,6 +103,10 @@ class SwarmEnv:
         seed: int | None = None,
         array: str = "torch",
         action_space: str = "discrete",
+        neighbours: int | None = None,
+        landmark_neighbours: int | None = None,
+        sense_radius: float | None = None,
+        scale: str | None = None,
         **task_params,
     ):
         if not isinstance(task, str) or task not in TASK_SPECS:
@@ -123,16 +142,22 @@ class SwarmEnv:
         self.num_actions = NUM_ACTIONS  # discrete actions per agent
         self.action_dim = ACTION_DIM  # continuous: float32 [B, M, 2]
         self._task_id = spec.task_id
-        self._cap = assignment.capacity(self.num_agents)
-        self._sm = static_team_size(self.num_agents)  # compile-time M for small teams, else 0
+        self._check_lists(spec, neighbours, landmark_neighbours, sense_radius, scale)
+        # compile-time M for small teams, else 0; with lists the kernels are the same code for
+        # every M (the dense physics' stack array is not compiled: any constant ``cap`` will do)
+        self._sm = static_team_size(self.num_agents) if self.neighbours is None else 0
+        self._cap = assignment.capacity(self.num_agents) if self.neighbours is None else 4
+        self._lists = (kernels.AGENT_LISTS if self.neighbours is not None else 0) | (
+            kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0
+        )
 
         self.arch = runtime.init(arch)
         if self.arch == "cuda" and array == "numpy":
             raise ValueError("array='numpy' needs arch='cpu': CUDA buffers are torch tensors")
         self.device = "cuda" if self.arch == "cuda" else "cpu"
         self._parallel = self.arch == "cuda" or self.num_envs * self.num_agents**2 >= SERIAL_BELOW_WORK
-        self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks)
-        if self.num_agents >= LARGE_TEAM and self._cap not in _ANNOUNCED_CAPACITIES:
+        self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks, **self._list_dims())
+        if self.neighbours is None and self.num_agents >= LARGE_TEAM and self._cap not in _ANNOUNCED_CAPACITIES:
             _ANNOUNCED_CAPACITIES.add(self._cap)
             print(
                 f"taichi_swarm: compiling kernels for teams of up to {self._cap} agents (first use in this "
@@ -143,6 +168,39 @@ class SwarmEnv:
         self._allocate()
         self._write_header()
         self._seeded = False
+
+    def _check_lists(self, spec, neighbours, landmark_neighbours, sense_radius, scale) -> None:
+        self.neighbours = None if neighbours is None else _check_int("neighbours", neighbours, 1)
+        if landmark_neighbours is not None:
+            if not spec.landmark_lists:
+                raise ValueError(
+                    f"landmark_neighbours is for tasks with a landmark per agent (coverage); {spec.name!r} "
+                    "keeps its landmarks global"
+                )
+            if sense_radius is None:
+                raise ValueError("landmark_neighbours needs sense_radius (how far an agent senses landmarks)")
+            landmark_neighbours = _check_int("landmark_neighbours", landmark_neighbours, 1)
+            sense_radius = _check_float("sense_radius", sense_radius, 0.0)
+        elif sense_radius is not None:
+            raise ValueError("sense_radius is only used with landmark_neighbours")
+        self.landmark_neighbours, self.sense_radius = landmark_neighbours, sense_radius
+        if scale not in SCALES:
+            raise ValueError(f"scale must be one of {SCALES}, got {scale!r}")
+        if scale == "density" and not spec.density_scale:
+            raise ValueError(f"scale='density' is not implemented for task {spec.name!r} (only for coverage)")
+        self.scale = scale
+        # spawn square half-width: sqrt(M / 10) keeps the agents per unit area of M = 10 in [-1, 1]^2
+        self.arena = (self.num_agents / DENSITY_TEAM) ** 0.5 if scale == "density" else 1.0
+
+    def _list_dims(self) -> dict:
+        """The layout's named dimensions (layout.DIMS) for the lists this env keeps."""
+        M, dims = self.num_agents, {}
+        if self.neighbours is not None:
+            dims.update(MA=0, K=self.neighbours, N=M, G1=neighbours.buckets(M) + 1)
+        if self.landmark_neighbours is not None:
+            L = self.num_landmarks
+            dims.update(LE=self.landmark_neighbours, KL=self.landmark_neighbours, LN=L, GL1=neighbours.buckets(L) + 1)
+        return dims
 
     # ------------------------------------------------------------------ buffers
     def _allocate(self) -> None:
@@ -172,7 +230,15 @@ class SwarmEnv:
         self._actions_host = self._actions_in if isinstance(self._actions_in, np.ndarray) else None
         if self._host is not None and self._actions_host is None:
             self._actions_host = self._actions_in.numpy()
-        self.obs = {"self": v("obs_self"), "entities": v("obs_entities"), "adj": v("adj", bool)}
+        self.obs = {"self": v("obs_self"), "entities": v("obs_entities")}
+        term = {"self": v("term_self"), "entities": v("term_entities")}
+        if self.neighbours is None:
+            self.obs["adj"], term["adj"] = v("adj", bool), v("term_adj", bool)
+        else:
+            self.obs["nbr"], term["nbr"] = v("nbr"), v("term_nbr")
+            self.obs["nbr_mask"], term["nbr_mask"] = v("nbr_mask", bool), v("term_nbr_mask", bool)
+        if self.landmark_neighbours is not None:
+            self.obs["entity_mask"], term["entity_mask"] = v("entity_mask", bool), v("term_entity_mask", bool)
         self.reward = v("reward")
         self.done = v("done", bool)
         self.info = {
@@ -184,13 +250,16 @@ class SwarmEnv:
                 "return": v("ep_return"),
                 "matched_dist": v("ep_matched_dist"),  # [B, M] final d*_i
                 "dist": v("ep_dist"),  # DIST: mean target -> closest agent distance
+                "covered": v("ep_covered"),  # fraction of targets matched within success_threshold
             },
-            "terminal_obs": {
-                "self": v("term_self"),
-                "entities": v("term_entities"),
-                "adj": v("term_adj", bool),
-            },
+            "terminal_obs": term,
         }
+        if self.neighbours is not None:
+            # of the lists in ``obs`` (after an auto-reset: the new episode's first)
+            self.info["neighbours"] = {
+                "in_range": v("in_range"),  # [B, M] how many agents each agent hears
+                "dropped": v("dropped"),  # [B] heard but not listed (more than K), summed over agents
+            }
         # current state extras (targets for drawing, d*_i, who is matched to what)
         self.targets = v("targets")  # [B, M, 2]
         self.matched_dist = v("matched_dist")  # [B, M]
@@ -212,11 +281,19 @@ class SwarmEnv:
         header = self.layout.header.copy()
         header[H_COMM_RC] = 1 if self.comm == "rc" else 0
         header[H_MAX_STEPS] = self.params["max_steps"]
-        fparams = np.zeros(4, dtype=np.float32)
+        spec = TASK_SPECS[self.task]
+        fparams = np.zeros(FLOAT_HEADER, dtype=np.float32)
         fparams[P_COMM_RADIUS] = self.comm_radius
-        fparams[P_AGENT_RADIUS] = TASK_SPECS[self.task].agent_radius
+        fparams[P_AGENT_RADIUS] = spec.agent_radius
         fparams[P_SUCCESS] = self.params["success_threshold"]
-        fparams[P_TASK_PARAM] = self.params.get(TASK_SPECS[self.task].kernel_param, 0.0)
+        fparams[P_TASK_PARAM] = self.params.get(spec.kernel_param, 0.0)
+        # the agents' grid: cells hold everything an agent hears ("rc") and touches
+        contact_reach = 2.0 * spec.agent_radius + CUTOFF_MARGINS * CONTACT_MARGIN
+        heard = self.comm_radius if self.comm == "rc" else 0.0
+        fparams[P_CELL] = neighbours.cell_side(max(heard, contact_reach))
+        fparams[P_SENSE] = self.sense_radius or 0.0
+        fparams[P_LCELL] = neighbours.cell_side(self.sense_radius or 1.0)
+        fparams[P_ARENA] = self.arena
         self._put(self._i, 0, header)
         self._put(self._f, 0, fparams)
 
@@ -242,7 +319,9 @@ class SwarmEnv:
             states = rng.seed_states(seed if seed is not None else self._seed, self.num_envs)
             self._put(self._i, self.layout.blocks["rng"].offset, states)
             self._seeded = True
-        kernels.reset_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
+        kernels.reset_kernel(
+            self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._lists, self._parallel
+        )
         return self.obs
 
     def reset_envs(self, mask):
@@ -267,7 +346,7 @@ class SwarmEnv:
 
             flags = torch.from_numpy(flags).to("cuda")
         kernels.reset_masked_kernel(
-            self._f, self._i, self._u8, flags, self._task_id, self._cap, self._sm, self._parallel
+            self._f, self._i, self._u8, flags, self._task_id, self._cap, self._sm, self._lists, self._parallel
         )
         return self.obs
 
@@ -287,7 +366,7 @@ class SwarmEnv:
         if self.continuous:
             u = self._check_continuous_actions(actions)  # 1-D float32 view, no copy
             kernels.step_continuous_kernel(
-                self._f, self._i, self._u8, u, self._task_id, self._cap, self._sm, self._parallel
+                self._f, self._i, self._u8, u, self._task_id, self._cap, self._sm, self._lists, self._parallel
             )
             return self.obs, self.reward, self.done, self.info
         host = self._check_actions(actions)
@@ -295,7 +374,7 @@ class SwarmEnv:
             np.copyto(self._actions_host, host, casting="unsafe")  # int64 -> int32
         else:
             self._actions_in.copy_(actions)  # CUDA
-        kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
+        kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._lists, self._parallel)
         return self.obs, self.reward, self.done, self.info
 
     def _check_continuous_actions(self, actions):
@@ -392,12 +471,25 @@ class SwarmEnv:
             raise ValueError("restore() takes what snapshot() returned")
         if tuple(snapshot.get("shape", ())) != self._snapshot_key():
             raise ValueError(f"snapshot of {tuple(snapshot.get('shape', ()))} cannot restore {self._snapshot_key()}")
-        for k, buf in self._bufs.items():
-            arr = np.asarray(snapshot["buffers"][k])
+        arrays = {}
+        for k, buf in self._bufs.items():  # every buffer checked before any is written
+            if k not in snapshot["buffers"]:
+                raise ValueError(f"snapshot lacks buffer {k}")
+            arr = arrays[k] = np.asarray(snapshot["buffers"][k])
             if arr.shape != tuple(buf.shape) or arr.dtype != self._host_dtype(k):
                 raise ValueError(
                     f"snapshot buffer {k} has shape {arr.shape} / {arr.dtype}, expected {tuple(buf.shape)}"
                 )
+        if not np.isfinite(arrays["f32"]).all():
+            raise ValueError("snapshot buffer f32 holds NaN or inf")
+        from .layout import FLOAT_HEADER
+
+        live = self.snapshot()["buffers"]  # the headers (offsets, sizes, parameters) the kernels trust
+        for k, n in (("i32", self.layout.header.size), ("f32", FLOAT_HEADER)):
+            if not np.array_equal(arrays[k][:n], live[k][:n]):
+                raise ValueError(f"snapshot buffer {k}'s header differs from this environment's")
+        for k, buf in self._bufs.items():
+            arr = arrays[k]
             if self._host is not None:
                 self._host[k][...] = arr
             else:
@@ -408,7 +500,25 @@ class SwarmEnv:
         return self.obs
 
     def _snapshot_key(self) -> tuple:
-        return (self.task, self.num_envs, self.num_agents, self.num_landmarks, self.comm, self.comm_radius)
+        return (
+            self.task,
+            self.num_envs,
+            self.num_agents,
+            self.num_landmarks,
+            self.comm,
+            self.comm_radius,
+            *self._list_key(),
+        )
+
+    def _list_key(self) -> tuple:
+        """The list and scale options, only where set (snapshots of dense envs keep their key)."""
+        opts = (
+            ("neighbours", self.neighbours),
+            ("landmark_neighbours", self.landmark_neighbours),
+            ("sense_radius", self.sense_radius),
+            ("scale", self.scale),
+        )
+        return tuple(f"{k}={v}" for k, v in opts if v is not None)
 
     @staticmethod
     def _host_dtype(kind: str):
@@ -450,7 +560,9 @@ class SwarmEnv:
                 if not np.isfinite(arr).all():
                     raise ValueError(f"{name} must be finite as float32 (|x| < 3.4e38)")
             self._put(self._bufs[blk.buffer], blk.offset, arr)
-        kernels.refresh_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._parallel)
+        kernels.refresh_kernel(
+            self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._lists, self._parallel
+        )
         return self.obs
 
     def __repr__(self) -> str:
@@ -458,7 +570,9 @@ class SwarmEnv:
             f"SwarmEnv(task={self.task!r}, num_envs={self.num_envs}, num_agents={self.num_agents}, "
             f"num_landmarks={self.num_landmarks}, comm={self.comm!r}, comm_radius={self.comm_radius}, "
             f"arch={self.arch!r}, array={self.array!r}"
-            + (f", action_space={self.action_space!r})" if self.continuous else ")")
+            + (f", action_space={self.action_space!r}" if self.continuous else "")
+            + "".join(f", {kv}" for kv in self._list_key())
+            + ")"
         )
 
 
@@ -487,6 +601,10 @@ def make(
     seed: int | None = None,
     array: str = "torch",
     action_space: str = "discrete",
+    neighbours: int | None = None,
+    landmark_neighbours: int | None = None,
+    sense_radius: float | None = None,
+    scale: str | None = None,
     **task_params,
 ) -> SwarmEnv:
     """Build a batch of ``num_envs`` teams of ``num_agents`` agents for ``task``.
@@ -498,5 +616,28 @@ def make(
     "continuous" (MPE's continuous mode: float32 [B, M, 2], force 5 clip(u, -1, 1)
     per axis). task_params: ``max_steps`` (50) and ``success_threshold`` for all
     tasks; ``formation_radius`` (formation); ``line_length`` (line).
+
+    neighbours: K, each agent's K nearest heard agents as index lists (obs["nbr"],
+    obs["nbr_mask"]) found through a cell grid, which also finds the contacts; no M x M
+    adjacency. "rc": those within comm_radius; "uc": the K nearest of all.
+    landmark_neighbours (coverage) with sense_radius: each agent's KL nearest landmarks
+    within sense_radius (obs["entities"] [B, M, KL, 2], obs["entity_mask"]).
+    scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
+    sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     """
-    return SwarmEnv(task, num_envs, num_agents, comm, comm_radius, arch, seed, array, action_space, **task_params)
+    return SwarmEnv(
+        task,
+        num_envs,
+        num_agents,
+        comm,
+        comm_radius,
+        arch,
+        seed,
+        array,
+        action_space,
+        neighbours,
+        landmark_neighbours,
+        sense_radius,
+        scale,
+        **task_params,
+    )

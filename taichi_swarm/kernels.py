@@ -11,30 +11,51 @@ positions, targets, optimal assignment, reward, success and done, episode
 statistics, terminal observation and auto-reset, then the observations and
 communication graph.
 
-Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (work-array size of the
-large-M assignment), ``sm`` (M itself for M <= layout.STATIC_M_MAX, so the
-loops over agents unroll; else 0 and M is read from the header) and
-``parallel`` (serial env loop for small batches, see env.py).
+Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (size of the dense
+physics' per-thread force array), ``lists`` (AGENT_LISTS | LANDMARK_LISTS: neighbour
+and landmark lists through cell grids instead of the dense adjacency, neighbours.py),
+``sm`` (M itself for M <= layout.STATIC_M_MAX, so the loops over agents unroll; else 0
+and M is read from the header) and ``parallel`` (serial env loop for small batches, see
+env.py).
 """
 
 import taichi as ti
 
-from . import assignment, physics, tasks
+from . import assignment, neighbours, physics, tasks
 from .layout import (
     H_B,
     H_COMM_RC,
+    H_G,
+    H_GL,
+    H_K,
+    H_KL,
     H_MAX_STEPS,
     O_ACTIONS,
     O_ADJ,
     O_DONE,
+    O_DROPPED,
+    O_ENT_D2,
+    O_ENT_IDX,
+    O_ENT_MASK,
+    O_EP_COVERED,
     O_EP_DIST,
     O_EP_LEN,
     O_EP_MATCHED,
     O_EP_RETURN,
     O_EP_SUCCESS,
     O_EP_TRUNC,
+    O_GRID_CELL,
+    O_GRID_ITEMS,
+    O_GRID_START,
+    O_IN_RANGE,
+    O_LGRID_CELL,
+    O_LGRID_ITEMS,
+    O_LGRID_START,
     O_LMK,
     O_MATCHED,
+    O_NBR,
+    O_NBR_D2,
+    O_NBR_MASK,
     O_OBS_ENT,
     O_OBS_SELF,
     O_POS,
@@ -43,16 +64,24 @@ from .layout import (
     O_STEP,
     O_TERM_ADJ,
     O_TERM_ENT,
+    O_TERM_ENT_MASK,
+    O_TERM_NBR,
+    O_TERM_NBR_MASK,
     O_TERM_SELF,
     O_TGT,
     O_VEL,
     P_AGENT_RADIUS,
+    P_CELL,
     P_COMM_RADIUS,
+    P_LCELL,
+    P_SENSE,
     P_SUCCESS,
     agent_at,
     env_at,
     team_size,
 )
+
+AGENT_LISTS, LANDMARK_LISTS = 1, 2  # bits of the compile-time ``lists`` argument
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -60,50 +89,139 @@ U8 = ti.types.ndarray(dtype=ti.u8, ndim=1)
 
 
 @ti.func
-def match(task: ti.template(), cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def match(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """Targets, optimal assignment and matched distances d*_i of env b."""
     tasks.place_targets(task, sm, f, ib, b)
-    assignment.solve(cap, sm, f, ib, b)
+    assignment.solve(sm, f, ib, b)
 
 
 @ti.func
 def write_team_obs(
     task: ti.template(),
     sm: ti.template(),
+    lists: ti.template(),
     f: ti.template(),
     ib: ti.template(),
     u8: ti.template(),
     b: ti.i32,
-    self_off: ti.i32,
-    ent_off: ti.i32,
-    adj_off: ti.i32,
+    term: ti.template(),
 ):
-    """Every agent's observation, into the blocks starting at the given offsets:
-    self [M, 4] = (vel, pos), entities [M, L, 2] = landmark - pos, adjacency
-    [M, M] = who agent i hears (itself always; "rc": those within comm radius)."""
+    """Every agent's observation of env b, into the current (``term`` False) or the
+    terminal observation blocks: self [M, 4] = (vel, pos); entities [M, L, 2] = landmark
+    - pos; and who agent i hears: the adjacency [M, M] (dense: itself always; "rc": those
+    within comm radius) or, with neighbour lists, its K nearest heard agents."""
     M, L = team_size(sm, ib), tasks.landmark_count(task, sm, ib)
     P0, V0, LM = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_LMK] + b * L * 2
-    S, E, A = self_off + b * M * 4, ent_off + b * M * L * 2, adj_off + b * M * M
-    restricted = ib[H_COMM_RC] != 0
-    radius = f[P_COMM_RADIUS]
-    r2 = radius * radius
+    S = ib[O_TERM_SELF if ti.static(term) else O_OBS_SELF] + b * M * 4
     for i in range(M):
         px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
         f[S + 4 * i + 0] = f[V0 + 2 * i]
         f[S + 4 * i + 1] = f[V0 + 2 * i + 1]
         f[S + 4 * i + 2] = px
         f[S + 4 * i + 3] = py
-        for l in range(L):
-            f[E + (i * L + l) * 2] = f[LM + 2 * l] - px
-            f[E + (i * L + l) * 2 + 1] = f[LM + 2 * l + 1] - py
-    for i in range(M):  # the graph is symmetric: each pair once
-        u8[A + i * M + i] = ti.u8(1)
+    if ti.static(lists & LANDMARK_LISTS):
+        landmark_lists(sm, f, ib, u8, b, M, L, term)
+    else:
+        E = ib[O_TERM_ENT if ti.static(term) else O_OBS_ENT] + b * M * L * 2
+        for i in range(M):
+            px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+            for l in range(L):
+                f[E + (i * L + l) * 2] = f[LM + 2 * l] - px
+                f[E + (i * L + l) * 2 + 1] = f[LM + 2 * l + 1] - py
+    if ti.static(lists & AGENT_LISTS):
+        agent_lists(sm, f, ib, u8, b, M, term)
+    else:
+        A = ib[O_TERM_ADJ if ti.static(term) else O_ADJ] + b * M * M
+        restricted = ib[H_COMM_RC] != 0
+        radius = f[P_COMM_RADIUS]
+        r2 = radius * radius
+        for i in range(M):  # the graph is symmetric: each pair once
+            u8[A + i * M + i] = ti.u8(1)
+            px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+            for j in range(i + 1, M):
+                dx, dy = f[P0 + 2 * j] - px, f[P0 + 2 * j + 1] - py
+                hears = ti.cast((not restricted) or dx * dx + dy * dy <= r2, ti.u8)
+                u8[A + i * M + j] = hears
+                u8[A + j * M + i] = hears
+
+
+@ti.func
+def agent_lists(
+    sm: ti.template(), f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32, M: ti.i32, term: ti.template()
+):
+    """The cell grid of env b's agents (kept for the next step's contacts), then each
+    agent's K nearest heard agents (itself excluded), nearest first: nbr [M, K] (padded
+    with the agent's own index), nbr_mask [M, K], in_range [M] and dropped (the env's
+    heard-but-not-listed count)."""
+    K, G = ib[H_K], ib[H_G]
+    P0 = ib[O_POS] + b * M * 2
+    GS, GI, GC = ib[O_GRID_START] + b * (G + 1), ib[O_GRID_ITEMS] + b * M, ib[O_GRID_CELL] + b * M * 2
+    h = f[P_CELL]
+    neighbours.build(f, ib, M, P0, h, G, GS, GI, GC)
+    NB = ib[O_TERM_NBR if ti.static(term) else O_NBR] + b * M * K
+    MK = ib[O_TERM_NBR_MASK if ti.static(term) else O_NBR_MASK] + b * M * K
+    D2, IR = ib[O_NBR_D2] + b * M * K, ib[O_IN_RANGE] + b * M
+    restricted = ib[H_COMM_RC] != 0
+    r2 = f[P_COMM_RADIUS] * f[P_COMM_RADIUS]
+    dropped = 0
+    for i in range(M):
         px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
-        for j in range(i + 1, M):
-            dx, dy = f[P0 + 2 * j] - px, f[P0 + 2 * j + 1] - py
-            hears = ti.cast((not restricted) or dx * dx + dy * dy <= r2, ti.u8)
-            u8[A + i * M + j] = hears
-            u8[A + j * M + i] = hears
+        found = ti.math.ivec2(0, 0)  # (listed, in range)
+        if restricted:
+            found = neighbours.nearest_in_grid(f, ib, px, py, i, P0, r2, h, G, GS, GI, GC, D2 + i * K, NB + i * K, K)
+        else:  # "uc": everyone is heard; the K nearest of all
+            kept = 0
+            for j in range(M):
+                if j != i:
+                    dx, dy = f[P0 + 2 * j] - px, f[P0 + 2 * j + 1] - py
+                    kept = neighbours.insert(f, ib, D2 + i * K, NB + i * K, kept, K, dx * dx + dy * dy, j)
+            found = ti.math.ivec2(kept, M - 1)
+        for k in range(K):
+            listed = k < found[0]
+            u8[MK + i * K + k] = ti.cast(listed, ti.u8)
+            if not listed:
+                ib[NB + i * K + k] = i
+        ib[IR + i] = found[1]
+        dropped += found[1] - found[0]
+    ib[env_at(ib, O_DROPPED, b)] = dropped
+
+
+@ti.func
+def landmark_lists(
+    sm: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    u8: ti.template(),
+    b: ti.i32,
+    M: ti.i32,
+    L: ti.i32,
+    term: ti.template(),
+):
+    """Each agent's KL nearest landmarks within sense_radius, nearest first, through the
+    landmarks' cell grid: entities [M, KL, 2] (landmark - pos, zeros where none) and
+    entity_mask [M, KL]."""
+    KL, G = ib[H_KL], ib[H_GL]
+    P0, LM = ib[O_POS] + b * M * 2, ib[O_LMK] + b * L * 2
+    GS, GI, GC = ib[O_LGRID_START] + b * (G + 1), ib[O_LGRID_ITEMS] + b * L, ib[O_LGRID_CELL] + b * L * 2
+    h = f[P_LCELL]
+    neighbours.build(f, ib, L, LM, h, G, GS, GI, GC)
+    E = ib[O_TERM_ENT if ti.static(term) else O_OBS_ENT] + b * M * KL * 2
+    MK = ib[O_TERM_ENT_MASK if ti.static(term) else O_ENT_MASK] + b * M * KL
+    D2 = ib[O_ENT_D2] + b * M * KL
+    IDX = ib[O_ENT_IDX] + b * KL
+    s2 = f[P_SENSE] * f[P_SENSE]
+    for i in range(M):
+        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+        found = neighbours.nearest_in_grid(f, ib, px, py, -1, LM, s2, h, G, GS, GI, GC, D2 + i * KL, IDX, KL)
+        for k in range(KL):
+            listed = k < found[0]
+            u8[MK + i * KL + k] = ti.cast(listed, ti.u8)
+            dx, dy = 0.0, 0.0
+            if listed:
+                l = ib[IDX + k]
+                dx, dy = f[LM + 2 * l] - px, f[LM + 2 * l + 1] - py
+            f[E + (i * KL + k) * 2] = dx
+            f[E + (i * KL + k) * 2 + 1] = dy
 
 
 @ti.func
@@ -122,36 +240,48 @@ def target_dist(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i3
 
 
 @ti.func
-def start_episode(
-    task: ti.template(), cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
-):
+def start_episode(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     tasks.spawn(task, sm, f, ib, b)
     ib[env_at(ib, O_STEP, b)] = 0
     f[env_at(ib, O_RET_ACC, b)] = 0.0
-    match(task, cap, sm, f, ib, b)
+    match(task, sm, f, ib, b)
 
 
 @ti.kernel
 def reset_kernel(
-    f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), sm: ti.template(), parallel: ti.template()
+    f: F32,
+    ib: I32,
+    u8: U8,
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    lists: ti.template(),
+    parallel: ti.template(),
 ):
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        start_episode(task, cap, sm, f, ib, b)
+        start_episode(task, sm, f, ib, b)
         f[env_at(ib, O_REWARD, b)] = 0.0
         u8[env_at(ib, O_DONE, b)] = ti.u8(0)
-        write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+        write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
 @ti.kernel
 def refresh_kernel(
-    f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), sm: ti.template(), parallel: ti.template()
+    f: F32,
+    ib: I32,
+    u8: U8,
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    lists: ti.template(),
+    parallel: ti.template(),
 ):
     """Recompute targets, assignment and observations after ``set_state``."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
-        match(task, cap, sm, f, ib, b)
-        write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+        match(task, sm, f, ib, b)
+        write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
 @ti.func
@@ -203,10 +333,45 @@ def physics_step(
 
 
 @ti.func
+def physics_step_grid(
+    sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, u: ti.template(), continuous: ti.template()
+):
+    """``physics_step`` with the contacts found through the cell grid of the current
+    positions (built with the last observation). Each agent sums its action force and
+    then its contacts in increasing j, as the dense loop does, so both give the same
+    forces; velocities first (forces read positions only), then positions."""
+    M = team_size(sm, ib)
+    G = ib[H_G]
+    P0, V0, A0 = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_ACTIONS] + b * M
+    GS, GI, GC = ib[O_GRID_START] + b * (G + 1), ib[O_GRID_ITEMS] + b * M, ib[O_GRID_CELL] + b * M * 2
+    dist_min = 2.0 * f[P_AGENT_RADIUS]
+    reach = (dist_min + physics.CUTOFF_MARGINS * physics.CONTACT_MARGIN) * 1.001  # a superset of the force's
+    h = f[P_CELL]
+    for i in range(M):
+        force = ti.math.vec2(0.0, 0.0)
+        if ti.static(continuous):
+            force = physics.continuous_force(ti.math.vec2(u[(b * M + i) * 2], u[(b * M + i) * 2 + 1]))
+        else:
+            force = physics.action_force(ib[A0 + i])
+        p = ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1])
+        j = neighbours.next_contact(f, ib, i, -1, P0, reach * reach, h, G, GS, GI, GC, M)
+        while j < M:
+            force += physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
+            j = neighbours.next_contact(f, ib, i, j, P0, reach * reach, h, G, GS, GI, GC, M)
+        v = physics.integrate_velocity(ti.math.vec2(f[V0 + 2 * i], f[V0 + 2 * i + 1]), force)
+        f[V0 + 2 * i] = v[0]
+        f[V0 + 2 * i + 1] = v[1]
+    for i in range(M):
+        f[P0 + 2 * i] = f[P0 + 2 * i] + f[V0 + 2 * i] * physics.DT
+        f[P0 + 2 * i + 1] = f[P0 + 2 * i + 1] + f[V0 + 2 * i + 1] * physics.DT
+
+
+@ti.func
 def step_env(
     task: ti.template(),
     cap: ti.template(),
     sm: ti.template(),
+    lists: ti.template(),
     f: ti.template(),
     ib: ti.template(),
     u8: ti.template(),
@@ -216,16 +381,21 @@ def step_env(
 ):
     """One step of env b: physics, targets, assignment, reward, done, auto-reset, observations."""
     M = team_size(sm, ib)
-    physics_step(cap, sm, f, ib, b, u, continuous)
+    if ti.static(lists & AGENT_LISTS):
+        physics_step_grid(sm, f, ib, b, u, continuous)
+    else:
+        physics_step(cap, sm, f, ib, b, u, continuous)
     t = ib[env_at(ib, O_STEP, b)] + 1
     ib[env_at(ib, O_STEP, b)] = t
-    match(task, cap, sm, f, ib, b)
-    sum_d, sum_clipped, success = 0.0, 0.0, True
+    match(task, sm, f, ib, b)
+    sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
     for i in range(M):
         d = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
         sum_d += d
         sum_clipped += ti.math.clamp(d, 0.0, 2.0)
-        success = success and d < f[P_SUCCESS]
+        within = d < f[P_SUCCESS]
+        success = success and within
+        covered += ti.cast(within, ti.i32)
     r = tasks.reward(task, sum_d / M, sum_clipped / M)
     f[env_at(ib, O_REWARD, b)] = r
     ret = f[env_at(ib, O_RET_ACC, b)] + r
@@ -238,21 +408,29 @@ def step_env(
         ib[env_at(ib, O_EP_LEN, b)] = t
         f[env_at(ib, O_EP_RETURN, b)] = ret
         f[env_at(ib, O_EP_DIST, b)] = target_dist(sm, f, ib, b)
+        f[env_at(ib, O_EP_COVERED, b)] = covered / M
         for i in range(M):
             f[agent_at(ib, O_EP_MATCHED, b, M, i, 1)] = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
-        write_team_obs(task, sm, f, ib, u8, b, ib[O_TERM_SELF], ib[O_TERM_ENT], ib[O_TERM_ADJ])
-        start_episode(task, cap, sm, f, ib, b)
-    write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+        write_team_obs(task, sm, lists, f, ib, u8, b, True)
+        start_episode(task, sm, f, ib, b)
+    write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
 @ti.kernel
 def step_kernel(
-    f: F32, ib: I32, u8: U8, task: ti.template(), cap: ti.template(), sm: ti.template(), parallel: ti.template()
+    f: F32,
+    ib: I32,
+    u8: U8,
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    lists: ti.template(),
+    parallel: ti.template(),
 ):
     """One step of every environment, with the discrete actions already in ib[O_ACTIONS]."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        step_env(task, cap, sm, f, ib, u8, b, f, False)  # ``u`` unused (discrete): any array will do
+        step_env(task, cap, sm, lists, f, ib, u8, b, f, False)  # ``u`` unused (discrete): any array will do
 
 
 @ti.kernel
@@ -264,13 +442,14 @@ def step_continuous_kernel(
     task: ti.template(),
     cap: ti.template(),
     sm: ti.template(),
+    lists: ti.template(),
     parallel: ti.template(),
 ):
     """One step of every environment with continuous actions u: float32 [B * M * 2] (a
     kernel of its own, so that the discrete step keeps its three arguments)."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
-        step_env(task, cap, sm, f, ib, u8, b, u, True)
+        step_env(task, cap, sm, lists, f, ib, u8, b, u, True)
 
 
 @ti.kernel
@@ -282,6 +461,7 @@ def reset_masked_kernel(
     task: ti.template(),
     cap: ti.template(),
     sm: ti.template(),
+    lists: ti.template(),
     parallel: ti.template(),
 ):
     """A fresh episode in the environments b with mask[b] != 0 (their random streams go on);
@@ -289,7 +469,7 @@ def reset_masked_kernel(
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
         if mask[b] != 0:
-            start_episode(task, cap, sm, f, ib, b)
+            start_episode(task, sm, f, ib, b)
             f[env_at(ib, O_REWARD, b)] = 0.0
             u8[env_at(ib, O_DONE, b)] = ti.u8(0)
-            write_team_obs(task, sm, f, ib, u8, b, ib[O_OBS_SELF], ib[O_OBS_ENT], ib[O_ADJ])
+            write_team_obs(task, sm, lists, f, ib, u8, b, False)

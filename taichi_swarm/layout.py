@@ -9,6 +9,11 @@ contiguous block ``[B, ...]`` inside its buffer; the public arrays
 The block offsets are written into a small header at the start of the int32
 buffer (and the float parameters at the start of the float32 buffer), so the
 kernels read ``ib[O_POS]`` instead of being recompiled for each (B, M, L).
+
+Block shapes are written in named dimensions (``DIMS``): the dense layout has
+``MA = M`` (the adjacency) and no neighbour blocks; with neighbour lists
+(``make(..., neighbours=K)``) ``MA = 0`` (no M x M block) and the list and grid
+blocks get their sizes (K slots, N = M agents in the grid, G + 1 bucket starts).
 """
 
 import math
@@ -18,8 +23,8 @@ import numpy as np
 import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
-H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS = range(5)
-SIZE_SLOTS = 5
+H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL = range(9)
+SIZE_SLOTS = 9
 SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
 
 
@@ -31,8 +36,17 @@ class BlockSpec:
     buffer: str  # "f32" | "i32" | "u8"
     per_env: tuple = ()
 
-    def shape(self, M: int, L: int) -> tuple:
-        return tuple(M if d == "M" else L if d == "L" else int(d) for d in self.per_env)
+    def shape(self, M: int, L: int, dims: dict | None = None) -> tuple:
+        sizes = {**dense_dims(M, L), **(dims or {})}
+        return tuple(sizes[d] if isinstance(d, str) else int(d) for d in self.per_env)
+
+
+def dense_dims(M: int, L: int) -> dict:
+    """The named dimensions of the dense layout (no neighbour or landmark lists)."""
+    return {"M": M, "L": L, "MA": M, "LE": L, "K": 0, "KL": 0, "N": 0, "G1": 0, "LN": 0, "GL1": 0}
+
+
+DIMS = tuple(dense_dims(0, 0))
 
 
 # THE declaration of every block, in buffer order; its index here (after the size slots)
@@ -43,7 +57,7 @@ BLOCKS = (
     BlockSpec("landmarks", "f32", ("L", 2)),
     BlockSpec("targets", "f32", ("M", 2)),
     BlockSpec("obs_self", "f32", ("M", SELF_DIM)),
-    BlockSpec("obs_entities", "f32", ("M", "L", 2)),
+    BlockSpec("obs_entities", "f32", ("M", "LE", 2)),  # LE: L, or KL with landmark lists
     BlockSpec("reward", "f32"),
     BlockSpec("matched_dist", "f32", ("M",)),
     BlockSpec("ep_matched_dist", "f32", ("M",)),
@@ -51,19 +65,43 @@ BLOCKS = (
     BlockSpec("ep_return", "f32"),
     BlockSpec("return_acc", "f32"),
     BlockSpec("term_self", "f32", ("M", SELF_DIM)),
-    BlockSpec("term_entities", "f32", ("M", "L", 2)),
+    BlockSpec("term_entities", "f32", ("M", "LE", 2)),
     BlockSpec("assign_cost", "f32", ("M", "M")),  # assignment cost matrix (M > SMALL_M)
     BlockSpec("prices", "f32", ("M",)),  # assignment column prices, the next solve's warm start
+    BlockSpec("lap_dist", "f32", ("M",)),  # assignment work array: path lengths to each column
+    BlockSpec("ep_covered", "f32"),  # fraction of targets matched within success_threshold
+    BlockSpec("nbr_d2", "f32", ("M", "K")),  # squared distances of the listed neighbours
+    BlockSpec("ent_d2", "f32", ("M", "KL")),  # squared distances of the listed landmarks
     BlockSpec("step", "i32"),
     BlockSpec("rng", "i32"),
     BlockSpec("ep_length", "i32"),
     BlockSpec("assignment", "i32", ("M",)),
     BlockSpec("actions", "i32", ("M",)),  # the step's actions, copied in (one kernel argument less)
-    BlockSpec("adj", "u8", ("M", "M")),
+    # assignment work arrays: row -> column, column -> row, column order, path predecessor
+    BlockSpec("lap_x", "i32", ("M",)),
+    BlockSpec("lap_y", "i32", ("M",)),
+    BlockSpec("lap_cols", "i32", ("M",)),
+    BlockSpec("lap_pred", "i32", ("M",)),
+    BlockSpec("nbr", "i32", ("M", "K")),  # the K nearest heard agents, nearest first
+    BlockSpec("term_nbr", "i32", ("M", "K")),
+    BlockSpec("ent_idx", "i32", ("KL",)),  # scratch: one agent's landmark list being built
+    BlockSpec("in_range", "i32", ("N",)),  # how many agents each agent hears
+    BlockSpec("dropped", "i32"),  # heard but cut from the lists (more than K), summed over agents
+    BlockSpec("grid_start", "i32", ("G1",)),  # agents' cell grid: bucket g holds items[start[g]:start[g+1]]
+    BlockSpec("grid_items", "i32", ("N",)),
+    BlockSpec("grid_cell", "i32", ("N", 2)),  # each agent's integer cell coordinates
+    BlockSpec("lgrid_start", "i32", ("GL1",)),  # the landmarks' cell grid (landmark lists)
+    BlockSpec("lgrid_items", "i32", ("LN",)),
+    BlockSpec("lgrid_cell", "i32", ("LN", 2)),
+    BlockSpec("adj", "u8", ("M", "MA")),
     BlockSpec("done", "u8"),
     BlockSpec("ep_success", "u8"),
     BlockSpec("ep_truncated", "u8"),
-    BlockSpec("term_adj", "u8", ("M", "M")),
+    BlockSpec("term_adj", "u8", ("M", "MA")),
+    BlockSpec("nbr_mask", "u8", ("M", "K")),
+    BlockSpec("term_nbr_mask", "u8", ("M", "K")),
+    BlockSpec("entity_mask", "u8", ("M", "KL")),
+    BlockSpec("term_entity_mask", "u8", ("M", "KL")),
 )
 SLOT = {spec.name: SIZE_SLOTS + i for i, spec in enumerate(BLOCKS)}
 INT_HEADER = SIZE_SLOTS + len(BLOCKS)
@@ -77,10 +115,19 @@ O_EP_MATCHED, O_EP_DIST, O_EP_RETURN = SLOT["ep_matched_dist"], SLOT["ep_dist"],
 O_EP_LEN, O_EP_SUCCESS, O_EP_TRUNC = SLOT["ep_length"], SLOT["ep_success"], SLOT["ep_truncated"]
 O_TERM_SELF, O_TERM_ENT, O_TERM_ADJ = SLOT["term_self"], SLOT["term_entities"], SLOT["term_adj"]
 O_COST, O_PRICES, O_ASSIGN, O_ACTIONS = SLOT["assign_cost"], SLOT["prices"], SLOT["assignment"], SLOT["actions"]
+O_LAP_DIST, O_LAP_X, O_LAP_Y = SLOT["lap_dist"], SLOT["lap_x"], SLOT["lap_y"]
+O_LAP_COLS, O_LAP_PRED, O_EP_COVERED = SLOT["lap_cols"], SLOT["lap_pred"], SLOT["ep_covered"]
+O_NBR, O_TERM_NBR, O_NBR_MASK, O_TERM_NBR_MASK = SLOT["nbr"], SLOT["term_nbr"], SLOT["nbr_mask"], SLOT["term_nbr_mask"]
+O_NBR_D2, O_ENT_D2, O_IN_RANGE, O_DROPPED = SLOT["nbr_d2"], SLOT["ent_d2"], SLOT["in_range"], SLOT["dropped"]
+O_ENT_MASK, O_TERM_ENT_MASK, O_ENT_IDX = SLOT["entity_mask"], SLOT["term_entity_mask"], SLOT["ent_idx"]
+O_GRID_START, O_GRID_ITEMS, O_GRID_CELL = SLOT["grid_start"], SLOT["grid_items"], SLOT["grid_cell"]
+O_LGRID_START, O_LGRID_ITEMS, O_LGRID_CELL = SLOT["lgrid_start"], SLOT["lgrid_items"], SLOT["lgrid_cell"]
 
 # --- float32 header: physical and task parameters ------------------------------------
-P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM = range(4)
-FLOAT_HEADER = 4
+# P_CELL / P_LCELL: cell sides of the agents' and landmarks' grids; P_ARENA: the spawn
+# square's half-width (1, or sqrt(M / 10) with scale="density")
+P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA = range(8)
+FLOAT_HEADER = 8
 
 
 # Teams up to this size get kernels compiled for their exact M: every loop over agents
@@ -112,15 +159,20 @@ class Block:
 
 
 class Layout:
-    """Offsets of every named block for one (B, M, L)."""
+    """Offsets of every named block for one (B, M, L); ``dims`` overrides the dense
+    layout's named dimensions (``dense_dims``)."""
 
-    def __init__(self, num_envs: int, num_agents: int, num_landmarks: int):
+    def __init__(self, num_envs: int, num_agents: int, num_landmarks: int, **dims: int):
         self.B, self.M, self.L = num_envs, num_agents, num_landmarks
+        unknown = sorted(set(dims) - set(DIMS))
+        if unknown:
+            raise ValueError(f"unknown layout dimension(s) {unknown}; known: {list(DIMS)}")
+        self.dims = {**dense_dims(num_agents, num_landmarks), **dims}
         self.blocks: dict[str, Block] = {}
         # offsets in Python integers first: the int32 header is filled only once they fit
         offset = {"f32": FLOAT_HEADER, "i32": INT_HEADER, "u8": 0}
         for spec in BLOCKS:
-            per_env = spec.shape(num_agents, num_landmarks)
+            per_env = spec.shape(num_agents, num_landmarks, self.dims)
             self.blocks[spec.name] = Block(spec.buffer, offset[spec.buffer], (num_envs, *per_env))
             offset[spec.buffer] += int(num_envs) * math.prod(int(x) for x in per_env)
         self.sizes = dict(offset)
@@ -133,6 +185,8 @@ class Layout:
             )
         self.header = np.zeros(INT_HEADER, dtype=np.int32)
         self.header[[H_B, H_M, H_L]] = (num_envs, num_agents, num_landmarks)
+        d = self.dims
+        self.header[[H_K, H_KL, H_G, H_GL]] = (d["K"], d["KL"], max(d["G1"] - 1, 0), max(d["GL1"] - 1, 0))
         for name, block in self.blocks.items():
             self.header[SLOT[name]] = block.offset
 

@@ -14,7 +14,7 @@ Adding a task (docs/ARCHITECTURE.md "How to add a task"): write ``mytask.py`` li
 import taichi as ti
 
 from .. import rng
-from ..layout import O_POS, O_VEL, agent_at, team_size
+from ..layout import O_POS, O_VEL, P_ARENA, agent_at, team_size
 from . import coverage, formation, line
 from .base import COMMON_PARAMS, Task, set2
 
@@ -60,10 +60,12 @@ def landmark_count(task: ti.template(), sm: ti.template(), ib: ti.template()) ->
 
 @ti.func
 def spawn(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
-    """Fresh episode for env b: agents U[-1,1]^2 at rest (every task), then the task's landmarks."""
+    """Fresh episode for env b: agents U[-w, w]^2 at rest (every task; w = 1, or the
+    density-scaled half-width), then the task's landmarks."""
     M = team_size(sm, ib)
+    w = f[P_ARENA]
     for i in range(M):
-        set2(f, agent_at(ib, O_POS, b, M, i, 2), rng.uniform2(ib, b, -1.0, 1.0))
+        set2(f, agent_at(ib, O_POS, b, M, i, 2), rng.uniform2(ib, b, -w, w))
         set2(f, agent_at(ib, O_VEL, b, M, i, 2), ti.math.vec2(0.0, 0.0))
     _FUNCS_BY_ID[task].spawn_landmarks(sm, f, ib, b)
 

@@ -48,6 +48,12 @@ class Task:
     """The parameter the kernels read (float header slot P_TASK_PARAM), if any."""
     reports_dist: bool = False
     """Whether DIST (mean distance from each landmark to its closest agent) is a metric."""
+    density_scale: bool = False
+    """Whether the task implements ``scale="density"`` (spawn square of half-width
+    sqrt(M / 10), read as f[P_ARENA] by its spawn)."""
+    landmark_lists: bool = False
+    """Whether its landmarks may be sensed as lists (``landmark_neighbours``): the tasks
+    with one landmark per agent; formation and line keep their landmarks global."""
     doc: str = ""
 
     def __post_init__(self):

@@ -1,7 +1,14 @@
 """Coverage (MPE simple_spread): M agents cover M landmarks (docs/PAPER.md s.2).
 
 Landmarks uniform in [-1, 1]^2; the targets are the landmarks themselves; reward
-clip(-mean_i d*_i, -15, 15); DIST is reported."""
+clip(-mean_i d*_i, -15, 15); DIST is reported.
+
+``scale="density"`` (make): agents and landmarks uniform in [-w, w]^2 with
+w = sqrt(M / 10), so the agents (and landmarks) per unit area stay those of the paper's
+M = 10 (2.5 per unit area) and w = 1 at M = 10 exactly; the distance an agent must travel
+to its landmark then stays the same at every M (the nearest-neighbour spacing of a
+uniform density, not the arena's side, sets it). scale=None is the paper's geometry.
+"""
 
 import sys
 from dataclasses import dataclass
@@ -9,7 +16,7 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import O_LMK, O_TGT, team_size
+from ..layout import O_LMK, O_TGT, P_ARENA, team_size
 from .base import Task, get2, set2
 
 
@@ -28,8 +35,9 @@ def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
 def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     L = team_size(sm, ib)
     lmk = ib[O_LMK] + b * L * 2
+    w = f[P_ARENA]
     for k in range(L):
-        set2(f, lmk + 2 * k, rng.uniform2(ib, b, -1.0, 1.0))
+        set2(f, lmk + 2 * k, rng.uniform2(ib, b, -w, w))
 
 
 @ti.func
@@ -56,5 +64,7 @@ TASK = Task(
     landmarks=lambda num_agents: num_agents,
     funcs=sys.modules[__name__],
     reports_dist=True,
+    density_scale=True,
+    landmark_lists=True,
     doc="M agents cover M landmarks (MPE simple_spread with matched distances).",
 )
