@@ -5,42 +5,105 @@ from __future__ import annotations
 
 import hashlib
 import io
+import math
 import os
+import zipfile
 
 import torch
 
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json, clean_leftovers, ensure_writable  # noqa: F401
+from trainer import zoo
 from trainer.model import ModelConfig, SwarmPolicy
 
+MAX_ROUNDS = 64  # message rounds (the export manifest's schema has the same bound)
+MAX_HIDDEN = 4096  # hidden width: 4096 is ~170 M weights, 0.7 GB
+MAX_LANDMARKS = 1024  # of a "concat" network
+
 FORMAT = "taichi-swarm-checkpoint"
-VERSION = 1
+VERSION = 2  # 2: one sha256 over the whole payload ("sha256"); 1: over the weights only ("model_sha256")
+READABLE_VERSIONS = (1, 2)
 
 
 class CheckpointError(ValueError):
-    """A checkpoint file is missing, unreadable or does not fit."""
+    """A checkpoint file is missing, unreadable, unsigned or does not fit."""
+
+
+class UnsignedCheckpoint(CheckpointError):
+    """A checkpoint without a digest: its contents cannot be checked (``trust_unsigned``)."""
+
+
+def _tensor_bytes(t: torch.Tensor) -> bytes:
+    t = t.detach().cpu().contiguous().reshape(-1)
+    return t.view(torch.uint8).numpy().tobytes() if t.numel() else b""
 
 
 def weights_digest(state_dict: dict) -> str:
     """sha256 over the names, dtypes, shapes and bytes of every tensor of a state dict."""
     h = hashlib.sha256()
     for name in sorted(state_dict):
-        t = state_dict[name].detach().cpu().contiguous()
+        t = state_dict[name]
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        h.update(_tensor_bytes(t))
+    return h.hexdigest()
+
+
+def _feed(h, x, where: str) -> None:
+    """Every value, its type and its place in the structure into ``h`` (dict keys sorted)."""
+    if isinstance(x, torch.Tensor):
+        h.update(f"T{x.dtype}|{tuple(x.shape)}|".encode())
+        h.update(_tensor_bytes(x))
+    elif isinstance(x, dict):
+        h.update(f"D{len(x)}|".encode())
+        for k in sorted(x, key=lambda k: (type(k).__name__, repr(k))):
+            _feed(h, k, where)
+            _feed(h, x[k], f"{where}.{k}")
+    elif isinstance(x, (list, tuple)):
+        h.update(f"{'L' if isinstance(x, list) else 'U'}{len(x)}|".encode())
+        for i, v in enumerate(x):
+            _feed(h, v, f"{where}[{i}]")
+    elif isinstance(x, bool) or x is None:
+        h.update(f"B{x}|".encode())
+    elif isinstance(x, int):
+        h.update(f"I{x}|".encode())
+    elif isinstance(x, float):
+        h.update(f"F{x.hex()}|".encode())
+    elif isinstance(x, str):
+        data = x.encode()
+        h.update(f"S{len(data)}|".encode() + data)
+    else:
+        raise CheckpointError(f"checkpoint entry {where} is a {type(x).__name__}, which a checkpoint cannot hold")
+
+
+def payload_digest(payload: dict) -> str:
+    """sha256 over everything a payload holds but its own digest: weights, Adam's moments,
+    environment buffers, reward normalisers, RNG states, counters, configs."""
+    h = hashlib.sha256()
+    _feed(h, {k: v for k, v in payload.items() if k != "sha256"}, "payload")
+    return h.hexdigest()
+
+
+def file_sha256(path: str) -> str:
+    """sha256 of a file's bytes (what a model index records of a shipped file)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
     return h.hexdigest()
 
 
 def save(path: str, payload: dict) -> None:
-    """Save ``payload`` (must hold "model_config" and "model") atomically, with the
-    digest of its weights (checked by ``load``)."""
+    """Save ``payload`` (must hold "model_config" and "model") atomically, signed with one
+    sha256 over the whole of it (checked by ``load``)."""
+    payload = {k: v for k, v in payload.items() if k not in ("format", "version", "sha256", "model_sha256")}
     payload = {"format": FORMAT, "version": VERSION, **payload, "model_sha256": weights_digest(payload["model"])}
+    payload["sha256"] = payload_digest(payload)
     data = io.BytesIO()
     torch.save(payload, data)  # in memory first: a full disk then fails as OSError(ENOSPC), not inside torch
     atomic_write_bytes(path, lambda f: f.write(data.getbuffer()))
 
 
-def load(path: str, map_location="cpu") -> dict:
-    """Load and sanity-check a checkpoint; raises CheckpointError with the reason."""
+def resolve_path(path: str) -> str:
+    """A checkpoint file, or a run directory's checkpoint.pt, else its policy.pt."""
     if os.path.isdir(path):  # a run directory: its full checkpoint, else its final weights
         found = [p for p in (os.path.join(path, n) for n in ("checkpoint.pt", "policy.pt")) if os.path.exists(p)]
         if not found:
@@ -48,6 +111,47 @@ def load(path: str, map_location="cpu") -> dict:
         path = found[0]
     if not os.path.exists(path):
         raise CheckpointError(f"checkpoint {path} does not exist")
+    if not os.path.isfile(path):  # a FIFO or a device would block or never end
+        raise CheckpointError(f"checkpoint {path} is not a regular file")
+    return path
+
+
+def _check_records(path: str) -> None:
+    """Every record of the zip archive torch wrote against its CRC-32: a flipped byte in any of
+    them (pickle, tensor data, version) is refused here, before torch reads it."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()
+    except Exception as exc:  # noqa: BLE001 - not a zip, torn, or a header flipped
+        raise CheckpointError(
+            f"cannot read checkpoint {path}: it is corrupted, truncated or not a "
+            f"taichi-swarm checkpoint ({type(exc).__name__})"
+        ) from None
+    if bad is not None:
+        raise CheckpointError(f"checkpoint {path} is corrupted: its record {bad} fails its CRC-32")
+
+
+def load(path: str, map_location="cpu", *, trust_unsigned: bool = False, expected_sha256: str | None = None) -> dict:
+    """Load and check a checkpoint file or run directory; raises CheckpointError with the reason.
+
+    A file must be signed: its stored sha256 over the whole payload (written by ``save``),
+    or for files from before it existed, over the weights (``model_sha256``), must match.
+    ``expected_sha256``: the sha256 of the file's bytes as a model index records it; a
+    match counts as signed, a mismatch is refused. A file with no digest at all is refused
+    (``UnsignedCheckpoint``) unless ``trust_unsigned``. A digest that does not match is
+    always refused."""
+    if not os.path.exists(path) and zoo.looks_like_name(path):  # a model zoo name: its entry's file and sha256
+        entry = zoo.get(path)
+        path, expected_sha256 = entry.path, entry.sha256
+    path = resolve_path(path)
+    if expected_sha256 is not None:
+        actual = file_sha256(path)
+        if actual != expected_sha256.lower():
+            raise CheckpointError(
+                f"{path} has sha256 {actual[:12]}..., its index entry says {expected_sha256[:12]}...: "
+                "the file was changed or corrupted"
+            )
+    _check_records(path)
     try:
         payload = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as exc:  # noqa: BLE001 - corrupted, truncated or not a torch file
@@ -57,19 +161,54 @@ def load(path: str, map_location="cpu") -> dict:
         ) from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a taichi-swarm checkpoint")
-    if payload.get("version") != VERSION:
-        raise CheckpointError(f"{path} has checkpoint version {payload.get('version')}, expected {VERSION}")
+    version = payload.get("version")
+    if version not in READABLE_VERSIONS:
+        raise CheckpointError(f"{path} has checkpoint version {version!r}, expected one of {READABLE_VERSIONS}")
     for key in ("model_config", "model"):
         if key not in payload:
             raise CheckpointError(f"{path} lacks {key!r}")
     if not isinstance(payload["model"], dict) or not all(
-        isinstance(v, torch.Tensor) for v in payload["model"].values()
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in payload["model"].items()
     ):
         raise CheckpointError(f"{path}: 'model' is not a dict of tensors")
-    digest = payload.get("model_sha256")  # absent in checkpoints written before it existed
+    if version >= 2:
+        if not isinstance(payload.get("sha256"), str):
+            raise CheckpointError(f"{path} lacks its sha256 (a version {version} checkpoint always carries one)")
+        if payload["sha256"] != payload_digest(payload):
+            raise CheckpointError(f"{path}: the contents do not match their stored sha256 (the file was corrupted)")
+    digest = payload.get("model_sha256")
     if digest is not None and digest != weights_digest(payload["model"]):
         raise CheckpointError(f"{path}: the weights do not match their stored sha256 (the file was corrupted)")
+    if digest is None and expected_sha256 is None and not trust_unsigned:
+        raise UnsignedCheckpoint(
+            f"{path} carries no sha256, so corruption in it cannot be detected; pass --trust-unsigned to load it anyway"
+        )
     return payload
+
+
+def check_tensor(where: str, t, *, shape=None, dtype=None, finite: bool = True, nonnegative: bool = False):
+    """``t`` if it is a tensor of ``shape`` / ``dtype``, finite (floats) and >= 0 where asked;
+    else CheckpointError naming ``where``."""
+    if not isinstance(t, torch.Tensor):
+        raise CheckpointError(f"checkpoint entry {where} is a {type(t).__name__}, expected a tensor")
+    if shape is not None and tuple(t.shape) != tuple(shape):
+        raise CheckpointError(f"checkpoint entry {where} has shape {tuple(t.shape)}, expected {tuple(shape)}")
+    if dtype is not None and t.dtype != dtype:
+        raise CheckpointError(f"checkpoint entry {where} has dtype {t.dtype}, expected {dtype}")
+    if finite and (t.is_floating_point() or t.is_complex()) and not bool(torch.isfinite(t).all()):
+        raise CheckpointError(f"checkpoint entry {where} holds NaN or inf: refusing to use it")
+    if nonnegative and bool((t < 0).any()):
+        raise CheckpointError(f"checkpoint entry {where} holds negative values")
+    return t
+
+
+def check_number(where: str, x, *, minimum: float = 0.0, integer: bool = False):
+    """``x`` if it is a finite number >= ``minimum`` (an int where ``integer``)."""
+    kinds = (int,) if integer else (int, float)
+    if isinstance(x, bool) or not isinstance(x, kinds) or not math.isfinite(x) or x < minimum:
+        kind = "an integer" if integer else "a finite number"
+        raise CheckpointError(f"checkpoint entry {where} is {x!r}, expected {kind} >= {minimum:g}")
+    return x
 
 
 POLICY_KEYS = ("model_config", "model", "task", "counters", "evals")
@@ -80,12 +219,24 @@ def save_policy_only(payload: dict, path: str) -> None:
     save(path, {k: payload[k] for k in POLICY_KEYS if k in payload})
 
 
+def check_model_config(config: ModelConfig, where: str = "checkpoint") -> ModelConfig:
+    """Refuse a network too large to build or too slow to run (a crafted file's 10^9 rounds
+    would hang every forward): the bounds the export schema and training share."""
+    if config.rounds > MAX_ROUNDS:
+        raise CheckpointError(f"{where} has {config.rounds} message rounds; at most {MAX_ROUNDS} are supported")
+    if config.hidden > MAX_HIDDEN:
+        raise CheckpointError(f"{where} has hidden width {config.hidden}; at most {MAX_HIDDEN} is supported")
+    if config.num_landmarks > MAX_LANDMARKS:
+        raise CheckpointError(f"{where} has {config.num_landmarks} landmarks; at most {MAX_LANDMARKS} are supported")
+    return config
+
+
 def policy_from_payload(payload: dict, device="cpu") -> SwarmPolicy:
     try:
         config = ModelConfig(**payload["model_config"])
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"checkpoint has an invalid model config: {exc}") from None
-    policy = SwarmPolicy(config)
+    policy = SwarmPolicy(check_model_config(config))
     load_weights(policy, payload["model"])
     return policy.to(device)
 
@@ -118,9 +269,80 @@ def load_weights(policy: SwarmPolicy, state_dict: dict) -> None:
     policy.load_state_dict(state_dict)
 
 
-def load_policy(path: str, device="cpu") -> tuple[SwarmPolicy, dict]:
-    """(policy in eval mode, payload) from a checkpoint file or run directory."""
-    payload = load(path)
+def load_policy(
+    path: str, device="cpu", *, trust_unsigned: bool = False, expected_sha256: str | None = None
+) -> tuple[SwarmPolicy, dict]:
+    """(policy in eval mode, payload) from a checkpoint file or run directory (``load``'s checks)."""
+    payload = load(path, trust_unsigned=trust_unsigned, expected_sha256=expected_sha256)
     policy = policy_from_payload(payload, device)
     policy.eval()
     return policy, payload
+
+
+def check_optimizer_state(where: str, state: dict, policy: SwarmPolicy) -> None:
+    """An Adam state dict that fits ``policy``: one entry per parameter, moments of the
+    parameter's shape and dtype, finite, the second moment >= 0, a finite step."""
+    params = list(policy.parameters())
+    if not isinstance(state, dict) or not isinstance(state.get("state"), dict):
+        raise CheckpointError(f"{where}: 'optimizer' is not an optimiser state dict")
+    groups = state.get("param_groups")
+    if not isinstance(groups, list) or not groups or not all(isinstance(g, dict) for g in groups):
+        raise CheckpointError(f"{where}: the optimiser state has no parameter groups")
+    ids = [i for g in groups for i in g.get("params", [])]
+    if sorted(ids) != list(range(len(params))):
+        raise CheckpointError(f"{where}: the optimiser state holds {len(ids)} parameters, the network {len(params)}")
+    for g in groups:
+        for key in ("lr", "eps", "weight_decay"):
+            if key in g:
+                check_number(f"{where} optimizer.param_groups.{key}", g[key])
+        betas = g.get("betas", (0.9, 0.999))
+        if not isinstance(betas, (list, tuple)) or len(betas) != 2:
+            raise CheckpointError(f"{where}: optimiser betas {betas!r} are not a pair")
+        for b in betas:
+            check_number(f"{where} optimizer.param_groups.betas", b)
+    for key, entry in state["state"].items():
+        if not isinstance(key, int) or not 0 <= key < len(params) or not isinstance(entry, dict):
+            raise CheckpointError(f"{where}: optimiser state entry {key!r} does not fit the network")
+        p = params[key]
+        for name in ("exp_avg", "exp_avg_sq"):
+            check_tensor(
+                f"{where} optimizer.state.{key}.{name}",
+                entry.get(name),
+                shape=p.shape,
+                dtype=p.dtype,
+                nonnegative=name == "exp_avg_sq",
+            )
+        step = entry.get("step")
+        if isinstance(step, torch.Tensor):
+            check_tensor(f"{where} optimizer.state.{key}.step", step, shape=(), nonnegative=True)
+        else:
+            check_number(f"{where} optimizer.state.{key}.step", step)
+
+
+def check_scaler_state(where: str, state: dict, num_envs: int | None) -> None:
+    """A reward normaliser's state: the running returns [E] (any E where None) and a running variance."""
+    if not isinstance(state, dict) or not isinstance(state.get("rms"), dict):
+        raise CheckpointError(f"{where}: a reward normaliser state is not a dict with 'rms'")
+    ret = check_tensor(f"{where} reward_scaler.ret", state.get("ret"), dtype=torch.float64)
+    if ret.dim() != 1 or (num_envs is not None and ret.shape[0] != num_envs):
+        raise CheckpointError(f"{where} reward_scaler.ret has shape {tuple(ret.shape)}, expected ({num_envs or 'E'},)")
+    rms = state["rms"]
+    check_tensor(f"{where} reward_scaler.rms.mean", rms.get("mean"), shape=(), dtype=torch.float64)
+    check_tensor(f"{where} reward_scaler.rms.var", rms.get("var"), shape=(), dtype=torch.float64, nonnegative=True)
+    check_number(f"{where} reward_scaler.rms.count", rms.get("count"), minimum=1e-300)
+
+
+def check_counters(where: str, counters) -> dict:
+    if not isinstance(counters, dict):
+        raise CheckpointError(f"{where}: 'counters' is not a dict")
+    for key in ("update", "env_steps"):
+        check_number(f"{where} counters.{key}", counters.get(key), integer=True)
+    check_number(f"{where} counters.wall_time", counters.get("wall_time"))
+    if "skipped_minibatches" in counters:
+        check_number(f"{where} counters.skipped_minibatches", counters["skipped_minibatches"], integer=True)
+    return counters
+
+
+def check_rng_state(where: str, state) -> torch.Tensor:
+    """torch's CPU generator state: a uint8 vector of the size this torch uses."""
+    return check_tensor(where, state, shape=torch.get_rng_state().shape, dtype=torch.uint8)

@@ -2,21 +2,44 @@
 
 ``PRESETS["paper"]`` is s.5 of docs/PAPER.md exactly;
 ``PRESETS["fast"]`` is what we measured to learn in far fewer env steps and
-less wall-clock on a 2-core CPU (docs/RESULTS.md records how it was found).
+less wall-clock on a 2-core CPU (docs/FINDINGS.md, "The fast preset against the paper's").
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
+from trainer.checkpoint import MAX_HIDDEN, MAX_ROUNDS
 from trainer.model import ENTITY_MODES, ModelConfig
 
 INIT_CARRY = ("weights", "normaliser", "optimiser")  # what --init-from carries, cumulative
 MAX_TRANSFER_OFFSET = 1000  # |d| of a --transfer-offsets entry
+MAX_SEED = 2**31 - 1  # training seeds: environment streams are drawn from 2**40 + seed * 1_000_003 + ...
+MAX_NUM_ENVS = 2**20
+MAX_NUM_STEPS = 2**16
+
+
+def rollout_bytes(num_steps: int, num_envs: int, agents: int, landmarks: int, neighbours: int | None = None) -> int:
+    """Host or device memory a rollout of this size takes while it is updated on: the buffers
+    [T, E, M, ...] (self 4 + landmarks 2L floats, adjacency M bools or K neighbour lists of an
+    int32 and a bool each, action, log-prob and value) and the epoch's shuffled copy of them, in
+    Python integers (no overflow)."""
+    graph = agents if neighbours is None else 5 * neighbours + landmarks
+    per_agent_step = 4 * 4 + 4 * 2 * landmarks + graph + 8 + 4 + 4 + 4 + 4  # + advantages and returns
+    return 2 * int(num_steps) * int(num_envs) * int(agents) * per_agent_step
+
+
+def memory_limit() -> int:
+    """This machine's physical memory in bytes (what a run may plan to use at most)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return 2**40
 
 
 @dataclass
@@ -73,6 +96,12 @@ class PPOConfig:
                 raise ValueError(f"ppo.{name} must be >= 0, got {getattr(self, name)}")
         if self.lr > 1.0:
             raise ValueError(f"ppo.lr must be <= 1, got {self.lr}")
+        if self.lr_end is not None and self.lr_end > 1.0:
+            raise ValueError(f"ppo.lr_end must be <= 1, got {self.lr_end}")
+        if not 1 <= self.num_envs <= MAX_NUM_ENVS:
+            raise ValueError(f"ppo.num_envs must be in [1, {MAX_NUM_ENVS}], got {self.num_envs}")
+        if not 1 <= self.num_steps <= MAX_NUM_STEPS:
+            raise ValueError(f"ppo.num_steps must be in [1, {MAX_NUM_STEPS}], got {self.num_steps}")
         for name in ("num_envs", "num_steps", "epochs", "minibatches"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ppo.{name} must be >= 1, got {getattr(self, name)}")
@@ -155,7 +184,7 @@ class TrainConfig:
     num_envs / len(team_sizes) environments per size and every epoch minibatches of each
     size in random order; the network is size-invariant. () trains on ``agents`` alone;
     ``agents`` stays the size evaluated and recorded. For coverage UC, 3 4 (with agents 3)
-    kept the M = 3 policy from piling agents up at M = 5 (docs/RESULTS.md)."""
+    kept the M = 3 policy from piling agents up at M = 5 (docs/FINDINGS.md)."""
     transfer_offsets: tuple[int, ...] = (-1, 1, 2)
     """Every evaluation also measures S% at these team sizes relative to ``agents``
     (zero-shot transfer: metrics.jsonl ``eval_transfer``, the progress bar, the plot);
@@ -174,7 +203,7 @@ class TrainConfig:
     reward normaliser: the paper's curriculum); normaliser: also the reward normaliser's
     running statistics; optimiser: also those and Adam's moments. The last two need a
     checkpoint.pt (policy.pt holds weights only). Carrying the normaliser removes the value-loss
-    spike of a restart (docs/RESULTS.md, "Carrying the reward normaliser across a restart")."""
+    spike of a restart (docs/FINDINGS.md, "Carrying the reward normaliser across a restart")."""
     arch: str = "cpu"
     """Where the simulator runs: cpu | cuda | auto."""
     device: str = "cpu"
@@ -191,7 +220,7 @@ class TrainConfig:
     """Arithmetic of the update's forward and backward: fp32, or bf16 autocast (GEMMs in
     bfloat16, parameters, optimiser and loss reductions in fp32). bf16 is faster on CPUs
     with AVX-512 BF16 / AMX and on GPUs (1.2x at M = 3, 1.6x at M = 10 per minibatch here:
-    docs/BENCHMARKS.md); its effect on learning, measured on two runs, is in docs/RESULTS.md."""
+    docs/BENCHMARKS.md); its effect on learning, measured on two runs, is in docs/FINDINGS.md."""
     tensorboard: bool = False
     """Also write every scalar of metrics.jsonl as TensorBoard events under
     RUN_DIR/tensorboard (needs the tensorboard package: pip install -e ".[tensorboard]")."""
@@ -235,8 +264,12 @@ class TrainConfig:
             raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
         if self.precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be fp32 or bf16, got {self.precision!r}")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ValueError(f"seed must be in [0, 2^31 - 1], got {self.seed}")
+        if not 0 <= self.model.rounds <= MAX_ROUNDS:
+            raise ValueError(f"model.rounds must be in [0, {MAX_ROUNDS}], got {self.model.rounds}")
+        if not 1 <= self.model.hidden <= MAX_HIDDEN:
+            raise ValueError(f"model.hidden must be in [1, {MAX_HIDDEN}], got {self.model.hidden}")
         self.validate_init_carry()
         if any(abs(d) > MAX_TRANSFER_OFFSET for d in self.transfer_offsets):
             raise ValueError(f"transfer_offsets must be small team-size offsets, got {self.transfer_offsets}")
@@ -252,6 +285,26 @@ class TrainConfig:
             raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
         self.ppo.validate()
         self.swarm_options()
+        self.validate_memory()
+
+    def validate_memory(self) -> None:
+        """Refuse, before anything is allocated, a rollout larger than this machine's memory."""
+        sizes = self.training_sizes()
+        spec = TASK_SPECS[self.task]
+        per_size = self.ppo.num_envs // len(sizes)
+        need = sum(
+            rollout_bytes(
+                self.ppo.num_steps, per_size, M, self.landmark_neighbours or spec.num_landmarks(M), self.neighbours
+            )
+            for M in sizes
+        )
+        have = memory_limit()
+        if need > have:
+            raise ValueError(
+                f"ppo.num_steps={self.ppo.num_steps} x ppo.num_envs={self.ppo.num_envs} at M = "
+                f"{','.join(map(str, sizes))} needs {need / 2**30:.1f} GiB for its rollout, "
+                f"this machine has {have / 2**30:.1f} GiB: lower ppo.num_steps or ppo.num_envs"
+            )
 
     carry_needs_init_from: ClassVar[bool] = True
     """A run carries from its --init-from; a curriculum (False) from each last stage."""
@@ -297,7 +350,7 @@ class CurriculumConfig(TrainConfig):
     min_updates_per_stage: int = 0
     """A stage trains at least this many updates, past the threshold (0: it ends at its first
     evaluation over the threshold). Longer stages transfer better: our coverage M = 7 stage
-    stopped after 125 updates ran at M = 10 at 69%, after 725 at 86% (docs/RESULTS.md)."""
+    stopped after 125 updates ran at M = 10 at 69%, after 725 at 86% (docs/FINDINGS.md)."""
     fresh_eval_episodes: int = 500
     """After each stage, its final policy on this many fresh greedy episodes (0: skip), beside
     the evaluation that ended it: that one is the first of several noisy evaluations to pass
@@ -308,7 +361,7 @@ class CurriculumConfig(TrainConfig):
     """After each stage, train it on for this many updates at the constant ``polish_lr``
     from its weights (fresh optimiser and normaliser), no target, in stage-m<M>-polish/; the
     next stage starts from there (0: no polish). 300-400 at 3e-5 added 3-11 points to three of
-    four of our stages that had stopped short of the paper (docs/RESULTS.md, session 12)."""
+    four of our stages that had stopped short of the paper (docs/FINDINGS.md, polishing)."""
     polish_lr: float = 3e-5
     """Constant learning rate of the polish."""
 
