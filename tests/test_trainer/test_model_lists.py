@@ -274,3 +274,19 @@ def test_a_committed_policy_scores_on_full_lists_what_it_scores_dense(monkeypatc
     assert lists["per_episode"] == dense["per_episode"]
     assert 0 < dense["success_rate"] or comm == "rc"  # (a policy that does something)
     assert lists["success_rate"] == dense["success_rate"] and lists["dist"] == dense["dist"]
+
+
+@pytest.mark.parametrize("comm", ["uc", "rc"])
+def test_the_zoo_policy_scores_on_the_simulators_full_lists_what_it_scores_dense(comm):
+    """make(..., neighbours=M - 1): the simulator's own lists, everyone listed."""
+    from trainer import checkpoint, evaluate
+
+    policy = checkpoint.policy_from_payload(checkpoint.load("coverage-rc-m5")).eval()
+    common = dict(task="coverage", agents=5, comm=comm, comm_radius=0.8, episodes=16, seed=777)
+    dense = evaluate.evaluate(policy, **common)
+    lists = evaluate.evaluate(policy, **common, swarm={"neighbours": 4})
+    assert lists["neighbours"] == 4 and "neighbours" not in dense
+    assert lists["per_episode"] == dense["per_episode"]
+    assert lists["success_rate"] > 0.5
+    if "covered" in dense:  # the fraction of landmarks covered, where the simulator reports it
+        assert lists["covered"] == dense["covered"] and dense["covered"] >= dense["success_rate"]
