@@ -41,7 +41,8 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
 
     policy, payload = checkpoint.load_policy(os.path.join(stage_dir, "policy.pt"))
     setting = TaskSetting.from_dict(payload.get("task"), f"{stage_dir}/policy.pt")
-    key = {"update": update, "episodes": episodes, "seed": seed, "arch": cfg.arch, **setting.to_dict()}
+    swarm = cfg.swarm_options()  # the neighbour lists / density scaling the run trained on
+    key = {"update": update, "episodes": episodes, "seed": seed, "arch": cfg.arch, **setting.to_dict(), **swarm}
     path = os.path.join(stage_dir, FRESH_EVAL_FILE)
     if os.path.exists(path):
         with open(path) as f:
@@ -52,8 +53,9 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
     policy.to(device)
     agents = setting.team_size(f"{stage_dir}/policy.pt")
     result = evaluate(
-        policy, setting.task, agents, setting.comm, setting.comm_radius, episodes, seed, arch=cfg.arch, device=device
-    )
+        policy, setting.task, agents, setting.comm, setting.comm_radius, episodes, seed, arch=cfg.arch, device=device,
+        swarm=swarm,
+    )  # fmt: skip
     fresh = {**key, **{k: result[k] for k in ("success_rate", "mean_length", "dist")}}
     checkpoint.atomic_write_json(path, fresh)
     return fresh
