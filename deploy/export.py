@@ -189,7 +189,7 @@ def _check_landmarks_fit(cfg, setting) -> None:
         raise CheckpointError(f"{misfit} ({setting.task} with {setting.agents} agents has {L} landmarks)")
 
 
-def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
+def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsigned: bool = False) -> dict:
     """Export ``checkpoint`` (file or run dir) into ``out_dir``; returns the manifest.
 
     ``task`` overrides/complements the checkpoint's ``payload["task"]``
@@ -198,7 +198,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None) -> dict:
     """
     import onnx
 
-    policy, payload = load_policy(checkpoint)
+    policy, payload = load_policy(checkpoint, trust_unsigned=trust_unsigned)
     policy = policy.float().eval()
     cfg = policy.config
     try:

@@ -47,6 +47,11 @@ else:  # pragma: no cover - Python 3.10
 SPECS_DIR = os.path.join(os.path.dirname(__file__), "specs")
 KINDS = ("train", "curriculum", "zero-shot", "baseline")
 BASELINE_FIELDS = ("algorithm", "frames", "obs_mode", "actions", "baseline_options")
+# BenchMARL 1.5's algorithms (benchmarl.algorithms.algorithm_config_registry; a test holds them equal)
+BASELINE_ALGORITHMS = ("iddpg", "ippo", "iql", "isac", "maddpg", "mappo", "masac", "qmix", "vdn")
+MAX_TEAM_SIZE = 2**16  # any team size a cell names (the simulator's buffers are indexed with int32)
+MAX_FRAMES = 10**12
+MAX_ENVS = 2**20  # environments of one batch (trainer.config.MAX_NUM_ENVS)
 ENTITY_MODES = ("emp", "concat", "padded")  # trainer.model.ENTITY_MODES
 
 
@@ -314,6 +319,10 @@ def _check_cell(where: str, c: Cell) -> None:
     if c.entity_mode not in ENTITY_MODES:
         bad(f"entity_mode must be one of {ENTITY_MODES}, got {c.entity_mode!r}")
     smallest = TASK_SPECS[c.task].min_agents
+    for name in ("agents", "sizes", "team_sizes", "source_agents", "init_agents"):
+        value = getattr(c, name)
+        if any(m > MAX_TEAM_SIZE for m in (value if isinstance(value, (list, tuple)) else [value])):
+            bad(f"{name} must be team sizes <= {MAX_TEAM_SIZE}, got {value}")
     if c.kind in ("train", "baseline"):
         if c.agents < smallest:
             bad(f"agents must be >= {smallest} for {c.task}, got {c.agents}")
@@ -322,8 +331,10 @@ def _check_cell(where: str, c: Cell) -> None:
     if c.kind == "baseline":
         if not c.algorithm:
             bad("a baseline cell needs algorithm (a BenchMARL algorithm name)")
-        if c.frames < 1:
-            bad(f"frames must be >= 1, got {c.frames}")
+        if c.algorithm.lower() not in BASELINE_ALGORITHMS:
+            bad(f"algorithm must be one of {BASELINE_ALGORITHMS}, got {c.algorithm!r}")
+        if not 1 <= c.frames <= MAX_FRAMES:
+            bad(f"frames must be in [1, 10^12], got {c.frames}")
         if c.obs_mode not in ("full", "local"):
             bad(f"obs_mode must be full or local, got {c.obs_mode!r}")
         if c.actions not in ("any", "discrete", "continuous"):
@@ -332,6 +343,9 @@ def _check_cell(where: str, c: Cell) -> None:
         clash = sorted(set(c.baseline_options) & (taken | {"eval_episodes", "eval_seed", "device", "out"}))
         if clash:
             bad(f"baseline_options {clash} are set by the cell itself")
+        envs = c.baseline_options.get("num_envs", 1)
+        if not _is_int(envs) or not 1 <= envs <= MAX_ENVS:
+            bad(f"baseline_options.num_envs must be an integer in [1, {MAX_ENVS}], got {envs!r}")
     if c.kind in ("curriculum", "zero-shot"):
         if not c.sizes or any(m < smallest for m in c.sizes):
             bad(f"sizes must be team sizes >= {smallest}, got {list(c.sizes)}")
@@ -364,8 +378,8 @@ def _check_cell(where: str, c: Cell) -> None:
         bad(f"polish_updates must be >= 0, got {c.polish_updates}")
     if c.polish_updates and c.kind not in ("train", "curriculum"):
         bad(f"only train and curriculum cells polish: a {c.kind} cell has no polish_updates")
-    if not c.polish_lr > 0:
-        bad(f"polish_lr must be > 0, got {c.polish_lr}")
+    if not 0 < c.polish_lr <= 1:  # (NaN and inf too)
+        bad(f"polish_lr must be in (0, 1], got {c.polish_lr}")
     if c.kind == "zero-shot" and not c.source:
         bad("a zero-shot cell needs source (the id of the cell whose policy it evaluates)")
     if c.kind != "zero-shot" and c.source:
@@ -373,6 +387,9 @@ def _check_cell(where: str, c: Cell) -> None:
     for name in ("eval_every", "eval_episodes", "final_episodes", "checkpoint_every"):
         if getattr(c, name) < 1:
             bad(f"{name} must be >= 1, got {getattr(c, name)}")
+    for name in ("eval_episodes", "final_episodes"):  # one environment per episode
+        if getattr(c, name) > MAX_ENVS:
+            bad(f"{name} must be <= {MAX_ENVS} (one environment each), got {getattr(c, name)}")
     if not 0 <= c.eval_seed < 2**40:
         bad(f"eval_seed must be in [0, 2**40): training draws its seeds above, got {c.eval_seed}")
     if c.preset not in PRESETS:

@@ -25,6 +25,7 @@ def export_main(argv: list[str]) -> int:
             args.checkpoint,
             args.out,
             {"task": args.task, "agents": args.agents, "comm": args.comm, "comm_radius": args.comm_radius},
+            trust_unsigned=args.trust_unsigned,
         )
     except (CheckpointError, ValueError, FileExistsError, OSError) as exc:
         return fail("swarm export", exc)

@@ -15,8 +15,12 @@ stay torch-free.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import math
+import os
+import re
 import sys
 from dataclasses import dataclass
 from typing import Annotated, Literal
@@ -35,11 +39,55 @@ class OptionError(ValueError):
     """A command-line value that is out of range or inconsistent with another."""
 
 
+def box_message(text: str) -> str:
+    """The message of a box tyro drew (after its title, up to the next rule), as one line;
+    rich draws it in Unicode or, where the output cannot take that, in ASCII."""
+    lines = [line.strip().strip("│┃|").strip() for line in text.splitlines()]
+    lines = [line for line in lines if line]
+
+    def is_rule(line: str) -> bool:
+        return set(line) <= set("─━-=+╭╮╰╯ ")
+
+    body, started = [], False
+    for line in lines[1:]:  # (the first is the title)
+        if is_rule(line):
+            if started:
+                break
+            continue
+        started = True
+        body.append(line)
+    message = re.sub(r"\s+", " ", " ".join(body)).strip() or text.strip()
+    return re.sub(r"^Error parsing [A-Z]\w*: ", "", message)
+
+
+def cli(options_type, argv: list[str], prog: str, **kwargs):
+    """``tyro.cli``, with a refusal printed as one line, ``prog: error: why``, as every other
+    refusal is (tyro draws a box); --help and its exit pass through."""
+    captured = io.StringIO()
+    columns = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = "100000"  # no wrapping inside the box: its message is taken whole
+    try:
+        with contextlib.redirect_stderr(captured):
+            return tyro.cli(options_type, args=argv, prog=prog, **kwargs)
+    except SystemExit as exc:
+        text = captured.getvalue()
+        if exc.code not in (0, None) and text.strip():
+            print(f"{prog}: error: {box_message(text)} (see {prog} --help)", file=sys.stderr)
+        else:
+            sys.stderr.write(text)
+        raise
+    finally:
+        if columns is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = columns
+
+
 def parse(options_type, argv: list[str], prog: str, default=None, description: str | None = None):
-    """``options_type`` from ``argv`` (tyro). A refused value prints why and raises
+    """``options_type`` from ``argv`` (tyro). A refused value prints why in one line and raises
     SystemExit(2), as argparse does; so does a list option given no value (tyro accepts
     ``--drop`` alone as an empty list, which no option here means)."""
-    options = tyro.cli(options_type, args=argv, prog=prog, default=default, description=description)
+    options = cli(options_type, argv, prog, default=default, description=description)
     for f in dataclasses.fields(options):
         if getattr(options, f.name) == ():
             print(f"{prog}: error: --{f.name.replace('_', '-')} needs at least one value", file=sys.stderr)
@@ -66,6 +114,7 @@ def positive(value, name: str) -> None:
 
 Comm = Literal["uc", "rc"]
 OWN = "the policy's own"
+EVAL_SEED_LIMIT = 2**40  # trainer.train.TRAIN_SEED_BASE: training's environment streams (not imported: no torch here)
 Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtime.ARCHES)
 
 
@@ -168,6 +217,8 @@ class EvaluationOptions(SettingOptions, SwarmOptions):
     """simulator arch"""
     json: str | None = None
     """also write the results to this JSON file"""
+    trust_unsigned: bool = False
+    """load a checkpoint that carries no sha256 (from before digests existed): corruption in it cannot be detected"""
     sampled: bool = False
     """draw actions from the policy's distribution instead of argmax (a diagnostic: the paper
     and docs/RESULTS.md report greedy actions; a large gap shows a policy that relies on
@@ -177,6 +228,8 @@ class EvaluationOptions(SettingOptions, SwarmOptions):
         SettingOptions.__post_init__(self)
         SwarmOptions.__post_init__(self)
         at_least(self.episodes, 1, "episodes")
+        if not 0 <= self.seed < EVAL_SEED_LIMIT:
+            raise OptionError(f"--seed must be in [0, 2^40) (training seeds from 2^40 up), got {self.seed}")
 
     @property
     def actions(self) -> str:
@@ -261,6 +314,8 @@ class ExportOptions(SettingOptions):
     """output directory (created)"""
     agents: Annotated[int | None, Default("the training size")] = None
     """team size to record"""
+    trust_unsigned: bool = False
+    """load a checkpoint that carries no sha256 (from before digests existed): corruption in it cannot be detected"""
 
     def __post_init__(self):
         SettingOptions.__post_init__(self)

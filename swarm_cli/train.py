@@ -6,9 +6,10 @@ import argparse
 import copy
 import dataclasses
 import json
+import os
 import sys
 
-from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ResumeOptions, ZeroShotOptions, fail, parse
+from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ResumeOptions, ZeroShotOptions, cli, fail, parse
 from trainer.checkpoint import CheckpointError, atomic_write_json, ensure_writable
 
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, CheckpointError)
@@ -17,18 +18,22 @@ USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, CheckpointError)
 def _config_from_argv(argv: list[str], prog: str, config_type=None):
     """Pre-read --preset, then let tyro parse the rest over that preset's defaults
     (``config_type``: TrainConfig, or CurriculumConfig which extends it)."""
-    import tyro
 
-    from trainer.config import PRESETS, TrainConfig
+    from trainer.config import DEFAULT_PRESET, PRESET_UPDATES, PRESETS, TrainConfig
 
     config_type = config_type or TrainConfig
     pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--preset", default="paper")
+    pre.add_argument("--preset", default=DEFAULT_PRESET)
     known, _ = pre.parse_known_args(argv)
     if known.preset not in PRESETS:
         raise ValueError(f"--preset must be one of {tuple(PRESETS)}, got {known.preset!r}")
-    default = config_type(preset=known.preset, ppo=copy.deepcopy(PRESETS[known.preset]))
-    return tyro.cli(config_type, args=argv, default=default, prog=prog)
+    # the chosen preset's values are the defaults tyro parses over and --help shows
+    default = config_type(
+        preset=known.preset, updates=PRESET_UPDATES[known.preset], ppo=copy.deepcopy(PRESETS[known.preset])
+    )
+    others = ", ".join(f"--preset {p}" for p in PRESETS if p != known.preset)
+    description = f"{prog}: the defaults shown are those of --preset {known.preset} (others: {others})."
+    return cli(config_type, argv, prog, default=default, description=description)
 
 
 def train_main(argv: list[str]) -> int:
@@ -66,6 +71,9 @@ def train_main(argv: list[str]) -> int:
     if ev:
         msg += f"; eval S% {100 * ev['success_rate']:.1f}, T {ev['mean_length']:.2f}"
     print(msg)
+    policy = os.path.join(summary["run_dir"], "policy.pt")
+    print(f"policy: {policy}")
+    print(f"next: swarm eval {policy} --episodes 500 --seed 777")
     return 0
 
 
@@ -95,7 +103,7 @@ def eval_main(argv: list[str]) -> int:
             if out:
                 ensure_writable(out, what)
         torch.set_num_threads(1)
-        policy, payload = load_policy(opts.checkpoint)
+        policy, payload = load_policy(opts.checkpoint, trust_unsigned=opts.trust_unsigned)
         s = _eval_settings(opts, payload, opts.agents)
         agents = s.team_size("this checkpoint")
         from deploy.video import open_recorders
@@ -135,7 +143,7 @@ def zero_shot_main(argv: list[str]) -> int:
             ensure_writable(opts.json, "--json")
         sizes = parse_sizes(list(opts.sizes))
         torch.set_num_threads(1)
-        policy, payload = load_policy(opts.checkpoint)
+        policy, payload = load_policy(opts.checkpoint, trust_unsigned=opts.trust_unsigned)
         s = _eval_settings(opts, payload)
         rows = []
         for M in sizes:

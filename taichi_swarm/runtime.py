@@ -40,6 +40,8 @@ def init(arch: str = "cpu") -> str:
         return current
     if want == "auto":
         want = "cuda" if _cuda_usable() else "cpu"
+    elif want == "cuda" and not _cuda_usable():  # (Taichi would fall back to the CPU, torch then fail)
+        raise ValueError(f"arch={arch!r} but this machine has no CUDA GPU that both torch and Taichi can use")
     cache_dir = os.environ.get("TAICHI_SWARM_CACHE", _default_cache_dir())
     extra = {}
     threads = int(os.environ.get("TAICHI_SWARM_THREADS", "0"))

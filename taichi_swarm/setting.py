@@ -52,6 +52,9 @@ class TaskSetting:
     def resolve(cls, recorded: dict | None, what: str = "the checkpoint", **overrides) -> TaskSetting:
         """The recorded setting with the options a command sets (None: keep the recorded)."""
         base = {k: v for k, v in dict(recorded or {}).items() if v is not None}
+        task = overrides.get("task")
+        if task is not None and base.get("task") not in (None, task):  # its observations and reward are another's
+            raise ValueError(f"{what} holds a {base['task']} policy: it cannot run the {task} task (--task {task})")
         base.update({k: v for k, v in overrides.items() if v is not None})
         return cls.from_dict(base, what)
 

@@ -75,6 +75,8 @@ def run_curriculum(
 ) -> list[dict]:
     if not sizes:
         raise ValueError("--sizes must name at least one team size")
+    if len(set(sizes)) != len(sizes):  # a repeated stage would train the same size twice, from itself
+        raise ValueError(f"--sizes must not repeat a team size, got {list(sizes)}")
     if not 0 < threshold <= 1:
         raise ValueError(f"--threshold must be in (0, 1], got {threshold}")
     if not 0 <= min_updates_per_stage <= max_updates_per_stage:

@@ -187,3 +187,149 @@ def test_cli_fuzz(tiny_policy):
         f"\ncli fuzz: {sum(outcomes.values())} tried, {outcomes['refused']} refused in one line, {outcomes['ran']} ran"
     )
     assert outcomes["refused"] > 50
+
+
+# ----------------------------------------------------------------------------- settings that would run wrongly
+def refused(argv: list[str], *words: str) -> str:
+    """``swarm argv`` exits 2 with one error line naming ``words``: no traceback, no tyro box."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = swarm(argv)
+    lines = [line for line in err.getvalue().splitlines() if line.strip() and not line.startswith("[Taichi]")]
+    assert code == 2, f"{argv} exited {code}: {err.getvalue()[-600:]}"
+    assert len(lines) == 1 and "error:" in lines[0], f"{argv}: {lines}"
+    assert "│" not in lines[0] and "Traceback" not in err.getvalue()
+    for word in words:
+        assert word in lines[0], f"{argv}: {word!r} not in {lines[0]!r}"
+    return lines[0]
+
+
+def _policy_file(path: str, task: str, agents: int = 3) -> str:
+    import torch
+
+    from trainer.checkpoint import save
+    from trainer.model import ModelConfig, SwarmPolicy
+
+    torch.manual_seed(0)
+    policy = SwarmPolicy(ModelConfig(hidden=8, rounds=1))
+    setting = {"task": task, "agents": agents, "comm": "uc", "comm_radius": 1.0}
+    save(path, {"model_config": policy.config.to_dict(), "model": policy.state_dict(), "task": setting})
+    return path
+
+
+def test_settings_that_would_run_wrongly_are_refused(tiny_policy, tmp_path):
+    path, _ = tiny_policy
+    formation = _policy_file(str(tmp_path / "formation.pt"), "formation")
+    refused(["eval", formation, "--task", "coverage", "--episodes", "1"], "formation", "coverage")
+    refused(["zero-shot", formation, "--task", "line", "--sizes", "3", "--episodes", "1"], "formation", "line")
+    refused(["eval", path, "--seed", str(2**40), "--episodes", "1"], "--seed", "2^40")
+    refused(["zero-shot", path, "--seed", "-1", "--sizes", "2", "--episodes", "1"], "--seed")
+    base = ["train", "--updates", "1", "--no-compile", "--no-progress"]
+    for option, value, words in (
+        ("--ppo.lr-end", "5", ("lr_end", "<= 1")),
+        ("--seed", str(2**31), ("seed", "2^31")),
+        ("--seed", str(2**64), ("seed",)),
+        ("--model.rounds", "1000000", ("rounds", "64")),
+        ("--model.hidden", "1000000", ("hidden", "4096")),
+        ("--ppo.num-steps", str(10**12), ("num_steps",)),
+        ("--ppo.num-envs", str(10**9), ("num_envs",)),
+        ("--task", "soccer", ("task",)),
+        ("--agents", "0", ("agents",)),
+    ):
+        run_dir = tmp_path / f"never-{option.strip('-')}"
+        line = refused([*base, "--run-dir", str(run_dir), option, value], *words)
+        assert "Overflow" not in line
+        assert not run_dir.exists(), f"a refused train ({option} {value}) left {run_dir}"
+    sizes = ["curriculum", "--run-dir", str(tmp_path / "cur"), "--sizes", "3", "3", "--no-compile", "--no-progress"]
+    refused(sizes, "--sizes", "repeat")
+    assert not (tmp_path / "cur").exists()
+
+
+def test_a_rollout_larger_than_memory_is_refused_with_the_memory_it_needs(tmp_path):
+    from trainer.config import PPOConfig, TrainConfig
+
+    cfg = TrainConfig(agents=5000, ppo=PPOConfig(num_envs=2**20, num_steps=2**16), run_dir=str(tmp_path / "r"))
+    with pytest.raises(ValueError, match=r"needs \d[\d.]* GiB for its rollout, this machine has"):
+        cfg.validate()
+
+
+def test_cuda_on_a_machine_without_it_is_one_line(tiny_policy, tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    path, _ = tiny_policy
+    refused(["eval", path, "--arch", "cuda", "--episodes", "1"], "cuda")
+    run_dir = tmp_path / "gpu"
+    refused(["train", "--arch", "cuda", "--run-dir", str(run_dir), "--updates", "1", "--no-progress"], "cuda")
+    refused(["train", "--device", "cuda", "--run-dir", str(run_dir), "--updates", "1", "--no-progress"], "cuda")
+    assert not run_dir.exists()
+    import subprocess
+    import sys
+
+    code = "import taichi_swarm\ntry:\n    taichi_swarm.make('coverage', 2, 3, arch='cuda')\n"
+    code += "except ValueError as e:\n    print(e)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert "no CUDA GPU" in out.stdout and "Traceback" not in out.stderr, out.stdout + out.stderr  # (a fresh Taichi)
+
+
+def test_unsigned_crafted_and_special_policy_files_are_one_line(tiny_policy, tmp_path):
+    import os
+
+    import torch
+
+    from trainer.checkpoint import load, save
+
+    path, _ = tiny_policy
+    payload = load(path)
+    unsigned = tmp_path / "unsigned.pt"
+    torch.save({k: v for k, v in payload.items() if k not in ("sha256", "model_sha256")} | {"version": 1}, unsigned)
+    refused(["eval", str(unsigned), "--episodes", "1"], "no sha256", "--trust-unsigned")
+    refused(["export", str(unsigned), "--out", str(tmp_path / "ex")], "--trust-unsigned")
+    assert not (tmp_path / "ex").exists()
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        assert swarm(["eval", str(unsigned), "--episodes", "1", "--trust-unsigned"]) == 0, err.getvalue()
+    crafted = tmp_path / "rounds.pt"
+    save(str(crafted), payload | {"model_config": payload["model_config"] | {"rounds": 10**9}})
+    refused(["eval", str(crafted), "--episodes", "1"], "rounds", "64")
+    flipped = bytearray(open(path, "rb").read())
+    flipped[len(flipped) // 2] ^= 0xFF
+    (tmp_path / "flipped.pt").write_bytes(bytes(flipped))
+    refused(["eval", str(tmp_path / "flipped.pt"), "--episodes", "1"], "corrupted")
+    os.mkfifo(tmp_path / "fifo.pt")
+    refused(["eval", str(tmp_path / "fifo.pt"), "--episodes", "1"], "not a regular file")
+
+
+def test_tyro_refusals_are_one_line(tiny_policy):
+    path, _ = tiny_policy
+    refused(["eval", path, "--episodes", "abc"], "--episodes")
+    refused(["eval", path, "--bogus"], "--bogus")
+    refused(["eval"], "CHECKPOINT")
+    refused(["train", "--ppo.num-envs", "x"], "--ppo.num-envs")
+    refused(["export", path], "--out")
+
+
+def test_spec_bounds_are_checked_before_a_dry_run(tmp_path):
+    from reproduce.spec import BASELINE_ALGORITHMS, SpecError, load_spec
+
+    head = 'name = "x"\ndescription = "x"\n[[cells]]\nid = "c"\ntable = 1\ntask = "coverage"\ncomm = "uc"\n'
+    train = head + 'kind = "train"\nupdates = 2\n'
+    baseline = head + 'kind = "baseline"\nframes = 1000\nagents = 3\n'
+    for body, words in (
+        (train + "agents = 1000000\n", "agents"),
+        (train + "agents = 3\nppo = { num_envs = 1_000_000_000_000 }\n", "num_envs"),
+        (train + "agents = 3\npolish_updates = 2\npolish_lr = inf\n", "polish_lr"),
+        (train + "agents = 3\nfinal_episodes = 1_000_000_000\n", "final_episodes"),
+        (baseline + 'algorithm = "ppo2"\n', "algorithm"),
+        (baseline + 'algorithm = "mappo"\nbaseline_options = { num_envs = 1_000_000_000_000 }\n', "num_envs"),
+    ):
+        spec = tmp_path / "spec.toml"
+        spec.write_text(body)
+        with pytest.raises(SpecError, match=words):
+            load_spec(str(spec))
+    try:
+        from benchmarl.algorithms import algorithm_config_registry
+    except ImportError:
+        return
+    assert tuple(sorted(algorithm_config_registry)) == BASELINE_ALGORITHMS
