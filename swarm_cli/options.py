@@ -114,6 +114,8 @@ def positive(value, name: str) -> None:
 
 Comm = Literal["uc", "rc"]
 OWN = "the policy's own"
+MAX_SEEDS = 1000  # swarm reproduce --seeds
+MAX_EXECUTE_EPISODES = 10_000  # swarm execute: every episode's environment is stepped by onnxruntime agents
 EVAL_SEED_LIMIT = 2**40  # trainer.train.TRAIN_SEED_BASE: training's environment streams (not imported: no torch here)
 Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtime.ARCHES)
 
@@ -349,6 +351,14 @@ class ExecuteOptions(SettingOptions, OutputOptions):
         OutputOptions.__post_init__(self)
         at_least(self.threads, 1, "threads")
 
+        cores = os.cpu_count() or 1
+        if self.threads > cores:  # (more onnxruntime threads than cores only wait on each other)
+            raise OptionError(f"--threads must be <= {cores}, this machine's cores, got {self.threads}")
+        if self.episodes > MAX_EXECUTE_EPISODES:
+            raise OptionError(
+                f"--episodes must be <= {MAX_EXECUTE_EPISODES} (one environment and M onnxruntime agents each), "
+                f"got {self.episodes}"
+            )
 
 @dataclass(kw_only=True)
 class ReplayOptions(VideoOption):
@@ -410,6 +420,11 @@ class ReproduceOptions:
         at_least(self.seeds, 1, "seeds")
         at_least(self.first_seed, 0, "first-seed")
         at_least(self.workers, 0, "workers")
+        if self.seeds > MAX_SEEDS or self.first_seed + self.seeds > 2**31:
+            raise OptionError(
+                f"--seeds must be <= {MAX_SEEDS} and --first-seed + --seeds <= 2^31 (training seeds), "
+                f"got {self.seeds} from {self.first_seed}"
+            )
         at_least(self.gpus_per_cell, 0, "gpus-per-cell")
         positive(self.progress_every, "progress-every")
 

@@ -30,6 +30,28 @@ examples:
 """
 
 
+ADDRESS_TIMEOUT_S = 10.0  # a Ray address that does not answer within this is refused (ray.init retries for minutes)
+
+
+def check_address(address: str, timeout: float = ADDRESS_TIMEOUT_S) -> None:
+    """Refuse a Ray address (HOST:PORT or ray://HOST:PORT) where nothing accepts a connection."""
+    import socket
+
+    if address == "auto":
+        return
+    where = address.split("://", 1)[-1]
+    host, _, port = where.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--address must be HOST:PORT, ray://HOST:PORT or auto, got {address!r}")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as exc:
+        raise ValueError(
+            f"--address {address}: no Ray head answers there within {timeout:g} s ({exc.strerror or exc}); "
+            "start one with `ray start --head` or drop --address to run on this machine"
+        ) from None
+
+
 def reproduce_main(argv: list[str]) -> int:
     from reproduce.cells import cell_state
     from reproduce.runner import format_progress
@@ -64,6 +86,9 @@ def reproduce_main(argv: list[str]) -> int:
                     'running cells needs Ray: pip install -e ".[reproduce]" (--dry-run, --status and --render do not)'
                 ) from None
             from reproduce.runner import run_on_ray
+
+            if args.address:
+                check_address(args.address)
 
             todo = [(c.id, s) for c in cells for s in seeds if cell_state(root, c, s) != "done"]
             print(f"swarm reproduce: {len(todo)} of {len(cells) * len(seeds)} (cell, seed) to run, in {root}")

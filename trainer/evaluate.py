@@ -106,6 +106,9 @@ def format_table(rows: list[dict]) -> str:
     return format_results(rows, extra)
 
 
+MAX_SIZES = 1000  # team sizes in one --sizes list
+
+
 def parse_sizes(spec: list[str]) -> list[int]:
     """["2-8"] or ["3", "5", "7"] -> [2, ..., 8] / [3, 5, 7]; clear error otherwise."""
     sizes: list[int] = []
@@ -119,9 +122,13 @@ def parse_sizes(spec: list[str]) -> list[int]:
                     lo, hi = (int(x) for x in part.split("-", 1))
                     if lo > hi:
                         raise ValueError
+                    if hi - lo + 1 + len(sizes) > MAX_SIZES:  # checked before the list is made
+                        raise OverflowError
                     sizes.extend(range(lo, hi + 1))
                 else:
                     sizes.append(int(part))
+            except OverflowError:
+                raise ValueError(f"--sizes: {part!r} holds more than {MAX_SIZES} team sizes") from None
             except ValueError:
                 raise ValueError(f"--sizes: cannot read {part!r}; use e.g. 2-8 or 3 5 7") from None
     if not sizes or min(sizes) < 1:

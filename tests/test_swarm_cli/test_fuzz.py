@@ -333,3 +333,28 @@ def test_spec_bounds_are_checked_before_a_dry_run(tmp_path):
     except ImportError:
         return
     assert tuple(sorted(algorithm_config_registry)) == BASELINE_ALGORITHMS
+
+
+def test_sizes_and_hangs_are_refused_up_front(tiny_policy, tmp_path):
+    import os
+    import socket
+    import time
+
+    from swarm_cli.reproduce import check_address
+
+    path, _ = tiny_policy
+    refused(["zero-shot", path, "--sizes", "1-1000000000", "--episodes", "1"], "--sizes", "1000")
+    refused(["execute", str(tmp_path), "--threads", "1000000"], "--threads")
+    refused(["execute", str(tmp_path), "--episodes", "100000"], "--episodes")
+    refused(["reproduce", "--spec", "smoke", "--seeds", "1000000000", "--dry-run"], "--seeds")
+    refused(["reproduce", "--spec", "smoke", "--first-seed", str(2**31), "--dry-run"], "--seeds")
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match="no Ray head answers"):
+        check_address(f"127.0.0.1:{port}", timeout=2.0)
+    with pytest.raises(ValueError, match="HOST:PORT"):
+        check_address("nowhere")
+    assert time.perf_counter() - start < 10
+    assert not os.listdir(tmp_path)
