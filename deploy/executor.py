@@ -11,7 +11,13 @@ offsets [L, 2]. Per simulator step (K rounds, manifest "schedule"):
 Communication goes through ``MessageBus``, the in-process radio: it delivers a
 message from j to i only along an edge of the simulator's communication graph
 (``obs["adj"]``: everyone in "uc", within the radius in "rc") of the step the
-message was sent in. An agent always hears itself: it adds its own current
+message was sent in. With neighbour lists (``obs["nbr"]``, ``obs["nbr_mask"]``, the
+simulator's ``neighbours=K``) the edges are each agent's K listed neighbours instead:
+the same radio, O(K) per agent, with no M x M graph anywhere. With landmark lists
+(``obs["entity_mask"]``) an agent encodes only the landmarks it senses ("emp"; the
+same function as masking them) or zeroes the others' slots ("padded").
+
+An agent always hears itself: it adds its own current
 message to what it heard (local memory, never dropped or delayed), so a round
 gets n >= 1 messages even when the bus delivers none; the round graphs also
 accept n = 0.
@@ -180,21 +186,34 @@ class MessageBus:
         """Send round-r ``messages`` [B, M, 2, H] along ``adj`` [B, M, M] (i hears j); return what
         arrives now: (messages [B, M, 2, H], edges [B, M, M] bool, edges[b, i, j]: i receives j's)."""
         edges = adj & self._offdiag
+        arrived, arrived_edges, _ = self._send(r, messages, edges, None)
+        return arrived, arrived_edges
+
+    def exchange_lists(self, r: int, messages: np.ndarray, nbr: np.ndarray, nbr_mask: np.ndarray):
+        """The same along neighbour lists ``nbr`` [B, M, K] (i hears nbr[b, i, k] where
+        ``nbr_mask``): returns (messages [B, M, 2, H], senders [B, M, K] int, edges [B, M, K]
+        bool: i receives senders[b, i, k]'s message where edges[b, i, k])."""
+        M = nbr.shape[1]
+        nbr = np.asarray(nbr, dtype=np.int64)
+        edges = np.asarray(nbr_mask, dtype=bool) & (nbr != np.arange(M)[None, :, None]) & (nbr >= 0) & (nbr < M)
+        return self._send(r, messages, edges, nbr)
+
+    def _send(self, r, messages, edges, senders):
         self.sent += int(edges.sum())
         if self.drop > 0.0:
             edges = edges & (self._rng.random(edges.shape) >= self.drop)
         queue = self._queues[r]
-        queue.append((messages.copy() if self.delay else messages, edges))
+        queue.append((messages.copy() if self.delay else messages, edges, senders))
         if len(queue) <= self.delay:
-            return messages, np.zeros_like(edges)
-        arrived, arrived_edges = queue.popleft()
+            return messages, np.zeros_like(edges), senders
+        arrived, arrived_edges, arrived_senders = queue.popleft()
         self.delivered += int(arrived_edges.sum())
-        return arrived, arrived_edges
+        return arrived, arrived_edges, arrived_senders
 
     def reset_envs(self, mask: np.ndarray) -> None:
         """Discard messages in flight of the envs in ``mask`` [B] (their episode ended)."""
         for queue in self._queues:
-            for _, edges in queue:
+            for _, edges, _ in queue:
                 edges[mask] = False
 
 
@@ -220,36 +239,67 @@ class Executor:
         self.teams = [[Agent(i, model, threads) for i in range(num_agents)] for _ in range(num_envs)]
         self.bus = MessageBus(num_envs, num_agents, self.K, drop, delay, seed)
 
-    def decide(self, self_obs: np.ndarray, entities: np.ndarray, adj: np.ndarray):
-        """self_obs [B, M, 4], entities [B, M, L, 2], adj [B, M, M] bool ->
-        (logits [B, M, 5], actions int64 [B, M], attention [B, M, M] of the last round)."""
+    def decide(
+        self,
+        self_obs: np.ndarray,
+        entities: np.ndarray,
+        adj: np.ndarray | None = None,
+        *,
+        nbr: np.ndarray | None = None,
+        nbr_mask: np.ndarray | None = None,
+        entity_mask: np.ndarray | None = None,
+    ):
+        """self_obs [B, M, 4], entities [B, M, L, 2] and the graph: adj [B, M, M] bool, or the
+        lists nbr, nbr_mask [B, M, K] (``entity_mask`` [B, M, L]: the sensed landmark slots) ->
+        (logits [B, M, 5], actions int64 [B, M], attention of the last round: [B, M, M] dense,
+        [B, M, 1 + K] on [self; listed] with lists)."""
+        if (adj is None) == (nbr is None) or (nbr is not None and nbr_mask is None):
+            raise DeployError("decide takes the graph either dense (adj) or as lists (nbr with nbr_mask)")
         B, M, H = self.B, self.M, self.model.hidden
         self_obs = np.ascontiguousarray(self_obs, dtype=np.float32)
         entities = np.ascontiguousarray(entities, dtype=np.float32)
-        adj = np.asarray(adj, dtype=bool)
+        lists = nbr is not None
+        if lists:
+            nbr, nbr_mask = np.asarray(nbr), np.asarray(nbr_mask, dtype=bool)
+        else:
+            adj = np.asarray(adj, dtype=bool)
+        sensed = None if entity_mask is None else np.asarray(entity_mask, dtype=bool)
+        if sensed is not None and self.model.entity_mode == "padded":  # an unsensed slot is a zero slot
+            entities, sensed = entities * sensed[..., None], None
         messages = np.empty((B, M, 2, H), np.float32)
         for b, team in enumerate(self.teams):
             for i, agent in enumerate(team):
-                messages[b, i] = agent.encode(self_obs[b, i], entities[b, i])
+                own = entities[b, i] if sensed is None else np.ascontiguousarray(entities[b, i][sensed[b, i]])
+                messages[b, i] = agent.encode(self_obs[b, i], own)
         logits = np.empty((B, M, 5), np.float32)
-        attention = np.zeros((B, M, M), np.float32)
+        K = nbr.shape[-1] if lists else 0
+        # lists: slot 0 is the agent itself, slot 1 + k its k-th listed neighbour
+        attention = np.zeros((B, M, 1 + K) if lists else (B, M, M), np.float32)
         if self.K == 0:
             for b, team in enumerate(self.teams):
                 for i, agent in enumerate(team):
                     logits[b, i], _ = agent.decide(None)
-                    attention[b, i, i] = 1.0
+                    attention[b, i, 0 if lists else i] = 1.0
         for r in range(self.K):
-            arrived, edges = self.bus.exchange(r, messages, adj)
+            if lists:
+                arrived, edges, listed = self.bus.exchange_lists(r, messages, nbr, nbr_mask)
+            else:
+                arrived, edges = self.bus.exchange(r, messages, adj)
             last = r == self.K - 1
             nxt = messages if last else np.empty_like(messages)
             for b, team in enumerate(self.teams):
                 for i, agent in enumerate(team):
-                    senders = np.flatnonzero(edges[b, i])
+                    slots = np.flatnonzero(edges[b, i])
+                    senders = listed[b, i, slots] if lists else slots
                     heard = arrived[b, senders]  # [n, 2, H]
                     if last:
                         logits[b, i], w = agent.decide(heard)
-                        attention[b, i, i] = w[0]
-                        attention[b, i, senders] = w[1:]
+                        if lists:
+                            attention[b, i, 0] = w[0]
+                            attention[b, i, 1 + slots] = w[1:]
+                        else:
+                            attention[b, i, i] = w[0]
+                            attention[b, i, senders] = w[1:]
                     else:
                         nxt[b, i] = agent.round(heard)
             messages = nxt
@@ -266,6 +316,8 @@ class ExecuteSettings:
     drop: float = 0.0
     delay: int = 0
     seed: int = 12345
+    swarm: dict | None = None
+    """the simulator's neighbour lists / density scaling (``make()`` keywords; None: dense)"""
 
     def __post_init__(self):
         """Every setting checked here, once (``swarm execute`` and ``run_episodes`` alike)."""
@@ -294,7 +346,11 @@ def resolve_settings(
         model.task, "the manifest", task=task, agents=agents, comm=comm, comm_radius=comm_radius
     )
     team_size = setting.team_size("the manifest")
-    model.check_landmarks(setting.task, TASK_SPECS[setting.task].num_landmarks(team_size))  # before any output opens
+    swarm = rest.get("swarm") or {}
+    if swarm.get("landmark_neighbours") and model.entity_mode == "concat":
+        raise DeployError("this model concatenates every landmark (entity_mode 'concat'): no --landmark-neighbours")
+    L = swarm.get("landmark_neighbours") or TASK_SPECS[setting.task].num_landmarks(team_size)
+    model.check_landmarks(setting.task, L)  # before any output opens
     return ExecuteSettings(
         task=setting.task,
         agents=team_size,
@@ -309,25 +365,48 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
     (T is the episode length: the time limit, 50, for a failed episode)."""
     import taichi_swarm
 
-    model.check_landmarks(s.task, taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents))
+    swarm = s.swarm or {}
+    L = swarm.get("landmark_neighbours") or taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents)
+    model.check_landmarks(s.task, L)
     env = taichi_swarm.make(
-        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy"
-    )
+        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy",
+        **swarm,
+    )  # fmt: skip
     executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, seed=s.seed, threads=threads)
+    drawn = getattr(recorder, "drawn", s.episodes)
 
     def decide(obs):
-        _, actions, attention = executor.decide(obs["self"], obs["entities"], obs["adj"])
+        graph = {k: obs[k] for k in ("adj", "nbr", "nbr_mask", "entity_mask") if k in obs}
+        _, actions, attention = executor.decide(obs["self"], obs["entities"], **graph)
+        if "nbr" in obs and recorder is not None:  # [B, M, 1 + K] -> [D, M, M] for the drawn envs
+            attention = lists_to_dense(attention[:drawn], obs["nbr"][:drawn], obs["nbr_mask"][:drawn])
+        elif "nbr" in obs:
+            attention = None
         return actions, attention
 
     tally = run_first_episodes(env, decide, recorder, on_done=executor.bus.reset_envs)
     return {
         **result_header(s.task, s.agents, s.comm, s.comm_radius, s.episodes, s.seed),
+        **swarm,
         "drop": s.drop,
         "delay": s.delay,
         "messages_sent": executor.bus.sent,
         "messages_delivered": executor.bus.delivered,
         **tally.summary(s.task),
     }
+
+
+def lists_to_dense(attention: np.ndarray, nbr: np.ndarray, nbr_mask: np.ndarray) -> np.ndarray:
+    """Attention on [self; listed] [D, M, 1 + K] -> the dense [D, M, M] (what recordings draw)."""
+    D, M, _ = attention.shape
+    dense = np.zeros((D, M, M), np.float32)
+    rows = np.arange(M)
+    dense[:, rows, rows] = attention[:, :, 0]
+    nbr = np.asarray(nbr, dtype=np.int64)
+    ok = np.asarray(nbr_mask, dtype=bool) & (nbr != rows[None, :, None]) & (nbr >= 0) & (nbr < M)
+    d, i, k = np.nonzero(ok)
+    np.add.at(dense, (d, i, nbr[d, i, k]), attention[d, i, 1 + k])
+    return dense
 
 
 def format_table(rows: list[dict]) -> str:

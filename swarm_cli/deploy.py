@@ -59,7 +59,7 @@ def execute_main(argv: list[str]) -> int:
         settings = [  # every setting checked (ExecuteSettings) before any episode runs
             resolve_settings(
                 model, args.task, args.agents, args.comm, args.comm_radius,
-                episodes=args.episodes, drop=p, delay=args.delay, seed=args.seed,
+                episodes=args.episodes, drop=p, delay=args.delay, seed=args.seed, swarm=args.swarm_kwargs(),
             )
             for p in args.drop
         ]  # fmt: skip

@@ -325,7 +325,7 @@ class ExportOptions(SettingOptions):
 
 
 @dataclass(kw_only=True)
-class ExecuteOptions(SettingOptions, OutputOptions):
+class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
     """Run exported models decentralised: one onnxruntime agent per agent, messages only
     along the communication graph; prints S%, T, DIST per drop rate."""
 
@@ -348,6 +348,7 @@ class ExecuteOptions(SettingOptions, OutputOptions):
 
     def __post_init__(self):
         SettingOptions.__post_init__(self)
+        SwarmOptions.__post_init__(self)
         OutputOptions.__post_init__(self)
         at_least(self.threads, 1, "threads")
 
