@@ -57,6 +57,20 @@ def to_numpy(x) -> np.ndarray:
     return np.asarray(x)
 
 
+def comm_graph(obs: dict, D: int) -> np.ndarray:
+    """The communication graph of the first ``D`` envs as [D, M, M] bool (i hears j), from
+    ``obs["adj"]`` or from the neighbour lists (``obs["nbr"]``, ``obs["nbr_mask"]``)."""
+    if "adj" in obs:
+        return to_numpy(obs["adj"])[:D].astype(bool)  # (astype copies)
+    nbr, mask = to_numpy(obs["nbr"])[:D].astype(np.int64), to_numpy(obs["nbr_mask"])[:D].astype(bool)
+    D, M, _ = nbr.shape
+    adj = np.zeros((D, M, M), bool)
+    adj[:, np.arange(M), np.arange(M)] = True
+    d, i, k = np.nonzero(mask & (nbr >= 0) & (nbr < M))
+    adj[d, i, nbr[d, i, k]] = True
+    return adj
+
+
 TRAIL = 6  # steps of trail drawn behind each agent
 
 
@@ -146,7 +160,7 @@ class RolloutRecorder:
         # copies: Rerun may encode arrays after log() returns, and these are views of the
         # env's buffers, which the next step overwrites (an auto-reset env's new targets)
         targets = to_numpy(env.targets)[:D].copy()  # [D, M, 2]
-        adj = to_numpy(env.obs["adj"])[:D].astype(bool)  # [D, M, M] (astype copies)
+        adj = comm_graph(env.obs, D)  # [D, M, M]
         acts = to_numpy(actions)[:D].copy()  # [D, M]
         att = None if attention is None else to_numpy(attention)[:D].copy()  # [D, M, M]
         assign = to_numpy(env.assignment)[:D].copy() if hasattr(env, "assignment") else None  # [D, M]

@@ -40,7 +40,7 @@ class FrameRecorder:
         self._outcome: dict[int, str] = {}
 
     def log_step(self, step: int, env, actions=None, attention=None) -> None:
-        from deploy.recording import to_numpy  # deploy.recording imports rerun: only when recording
+        from deploy.recording import comm_graph, to_numpy  # deploy.recording imports rerun: only when recording
 
         D = self.drawn
         state = env.get_state()
@@ -51,7 +51,7 @@ class FrameRecorder:
                 "pos": to_numpy(state["pos"])[:D].copy(),
                 "landmarks": to_numpy(state["landmarks"])[:D].copy(),
                 "targets": to_numpy(env.targets)[:D].copy(),
-                "adj": to_numpy(env.obs["adj"])[:D].astype(bool).copy(),
+                "adj": comm_graph(env.obs, D),
                 "assignment": None if assignment is None else assignment.copy(),
                 "live": ~self._ended[:D].copy(),
             }

@@ -4,6 +4,8 @@ decides what the torch policy decides on the same lists."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -175,3 +177,28 @@ def test_swarm_execute_on_lists(emp, capsys):
     with pytest.raises(SystemExit) as refused:
         execute_main([model.directory, "--neighbours", "0"])
     assert refused.value.code == 2 and "--neighbours must be >= 1" in capsys.readouterr().err
+
+
+def test_recordings_draw_the_graph_of_the_lists(emp, tmp_path):
+    """comm_graph from the lists is the dense adj when everyone in range is listed; swarm
+    eval --video / --record run on lists."""
+    from deploy.recording import comm_graph
+    from swarm_cli.train import eval_main
+
+    M = 6
+    dense = taichi_swarm.make("coverage", 2, M, comm="rc", comm_radius=0.7, seed=3, array="numpy").reset()
+    lists = _states(M, M - 1)[0]
+    np.testing.assert_array_equal(comm_graph(lists, 2), comm_graph(dense, 2))
+    policy, _ = emp
+    ckpt = str(tmp_path / "p.pt")
+    checkpoint.save(
+        ckpt,
+        {
+            "model_config": policy.config.to_dict(),
+            "model": policy.state_dict(),
+            "task": {"task": "coverage", "agents": M, "comm": "rc", "comm_radius": 0.7},
+        },
+    )
+    gif, rrd = str(tmp_path / "x.gif"), str(tmp_path / "x.rrd")
+    assert eval_main([ckpt, "--episodes", "2", "--neighbours", "3", "--video", gif, "--record", rrd]) == 0
+    assert os.path.getsize(gif) > 0 and os.path.getsize(rrd) > 0
