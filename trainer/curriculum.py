@@ -11,7 +11,7 @@ directory), a stopped stage continues from its checkpoint.
 With ``polish_updates``, each stage is then trained on for that many updates at a low
 constant learning rate (``polish_lr``) from its weights, with no target, in a sibling run
 directory ``stage-m<M>-polish``; the next stage starts from the polished weights. Measured
-here (docs/RESULTS.md, session 12): 300-400 such updates at 3e-5 took coverage RC M = 10 from
+here (docs/FINDINGS.md, polishing): 300-400 such updates at 3e-5 took coverage RC M = 10 from
 81.0 to 87.4%, line RC M = 10 from 83.8 to 94.8%, coverage RC M = 3 from 95.4 to 98.4%, and
 left coverage RC M = 5 where it was (94.8 / 94.2%)."""
 
@@ -122,7 +122,7 @@ def run_curriculum(
             target_success=threshold,
             min_updates=min_updates_per_stage,
             # a stage advances on an evaluation of at least 200 episodes: 100 overstated
-            # stages by up to 10 points (docs/RESULTS.md)
+            # stages by up to 10 points (docs/FINDINGS.md)
             eval_episodes=max(base.eval_episodes, MIN_STAGE_EVAL_EPISODES),
         )
         summary = train_or_resume(stage_cfg)

@@ -206,18 +206,15 @@ def test_bad_specs_name_the_cell_and_the_key(tmp_path, edit, message):
         load_spec(path)
 
 
-def test_table_numbers_are_the_mean_and_sd_over_seeds_and_say_how_many_ran():
+def test_table_numbers_are_the_mean_and_95_interval_over_seeds_and_say_how_many_ran():
     from reproduce import tables
 
-    tables._SEEDS_ASKED[0] = 3
-    try:
-        assert tables._stat([0.5, 0.7], 100) == "60.0 ± 14.1 (2 of 3)"  # sample sd
-        assert tables._stat([0.5, 0.7, 0.9], 100) == "70.0 ± 20.0 (3)"
-        assert tables._stat([2200.0, 2200.0], digits=0) == "2200 (2 of 3)"  # every seed the same: no sd
-        assert tables._stat([None, float("nan")]) == "-"
-    finally:
-        tables._SEEDS_ASKED[0] = 1
-    assert tables._stat([0.5], 100) == "50.0"
+    # half-width of the 95% t-interval: t(0.975, n-1) * sd / sqrt(n)
+    assert tables._stat([0.5, 0.7], 100) == "60.0 ± 127.1 (2)"  # 12.706 * 14.14 / 1.414
+    assert tables._stat([0.5, 0.7, 0.9], 100) == "70.0 ± 49.7 (3)"  # 4.303 * 20 / 1.732
+    assert tables._stat([2200.0, 2200.0], digits=0) == "2200 (2)"  # every seed the same: no interval
+    assert tables._stat([None, float("nan")]) == "-"
+    assert tables._stat([0.5], 100) == "50.0"  # one seed: the number alone
 
 
 def test_a_zero_shot_table_marks_sizes_a_row_does_not_evaluate(tmp_path):

@@ -1,5 +1,5 @@
 """tools/transfer_diagnosis.py: how a coverage policy fails at a team size it was not
-trained at, pinned on two committed M = 3 policies (docs/RESULTS.md, "Why some M = 3
+trained at, pinned on two committed M = 3 policies (docs/FINDINGS.md, "Why some M = 3
 policies carry and others do not"): the one that does not carry piles agents up."""
 
 from __future__ import annotations
@@ -40,7 +40,9 @@ def test_the_policy_that_does_not_carry_piles_agents_up():
 
 def test_it_names_what_is_wrong(capsys):
     tool = _tool()
-    formation = os.path.join(ROOT, "results", "formation-m3-uc", "policy.pt")
+    from trainer.zoo import get
+
+    formation = get("formation-uc-m3").path
     coverage = os.path.join(RECIPE, "s0", "polish", "policy.pt")
     assert tool.main([coverage, formation, "--sizes", "3", "--episodes", "2"]) == 2
     out = capsys.readouterr()
