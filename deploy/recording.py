@@ -130,7 +130,11 @@ class RolloutRecorder:
         # written beside the target and moved there by close(): a run that fails or is killed
         # never leaves a truncated recording, nor replaces a good one
         self._partial = os.path.join(os.path.dirname(os.path.abspath(path)), f".tmp-{os.path.basename(path)}")
-        self.rec.save(self._partial, default_blueprint=layout(self.drawn))
+        try:
+            self.rec.save(self._partial, default_blueprint=layout(self.drawn))
+        except RuntimeError as exc:  # Rerun's own error (a path it cannot create): one line, nothing left
+            self._remove_partial()
+            raise OSError(f"cannot write the recording {path}: {exc}") from None
         self._ended = np.zeros(self.num_envs, bool)  # first episode of the env is over: stop drawing it
         self._successes: list[bool] = []
         self.colors = PALETTE[np.arange(self.num_agents) % len(PALETTE)]  # [M, 3]
@@ -231,11 +235,22 @@ class RolloutRecorder:
         rec.log("all/success_rate", rr.Scalars(float(np.mean(self._successes))))
 
     def close(self, ok: bool = True) -> None:
-        """Flush and close the file; it replaces ``path`` only if ``ok`` (else it is removed)."""
-        self.rec.flush()
-        if hasattr(self.rec, "disconnect"):
-            self.rec.disconnect()
-        if ok:
-            os.replace(self._partial, self.path)
-        elif os.path.exists(self._partial):
+        """Flush and close the file; it replaces ``path`` only if ``ok`` (else it is removed);
+        a write that fails (a full disk) removes it too and raises OSError."""
+        try:
+            self.rec.flush()
+            if hasattr(self.rec, "disconnect"):
+                self.rec.disconnect()
+            if ok:
+                os.replace(self._partial, self.path)
+        except (OSError, RuntimeError) as exc:
+            self._remove_partial()
+            if ok:
+                raise OSError(f"cannot write the recording {self.path}: {exc}") from None
+        finally:
+            if not ok:
+                self._remove_partial()
+
+    def _remove_partial(self) -> None:
+        if os.path.exists(self._partial):
             os.unlink(self._partial)

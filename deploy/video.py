@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 
 import numpy as np
 
@@ -181,6 +182,8 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
         bar.update(1)
         return []
 
+    tmp = None
+    made = not os.path.exists(path)
     try:
         if not os.path.splitext(path)[1]:
             os.makedirs(path, exist_ok=True)
@@ -198,6 +201,12 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
             tmp = os.path.join(os.path.dirname(os.path.abspath(path)), f".tmp-{name}{suffix}")
             anim.save(tmp, writer=writer, dpi=80)
             os.replace(tmp, path)
+    except BaseException:  # (Ctrl-C, a full disk, no ffmpeg): nothing half-written is left
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+        if made and os.path.isdir(path):
+            shutil.rmtree(path, ignore_errors=True)
+        raise
     finally:
         bar.close()
         plt.close(fig)

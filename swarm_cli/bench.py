@@ -27,6 +27,12 @@ def sim_main(argv: list[str]) -> int:
         folder = os.path.dirname(os.path.abspath(args.json))
         if not os.path.isdir(folder):
             return fail("swarm bench sim", f"--json: directory {folder!r} does not exist")
+        from taichi_swarm.files import ensure_writable
+
+        try:
+            ensure_writable(args.json, "--json")  # before the benchmark, not after it
+        except ValueError as exc:
+            return fail("swarm bench sim", exc)
     from swarm_cli import bench_sim
 
     seconds = QUICK_SECONDS if args.quick else args.seconds

@@ -166,6 +166,10 @@ def main(argv: list[str] | None = None) -> int:
     from trainer.checkpoint import CheckpointError
 
     try:
+        if args.json:
+            from taichi_swarm.files import ensure_writable
+
+            ensure_writable(args.json, "--json")  # before the benchmark, not after it
         result = run(args.checkpoint, args.agents, args.landmarks, args.repeats, warmup=max(10, args.repeats // 10))
     except (CheckpointError, ValueError) as exc:
         return fail("swarm bench deploy", exc)

@@ -427,10 +427,19 @@ def machine_info(torch_threads: int, comm: str, seconds: float, steps: int | Non
 def write_json(path: str, payload: dict) -> None:
     """Write atomically: a temporary file next to ``path``, then os.replace."""
     tmp = f"{path}.tmp{os.getpid()}"
+    try:
+        _write(tmp, payload)
+        os.replace(tmp, path)
+    except BaseException:  # a failed write leaves nothing behind
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _write(tmp: str, payload: dict) -> None:
     with open(tmp, "w") as fh:
         json.dump(payload, fh, indent=2)
         fh.write("\n")
-    os.replace(tmp, path)
 
 
 def serial_sweep(

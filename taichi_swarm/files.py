@@ -41,6 +41,12 @@ def ensure_writable(path: str, what: str = "output") -> None:
         raise ValueError(f"{what} {path} is a directory")
     if not os.path.isdir(probe) or not os.access(probe, os.W_OK):
         raise ValueError(f"cannot write {what} {path}: {probe} is not a writable directory")
+    try:  # os.access says yes to root everywhere (/proc too): a file made and removed says for sure
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-probe-", dir=probe)
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as exc:
+        raise ValueError(f"cannot write {what} {path}: {exc.strerror or exc} in {probe}") from None
 
 
 def clean_leftovers(directory: str) -> list[str]:

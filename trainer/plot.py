@@ -11,7 +11,15 @@ def read_metrics(run_dir: str) -> list[dict]:
     if not os.path.exists(path):
         raise FileNotFoundError(f"{run_dir} has no metrics.jsonl (is it a run directory?)")
     with open(path) as f:
-        return [json.loads(line) for line in f if line.strip()]
+        try:
+            rows = [json.loads(line) for line in f if line.strip()]
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path} is not JSON lines ({exc})") from None
+    for number, row in enumerate(rows, 1):
+        missing = [k for k in ("update", "env_steps", "reward") if not isinstance(row, dict) or k not in row]
+        if missing:
+            raise ValueError(f"{path}: line {number} lacks {missing}: not a training run's metrics")
+    return rows
 
 
 def plot_run(run_dir: str, out: str | None = None) -> str:
@@ -54,9 +62,15 @@ def _save(fig, out: str) -> str:
 
     fig.tight_layout()
     tmp = out + ".tmp.png"
-    fig.savefig(tmp, dpi=90)
-    plt.close(fig)
-    os.replace(tmp, out)
+    try:
+        fig.savefig(tmp, dpi=90)
+        os.replace(tmp, out)
+    except BaseException:  # a failed write leaves nothing behind
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    finally:
+        plt.close(fig)
     return out
 
 
@@ -70,10 +84,18 @@ def plot_zero_shot(json_paths: list[str], out: str, labels: list[str] | None = N
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
     for k, path in enumerate(json_paths):
         with open(path) as f:
-            data = json.load(f)
-        rows = data.get("results")
-        if not isinstance(rows, list) or not rows:
-            raise ValueError(f"{path} is not a `swarm zero-shot --json` file")
+            try:
+                data = json.load(f)
+            except json.JSONDecodeError:
+                data = None
+        rows = data.get("results") if isinstance(data, dict) else None
+        fields = ("agents", "success_rate")
+        if (
+            not isinstance(rows, list)
+            or not rows
+            or not all(isinstance(r, dict) and all(k in r for k in fields) for r in rows)
+        ):
+            raise ValueError(f"{path} is not a `swarm zero-shot --json` file (results with agents and success_rate)")
         sizes = [r["agents"] for r in rows]
         rates = [100 * r["success_rate"] for r in rows]
         trained = data.get("trained_agents")
