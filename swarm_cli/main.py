@@ -83,11 +83,11 @@ def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
             where = f" ({exc.filename})" if exc.filename else ""
             print(f"{prog} {name}: error: {exc.strerror or exc}{where}", file=sys.stderr)
             code = 1
-    if received:  # the command took the Ctrl-C path because of SIGTERM: the shell's 128 + 15
-        code = 128 + signal.SIGTERM
         except ValueError as exc:  # a refused input a command did not catch itself (bench's): one line too
             print(f"{prog} {name}: error: {exc}", file=sys.stderr)
             code = 2
+    if received:  # the command took the Ctrl-C path because of SIGTERM: the shell's 128 + 15
+        code = 128 + signal.SIGTERM
     return code
 
 

@@ -351,7 +351,6 @@ class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
         SwarmOptions.__post_init__(self)
         OutputOptions.__post_init__(self)
         at_least(self.threads, 1, "threads")
-
         cores = os.cpu_count() or 1
         if self.threads > cores:  # (more onnxruntime threads than cores only wait on each other)
             raise OptionError(f"--threads must be <= {cores}, this machine's cores, got {self.threads}")
@@ -360,6 +359,7 @@ class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
                 f"--episodes must be <= {MAX_EXECUTE_EPISODES} (one environment and M onnxruntime agents each), "
                 f"got {self.episodes}"
             )
+
 
 @dataclass(kw_only=True)
 class ReplayOptions(VideoOption):
@@ -420,12 +420,12 @@ class ReproduceOptions:
     def __post_init__(self):
         at_least(self.seeds, 1, "seeds")
         at_least(self.first_seed, 0, "first-seed")
-        at_least(self.workers, 0, "workers")
         if self.seeds > MAX_SEEDS or self.first_seed + self.seeds > 2**31:
             raise OptionError(
                 f"--seeds must be <= {MAX_SEEDS} and --first-seed + --seeds <= 2^31 (training seeds), "
                 f"got {self.seeds} from {self.first_seed}"
             )
+        at_least(self.workers, 0, "workers")
         at_least(self.gpus_per_cell, 0, "gpus-per-cell")
         positive(self.progress_every, "progress-every")
 
