@@ -88,6 +88,18 @@ def _eval_settings(opts, payload: dict, agents: int | None = None):
     )  # fmt: skip
 
 
+def swarm_setting(opts, payload: dict) -> dict:
+    """The neighbour lists / density scaling the policy was trained on (its "swarm"
+    record), with the command's --neighbours / --landmark-neighbours / --sense-radius /
+    --scale over them."""
+    from trainer.evaluate import swarm_options
+
+    saved = payload.get("swarm") or {}
+    if not isinstance(saved, dict) or set(saved) - {"neighbours", "landmark_neighbours", "sense_radius", "scale"}:
+        raise ValueError(f"the checkpoint's swarm setting is not one of make()'s list options: {saved!r}")
+    return swarm_options(**{**saved, **opts.swarm_kwargs()})
+
+
 SAMPLED_NOTE = "(sampled actions: a diagnostic; the paper's numbers are greedy)"
 
 
@@ -112,7 +124,7 @@ def eval_main(argv: list[str]) -> int:
         try:
             result = evaluate(
                 policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
-                recorder=recorder, actions=opts.actions, swarm=opts.swarm_kwargs(),
+                recorder=recorder, actions=opts.actions, swarm=swarm_setting(opts, payload),
             )  # fmt: skip
         except BaseException:  # (Ctrl-C too): no recording or video written, none replaced
             if recorder is not None:
@@ -148,7 +160,7 @@ def zero_shot_main(argv: list[str]) -> int:
         rows = []
         for M in sizes:
             rows.append(evaluate(policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed,
-                                 arch=opts.arch, actions=opts.actions, swarm=opts.swarm_kwargs()))  # fmt: skip
+                                 arch=opts.arch, actions=opts.actions, swarm=swarm_setting(opts, payload)))  # fmt: skip
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return fail("swarm zero-shot", exc)

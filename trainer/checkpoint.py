@@ -211,7 +211,7 @@ def check_number(where: str, x, *, minimum: float = 0.0, integer: bool = False):
     return x
 
 
-POLICY_KEYS = ("model_config", "model", "task", "counters", "evals")
+POLICY_KEYS = ("model_config", "model", "task", "swarm", "counters", "evals")  # swarm: make()'s list options
 
 
 def save_policy_only(payload: dict, path: str) -> None:

@@ -600,6 +600,7 @@ def save_checkpoint(run: Run, state: TrainingState, cfg: TrainConfig) -> None:
         "model_config": state.policy.config.to_dict(),
         "model": state.policy.state_dict(),
         "task": taichi_swarm.TaskSetting(cfg.task, cfg.agents, cfg.comm, cfg.comm_radius).to_dict(),
+        "swarm": cfg.swarm_options(),  # the neighbour lists / density scaling it trained on ({}: dense)
         "counters": dict(state.counters),
         "evals": list(state.evals),
         "optimizer": state.optimizer.state_dict(),

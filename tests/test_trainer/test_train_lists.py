@@ -1,6 +1,7 @@
 """Training on the simulator's neighbour lists: the rollout stores them, PPO trains over
 them, a run resumes on them; with lists that hold everyone it is the dense run."""
 
+import json
 import os
 
 import pytest
@@ -91,6 +92,14 @@ def test_swarm_train_takes_the_list_options(tmp_path):
     args += ["--model.hidden", "8", "--run-dir", run, "--no-progress", "--transfer-offsets"]
     assert swarm_main(args) == 0
     assert checkpoint.load(os.path.join(run, "checkpoint.pt"))["train_config"]["neighbours"] == 2
+    # the policy records the lists it trained on, and swarm eval runs on them unless told otherwise
+    policy = os.path.join(run, "policy.pt")
+    assert checkpoint.load(policy)["swarm"] == {"neighbours": 2}
+    for extra, K in (([], 2), (["--neighbours", "3"], 3)):
+        out = str(tmp_path / f"eval{K}.json")
+        assert swarm_main(["eval", policy, "--episodes", "2", "--json", out, *extra]) == 0
+        with open(out) as f:
+            assert json.load(f)["neighbours"] == K
 
 
 @pytest.mark.parametrize("bad,match", [(dict(neighbours=0), "neighbours"), (dict(scale="area"), "scale")])
