@@ -229,6 +229,8 @@ def load_spec(name_or_path: str) -> Spec:
     try:
         with open(path, "rb") as f:
             raw = tomllib.load(f)
+    except RecursionError:  # (tomllib recurses per nesting level)
+        raise SpecError(f"{path}: nested too deeply to be a spec") from None
     except tomllib.TOMLDecodeError as exc:
         raise SpecError(f"{path}: not valid TOML ({exc})") from None
     known_top = {"name", "description", "defaults", "cells"}

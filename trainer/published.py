@@ -55,6 +55,10 @@ def _read(path: str) -> list[dict]:
     ob_rms = raw.get("ob_rms", (None, None))
     if ob_rms not in (None, (None, None), [None, None]):
         raise CheckpointError(f"{path} uses observation normalisation (ob_rms), which this network does not have")
+    for i, m in enumerate(models):
+        bad = sorted(str(k) for k, v in m.items() if not isinstance(k, str) or not isinstance(v, torch.Tensor))
+        if bad:
+            raise CheckpointError(f"{path}: agent {i}'s state dict holds non-tensor entries {bad[:4]}")
     first = models[0]
     for i, other in enumerate(models[1:], start=1):
         if other.keys() != first.keys() or any(not torch.equal(other[k], first[k]) for k in first):

@@ -358,3 +358,13 @@ def test_sizes_and_hangs_are_refused_up_front(tiny_policy, tmp_path):
         check_address("nowhere")
     assert time.perf_counter() - start < 10
     assert not os.listdir(tmp_path)
+
+
+def test_crafted_inputs_of_import_and_reproduce_are_one_line(tmp_path):
+    import torch
+
+    torch.save({"models": [{"encoder.0.weight": 3}], "ob_rms": None}, tmp_path / "pub.pt")
+    refused(["import", str(tmp_path / "pub.pt"), "--out", str(tmp_path / "o.pt")], "non-tensor")
+    (tmp_path / "deep.toml").write_text("a = " + "[" * 100_000 + "]" * 100_000 + "\n")
+    refused(["reproduce", "--spec", str(tmp_path / "deep.toml"), "--dry-run"], "nested too deeply")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["deep.toml", "pub.pt"]
