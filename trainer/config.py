@@ -198,6 +198,9 @@ class TrainConfig:
     """Where the run lives (default runs/<task>-m<agents>-<comm>-s<seed>)."""
     init_from: str = ""
     """Start from these weights (a checkpoint); what else it carries: ``init_carry``."""
+    trust_unsigned: bool = False
+    """Take ``init_from`` even if it carries no sha256 (from before digests existed): corruption
+    in it cannot be detected."""
     init_carry: Literal["weights", "normaliser", "optimiser"] = "weights"
     """What ``init_from`` carries into the new run. weights: the weights only (fresh Adam and
     reward normaliser: the paper's curriculum); normaliser: also the reward normaliser's

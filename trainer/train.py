@@ -490,7 +490,7 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     policy = SwarmPolicy(model_config_for(cfg)).to(device)
     init_payload = None
     if cfg.init_from and payload is None:
-        init_policy, init_payload = checkpoint.load_policy(cfg.init_from)
+        init_policy, init_payload = checkpoint.load_policy(cfg.init_from, trust_unsigned=cfg.trust_unsigned)
         if init_policy.config != policy.config:
             raise checkpoint.CheckpointError(
                 f"--init-from {cfg.init_from} has model {init_policy.config}, this run wants {policy.config}"

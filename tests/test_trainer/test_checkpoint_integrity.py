@@ -225,3 +225,14 @@ def test_crafted_network_sizes_and_special_files_are_refused(run_dir, tmp_path):
     os.mkfifo(fifo)
     with pytest.raises(checkpoint.CheckpointError, match="not a regular file"):  # (open() would block)
         checkpoint.load(str(fifo))
+
+
+def test_init_from_an_unsigned_file_needs_trust_unsigned(run_dir, tmp_path):
+    payload = checkpoint.load(os.path.join(run_dir, "policy.pt"))
+    unsigned = str(tmp_path / "unsigned.pt")
+    torch.save({k: v for k, v in payload.items() if k not in ("sha256", "model_sha256")} | {"version": 1}, unsigned)
+    with pytest.raises(checkpoint.UnsignedCheckpoint, match="--trust-unsigned"):
+        train(tiny(tmp_path, run_dir=str(tmp_path / "a"), init_from=unsigned))
+    assert not (tmp_path / "a").exists()
+    summary = train(tiny(tmp_path, run_dir=str(tmp_path / "b"), init_from=unsigned, trust_unsigned=True))
+    assert summary["update"] == 1
