@@ -1,0 +1,68 @@
+"""The model zoo: every entry of models/index.toml exists, matches its sha256, loads by name,
+and was trained in the setting its card states; a name that is not an entry, a changed file
+and a malformed index are refused with one line."""
+
+import os
+import shutil
+
+import pytest
+
+from trainer import zoo
+from trainer.checkpoint import CheckpointError, load_policy
+
+ENTRIES = zoo.load_index()
+
+
+def test_the_zoo_covers_every_published_setting():
+    names = {e.name for e in ENTRIES}
+    for task in ("coverage", "formation", "line"):
+        for comm in ("uc", "rc"):
+            for m in (3, 5, 6, 7, 10):
+                assert f"{task}-{comm}-m{m}" in names
+    assert "coverage-uc-m3-transfer" in names
+
+
+@pytest.mark.parametrize("entry", ENTRIES, ids=lambda e: e.name)
+def test_entry_exists_loads_by_name_and_matches_its_card(entry):
+    zoo.verify(entry)  # the file is there and its bytes are the ones measured
+    policy, payload = load_policy(entry.name)
+    setting = payload["task"]
+    assert (setting["task"], setting["comm"], setting["agents"]) == (entry.task, entry.comm, entry.agents)
+    assert setting["comm_radius"] == entry.comm_radius
+    assert payload["model_config"]["entity_mode"] == entry.entity_mode
+    assert 0 <= entry.success <= 1 and entry.episodes >= 500 and entry.eval_seed == 777
+    assert entry.curves == "" or os.path.exists(os.path.join(zoo.ROOT, entry.curves))
+
+
+def test_a_name_not_in_the_zoo_is_refused_with_suggestions():
+    with pytest.raises(zoo.ZooError, match="did you mean coverage-rc-m10"):
+        load_policy("coverage-rc-m1")
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_policy("runs/no/such/policy.pt")  # a path stays a path
+
+
+def test_a_changed_file_is_refused(tmp_path, monkeypatch):
+    entry = zoo.get("formation-uc-m3")
+    copy = tmp_path / "policy.pt"
+    shutil.copy(entry.path, copy)
+    data = bytearray(copy.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    copy.write_bytes(bytes(data))
+    index = tmp_path / "index.toml"
+    index.write_text(
+        open(zoo.INDEX).read().replace(f'weights = "{entry.weights}"', f'weights = "{os.path.relpath(copy, zoo.ROOT)}"')
+    )
+    monkeypatch.setattr(zoo, "INDEX", str(index))
+    monkeypatch.setattr(zoo.load_index, "__defaults__", (str(index),))
+    with pytest.raises(ValueError, match="sha256"):
+        load_policy("formation-uc-m3")
+
+
+def test_a_malformed_index_is_refused(tmp_path):
+    bad = tmp_path / "index.toml"
+    bad.write_text('[[model]]\nname = "x"\nweights = 3\nunknown_key = 1\n')
+    with pytest.raises(zoo.ZooError, match="unknown keys"):
+        zoo.load_index(str(bad))
+    bad.write_text("[[model]\n")
+    with pytest.raises(zoo.ZooError, match="not valid TOML"):
+        zoo.load_index(str(bad))
