@@ -27,7 +27,7 @@ import sys
 
 import numpy as np
 
-from . import assignment, kernels, neighbours, rng, runtime
+from . import assignment, auction, kernels, neighbours, rng, runtime
 from .layout import (
     FLOAT_HEADER,
     H_COMM_RC,
@@ -36,10 +36,12 @@ from .layout import (
     P_ARENA,
     P_CELL,
     P_COMM_RADIUS,
+    P_EPS,
     P_LCELL,
     P_SENSE,
     P_SUCCESS,
     P_TASK_PARAM,
+    P_TCELL,
     Layout,
     static_team_size,
 )
@@ -49,6 +51,7 @@ from .tasks import COMMON_PARAMS, TASK_SPECS
 COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
+ASSIGNMENTS = ("exact", "auction")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -59,6 +62,9 @@ SERIAL_BELOW_WORK = 32768
 INT32_MAX = 2**31 - 1
 LARGE_TEAM = 64  # from this team size, say that kernels are compiling (it takes a while)
 _ANNOUNCED_CAPACITIES: set[int] = set()
+
+
+assignment_capacity = assignment.capacity  # the module name is taken by a keyword below
 
 
 def _check_int(name: str, value, minimum: int, maximum: int | None = None) -> int:
@@ -107,6 +113,7 @@ class SwarmEnv:
         landmark_neighbours: int | None = None,
         sense_radius: float | None = None,
         scale: str | None = None,
+        assignment: str = "exact",
         **task_params,
     ):
         if not isinstance(task, str) or task not in TASK_SPECS:
@@ -143,12 +150,22 @@ class SwarmEnv:
         self.action_dim = ACTION_DIM  # continuous: float32 [B, M, 2]
         self._task_id = spec.task_id
         self._check_lists(spec, neighbours, landmark_neighbours, sense_radius, scale)
+        if assignment is None:
+            assignment = "exact"
+        if assignment not in ASSIGNMENTS:
+            raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
+        self.assignment_method = assignment
+        # the auction's eps: the total matched distance is within num_agents * eps of the optimum
+        self.assignment_eps = auction.EPS if assignment == "auction" else 0.0
+        auctioned = assignment == "auction"
         # compile-time M for small teams, else 0; with lists the kernels are the same code for
         # every M (the dense physics' stack array is not compiled: any constant ``cap`` will do)
-        self._sm = static_team_size(self.num_agents) if self.neighbours is None else 0
-        self._cap = assignment.capacity(self.num_agents) if self.neighbours is None else 4
-        self._lists = (kernels.AGENT_LISTS if self.neighbours is not None else 0) | (
-            kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0
+        self._sm = static_team_size(self.num_agents) if self.neighbours is None and not auctioned else 0
+        self._cap = assignment_capacity(self.num_agents) if self.neighbours is None else 4
+        self._lists = (
+            (kernels.AGENT_LISTS if self.neighbours is not None else 0)
+            | (kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0)
+            | (kernels.AUCTION if auctioned else 0)
         )
 
         self.arch = runtime.init(arch)
@@ -200,6 +217,8 @@ class SwarmEnv:
         if self.landmark_neighbours is not None:
             L = self.num_landmarks
             dims.update(LE=self.landmark_neighbours, KL=self.landmark_neighbours, LN=L, GL1=neighbours.buckets(L) + 1)
+        if self.assignment_method == "auction":  # a grid of the targets instead of the M x M costs
+            dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
         return dims
 
     # ------------------------------------------------------------------ buffers
@@ -294,6 +313,8 @@ class SwarmEnv:
         fparams[P_SENSE] = self.sense_radius or 0.0
         fparams[P_LCELL] = neighbours.cell_side(self.sense_radius or 1.0)
         fparams[P_ARENA] = self.arena
+        fparams[P_TCELL] = auction.target_cell(self.num_agents, self.arena)
+        fparams[P_EPS] = self.assignment_eps
         self._put(self._i, 0, header)
         self._put(self._f, 0, fparams)
 
@@ -517,6 +538,7 @@ class SwarmEnv:
             ("landmark_neighbours", self.landmark_neighbours),
             ("sense_radius", self.sense_radius),
             ("scale", self.scale),
+            ("assignment", None if self.assignment_method == "exact" else self.assignment_method),
         )
         return tuple(f"{k}={v}" for k, v in opts if v is not None)
 
@@ -605,6 +627,7 @@ def make(
     landmark_neighbours: int | None = None,
     sense_radius: float | None = None,
     scale: str | None = None,
+    assignment: str = "exact",
     **task_params,
 ) -> SwarmEnv:
     """Build a batch of ``num_envs`` teams of ``num_agents`` agents for ``task``.
@@ -624,6 +647,9 @@ def make(
     within sense_radius (obs["entities"] [B, M, KL, 2], obs["entity_mask"]).
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
+    assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
+    (eps-optimal: the total matched distance within M * 1e-3 of the optimum; no M x M
+    block, which M = 10,000 needs: auction.py).
     """
     return SwarmEnv(
         task,
@@ -639,5 +665,6 @@ def make(
         landmark_neighbours,
         sense_radius,
         scale,
+        assignment,
         **task_params,
     )

@@ -21,7 +21,7 @@ env.py).
 
 import taichi as ti
 
-from . import assignment, neighbours, physics, tasks
+from . import assignment, auction, neighbours, physics, tasks
 from .layout import (
     H_B,
     H_COMM_RC,
@@ -81,7 +81,9 @@ from .layout import (
     team_size,
 )
 
-AGENT_LISTS, LANDMARK_LISTS = 1, 2  # bits of the compile-time ``lists`` argument
+# bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment
+AGENT_LISTS, LANDMARK_LISTS, AUCTION = 1, 2, 4
+CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
 I32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
@@ -89,10 +91,13 @@ U8 = ti.types.ndarray(dtype=ti.u8, ndim=1)
 
 
 @ti.func
-def match(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
-    """Targets, optimal assignment and matched distances d*_i of env b."""
+def match(task: ti.template(), sm: ti.template(), lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Targets, optimal (or, with AUCTION, eps-optimal) assignment and matched distances d*_i of env b."""
     tasks.place_targets(task, sm, f, ib, b)
-    assignment.solve(sm, f, ib, b)
+    if ti.static(lists & AUCTION):
+        auction.solve(f, ib, b)
+    else:
+        assignment.solve(sm, f, ib, b)
 
 
 @ti.func
@@ -240,11 +245,13 @@ def target_dist(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i3
 
 
 @ti.func
-def start_episode(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def start_episode(
+    task: ti.template(), sm: ti.template(), lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
+):
     tasks.spawn(task, sm, f, ib, b)
     ib[env_at(ib, O_STEP, b)] = 0
     f[env_at(ib, O_RET_ACC, b)] = 0.0
-    match(task, sm, f, ib, b)
+    match(task, sm, lists, f, ib, b)
 
 
 @ti.kernel
@@ -260,7 +267,7 @@ def reset_kernel(
 ):
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        start_episode(task, sm, f, ib, b)
+        start_episode(task, sm, lists, f, ib, b)
         f[env_at(ib, O_REWARD, b)] = 0.0
         u8[env_at(ib, O_DONE, b)] = ti.u8(0)
         write_team_obs(task, sm, lists, f, ib, u8, b, False)
@@ -280,7 +287,7 @@ def refresh_kernel(
     """Recompute targets, assignment and observations after ``set_state``."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
-        match(task, sm, f, ib, b)
+        match(task, sm, lists, f, ib, b)
         write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
@@ -354,10 +361,35 @@ def physics_step_grid(
         else:
             force = physics.action_force(ib[A0 + i])
         p = ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1])
-        j = neighbours.next_contact(f, ib, i, -1, P0, reach * reach, h, G, GS, GI, GC, M)
-        while j < M:
+        # one pass over the 3 x 3 cells keeps the CONTACT_SLOTS smallest touching indices,
+        # sorted; past that many (a pile-up) the rest are walked in increasing index
+        touching = ti.Vector([M] * CONTACT_SLOTS, dt=ti.i32)
+        count = 0
+        cell = ti.math.ivec2(ib[GC + 2 * i], ib[GC + 2 * i + 1])
+        for q in range(9):
+            qx, qy = cell[0] + q % 3 - 1, cell[1] + q // 3 - 1
+            g = neighbours.bucket(qx, qy, G)
+            for s in range(ib[GS + g], ib[GS + g + 1]):
+                j = ib[GI + s]
+                if j != i and ib[GC + 2 * j] == qx and ib[GC + 2 * j + 1] == qy:
+                    dx, dy = f[P0 + 2 * j] - p[0], f[P0 + 2 * j + 1] - p[1]
+                    d2 = dx * dx + dy * dy
+                    if d2 > 0.0 and d2 < reach * reach:
+                        count += 1
+                        if j < touching[CONTACT_SLOTS - 1]:
+                            k = CONTACT_SLOTS - 1
+                            while k > 0 and touching[k - 1] > j:
+                                touching[k] = touching[k - 1]
+                                k -= 1
+                            touching[k] = j
+        for k in range(ti.min(count, CONTACT_SLOTS)):
+            j = touching[k]
             force += physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
-            j = neighbours.next_contact(f, ib, i, j, P0, reach * reach, h, G, GS, GI, GC, M)
+        if count > CONTACT_SLOTS:
+            j = neighbours.next_contact(f, ib, i, touching[CONTACT_SLOTS - 1], P0, reach * reach, h, G, GS, GI, GC, M)
+            while j < M:
+                force += physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
+                j = neighbours.next_contact(f, ib, i, j, P0, reach * reach, h, G, GS, GI, GC, M)
         v = physics.integrate_velocity(ti.math.vec2(f[V0 + 2 * i], f[V0 + 2 * i + 1]), force)
         f[V0 + 2 * i] = v[0]
         f[V0 + 2 * i + 1] = v[1]
@@ -387,7 +419,7 @@ def step_env(
         physics_step(cap, sm, f, ib, b, u, continuous)
     t = ib[env_at(ib, O_STEP, b)] + 1
     ib[env_at(ib, O_STEP, b)] = t
-    match(task, sm, f, ib, b)
+    match(task, sm, lists, f, ib, b)
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
     for i in range(M):
         d = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
@@ -412,7 +444,7 @@ def step_env(
         for i in range(M):
             f[agent_at(ib, O_EP_MATCHED, b, M, i, 1)] = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
         write_team_obs(task, sm, lists, f, ib, u8, b, True)
-        start_episode(task, sm, f, ib, b)
+        start_episode(task, sm, lists, f, ib, b)
     write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
@@ -469,7 +501,7 @@ def reset_masked_kernel(
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
         if mask[b] != 0:
-            start_episode(task, sm, f, ib, b)
+            start_episode(task, sm, lists, f, ib, b)
             f[env_at(ib, O_REWARD, b)] = 0.0
             u8[env_at(ib, O_DONE, b)] = ti.u8(0)
             write_team_obs(task, sm, lists, f, ib, u8, b, False)

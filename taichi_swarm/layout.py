@@ -23,8 +23,8 @@ import numpy as np
 import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
-H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL = range(9)
-SIZE_SLOTS = 9
+H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL, H_GT = range(10)
+SIZE_SLOTS = 10
 SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
 
 
@@ -43,7 +43,21 @@ class BlockSpec:
 
 def dense_dims(M: int, L: int) -> dict:
     """The named dimensions of the dense layout (no neighbour or landmark lists)."""
-    return {"M": M, "L": L, "MA": M, "LE": L, "K": 0, "KL": 0, "N": 0, "G1": 0, "LN": 0, "GL1": 0}
+    return {
+        "M": M,
+        "L": L,
+        "MA": M,
+        "LE": L,
+        "MC": M,
+        "K": 0,
+        "KL": 0,
+        "N": 0,
+        "G1": 0,
+        "LN": 0,
+        "GL1": 0,
+        "TN": 0,
+        "GT1": 0,
+    }
 
 
 DIMS = tuple(dense_dims(0, 0))
@@ -66,7 +80,7 @@ BLOCKS = (
     BlockSpec("return_acc", "f32"),
     BlockSpec("term_self", "f32", ("M", SELF_DIM)),
     BlockSpec("term_entities", "f32", ("M", "LE", 2)),
-    BlockSpec("assign_cost", "f32", ("M", "M")),  # assignment cost matrix (M > SMALL_M)
+    BlockSpec("assign_cost", "f32", ("M", "MC")),  # exact assignment's cost matrix (M > SMALL_M)
     BlockSpec("prices", "f32", ("M",)),  # assignment column prices, the next solve's warm start
     BlockSpec("lap_dist", "f32", ("M",)),  # assignment work array: path lengths to each column
     BlockSpec("ep_covered", "f32"),  # fraction of targets matched within success_threshold
@@ -93,6 +107,9 @@ BLOCKS = (
     BlockSpec("lgrid_start", "i32", ("GL1",)),  # the landmarks' cell grid (landmark lists)
     BlockSpec("lgrid_items", "i32", ("LN",)),
     BlockSpec("lgrid_cell", "i32", ("LN", 2)),
+    BlockSpec("tgrid_start", "i32", ("GT1",)),  # the targets' cell grid (auction assignment)
+    BlockSpec("tgrid_items", "i32", ("TN",)),
+    BlockSpec("tgrid_cell", "i32", ("TN", 2)),
     BlockSpec("adj", "u8", ("M", "MA")),
     BlockSpec("done", "u8"),
     BlockSpec("ep_success", "u8"),
@@ -122,12 +139,14 @@ O_NBR_D2, O_ENT_D2, O_IN_RANGE, O_DROPPED = SLOT["nbr_d2"], SLOT["ent_d2"], SLOT
 O_ENT_MASK, O_TERM_ENT_MASK, O_ENT_IDX = SLOT["entity_mask"], SLOT["term_entity_mask"], SLOT["ent_idx"]
 O_GRID_START, O_GRID_ITEMS, O_GRID_CELL = SLOT["grid_start"], SLOT["grid_items"], SLOT["grid_cell"]
 O_LGRID_START, O_LGRID_ITEMS, O_LGRID_CELL = SLOT["lgrid_start"], SLOT["lgrid_items"], SLOT["lgrid_cell"]
+O_TGRID_START, O_TGRID_ITEMS, O_TGRID_CELL = SLOT["tgrid_start"], SLOT["tgrid_items"], SLOT["tgrid_cell"]
 
 # --- float32 header: physical and task parameters ------------------------------------
-# P_CELL / P_LCELL: cell sides of the agents' and landmarks' grids; P_ARENA: the spawn
-# square's half-width (1, or sqrt(M / 10) with scale="density")
-P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA = range(8)
-FLOAT_HEADER = 8
+# P_CELL / P_LCELL / P_TCELL: cell sides of the agents', landmarks' and targets' grids;
+# P_ARENA: the spawn square's half-width (1, or sqrt(M / 10) with scale="density");
+# P_EPS: the auction assignment's eps
+P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA, P_TCELL, P_EPS = range(10)
+FLOAT_HEADER = 10
 
 
 # Teams up to this size get kernels compiled for their exact M: every loop over agents
@@ -186,7 +205,13 @@ class Layout:
         self.header = np.zeros(INT_HEADER, dtype=np.int32)
         self.header[[H_B, H_M, H_L]] = (num_envs, num_agents, num_landmarks)
         d = self.dims
-        self.header[[H_K, H_KL, H_G, H_GL]] = (d["K"], d["KL"], max(d["G1"] - 1, 0), max(d["GL1"] - 1, 0))
+        self.header[[H_K, H_KL, H_G, H_GL, H_GT]] = (
+            d["K"],
+            d["KL"],
+            max(d["G1"] - 1, 0),
+            max(d["GL1"] - 1, 0),
+            max(d["GT1"] - 1, 0),
+        )
         for name, block in self.blocks.items():
             self.header[SLOT[name]] = block.offset
 

@@ -48,7 +48,7 @@ def test_lists_holding_everyone_are_the_dense_simulation(task, M, comm, action_s
     B = 6
     kw = dict(comm=comm, comm_radius=0.6, seed=4, array="numpy", action_space=action_space, max_steps=20)
     dense = taichi_swarm.make(task, B, M, **kw)
-    lists = taichi_swarm.make(task, B, M, neighbours=M - 1 + (M % 2), **kw)
+    lists = taichi_swarm.make(task, B, M, neighbours=M - 1 + (M % 2), assignment="exact", **kw)
     assert "adj" not in lists.obs and "adj" not in lists.info["terminal_obs"]
     od, ol = dense.reset(), lists.reset()
     rng = np.random.default_rng(1)

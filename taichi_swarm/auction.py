@@ -1,0 +1,207 @@
+"""epsilon-optimal assignment for large teams: a warm-started auction over a cell grid of the
+targets (``make(..., assignment="auction")``).
+
+Bertsekas' auction (Gauss-Seidel: one bidder at a time), agents bidding for targets at
+cost c_ij = |p_i - t_j| plus the target's price p_j >= 0. An agent bids for its best
+target j1 (smallest c + p), raising p_j1 by (second best - best) + eps; the target's
+former holder bids next. When every agent holds a target and each holds one within eps
+of its best (eps-complementary slackness), the total cost is within M eps of the optimum
+(Bertsekas 1988): ``bound = M * eps`` on sum_i d*_i, i.e. eps on the mean matched
+distance, stated in docs/SWARM.md and checked against scipy in
+tests/test_taichi_swarm/test_assignment_large.py.
+
+Best and second best over *all* targets, found locally: prices are >= 0 (kept so by
+shifting the smallest to 0; a common shift changes nobody's preferences), so c + p >= c and
+a ring of cells whose nearest point is farther than the second best so far can hold
+neither. The search walks rings of cells round the agent's cell until that bound stops it,
+or scans every target past RING_LIMIT rings (agents far from every target), so the
+answer is exact either way.
+
+Warm start: the last step's prices and assignment; an agent keeps its target if that is
+still within eps of its best (agents move little per step), the others bid. A fresh
+episode starts cold, with eps scaling (eps from the cell side down to EPS by factors of 8,
+every agent bidding again each phase), which keeps the bidding wars of a cold start short.
+"""
+
+import taichi as ti
+
+from .layout import (
+    H_GT,
+    H_M,
+    O_ASSIGN,
+    O_LAP_COLS,
+    O_LAP_X,
+    O_LAP_Y,
+    O_MATCHED,
+    O_POS,
+    O_PRICES,
+    O_STEP,
+    O_TGRID_CELL,
+    O_TGRID_ITEMS,
+    O_TGRID_START,
+    O_TGT,
+    P_EPS,
+    P_TCELL,
+    env_at,
+)
+from .neighbours import bucket, build, cell_of
+
+INF = 1e30
+EPS = 1e-3  # default eps: the total matched distance is within M * EPS of the optimum
+# Past this many rings of cells, scan every target. The prices of a random instance spread
+# over the whole arena (transport across it: 15 at M = 1000 in the density-scaled 20 x 20),
+# and the search must then reach that far anyway; with agents near their targets (a
+# trained policy) the prices stay small and one or two rings settle it.
+RING_LIMIT = 3
+SCALING = 8.0  # cold start: eps shrinks by this factor per phase
+
+
+def target_cell(num_agents: int, arena: float) -> float:
+    """The targets' cell side: about two targets per cell for targets spread over the
+    spawn square (2 arena)^2; any side gives the same answer, this one a short search."""
+    return max(2.0 * arena * (2.0 / max(num_agents, 1)) ** 0.5, 0.02)
+
+
+@ti.func
+def _consider(d: ti.f32, j: ti.i32, best: ti.math.vec3) -> ti.math.vec3:
+    """best = (w1, w2, j1): fold in a target j of value d."""
+    out = best
+    if d < best[0]:
+        out = ti.math.vec3(d, best[0], ti.cast(j, ti.f32))
+    elif d < best[1]:
+        out[1] = d
+    return out
+
+
+@ti.func
+def best_two(f: ti.template(), ib: ti.template(), i: ti.i32, b: ti.i32, M: ti.i32) -> ti.math.vec3:
+    """(w1, w2, j1): the smallest and second smallest c_ij + p_j over every target j of env
+    b, and the target of the smallest (as a float: exact below 2^24 targets)."""
+    P0, T0, V = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
+    G, h = ib[H_GT], f[P_TCELL]
+    GS, GI, GC = ib[O_TGRID_START] + b * (G + 1), ib[O_TGRID_ITEMS] + b * M, ib[O_TGRID_CELL] + b * M * 2
+    px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+    c = cell_of(px, py, h)
+    best = ti.math.vec3(INF, INF, -1.0)
+    finished = False
+    for rho in range(RING_LIMIT + 1):
+        if rho >= 2 and (rho - 1) * h >= best[1]:  # every target from this ring on is farther than w2
+            finished = True
+            break
+        cells = ti.max(8 * rho, 1)
+        for t in range(cells):
+            qx, qy = c[0], c[1]
+            if rho > 0:  # the ring's perimeter, each cell once: four edges of 2 rho cells
+                e, s = t // (2 * rho), t % (2 * rho)
+                if e == 0:
+                    qx, qy = c[0] - rho + s, c[1] - rho
+                elif e == 1:
+                    qx, qy = c[0] + rho, c[1] - rho + s
+                elif e == 2:
+                    qx, qy = c[0] + rho - s, c[1] + rho
+                else:
+                    qx, qy = c[0] - rho, c[1] + rho - s
+            g = bucket(qx, qy, G)
+            for k in range(ib[GS + g], ib[GS + g + 1]):
+                j = ib[GI + k]
+                if ib[GC + 2 * j] == qx and ib[GC + 2 * j + 1] == qy:
+                    dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
+                    best = _consider(ti.sqrt(dx * dx + dy * dy) + f[V + j], j, best)
+    if not finished:  # past RING_LIMIT rings (or fewer than two targets): look at them all
+        best = ti.math.vec3(INF, INF, -1.0)
+        for j in range(M):
+            dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
+            best = _consider(ti.sqrt(dx * dx + dy * dy) + f[V + j], j, best)
+    return best
+
+
+@ti.func
+def _bid_until_assigned(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, eps: ti.f32, num_free: ti.i32):
+    """Auction rounds until the stack of free agents (lap_cols) is empty."""
+    V, X, Y, FREE = ib[O_PRICES] + b * M, ib[O_LAP_X] + b * M, ib[O_LAP_Y] + b * M, ib[O_LAP_COLS] + b * M
+    top = num_free
+    while top > 0:
+        top -= 1
+        i = ib[FREE + top]
+        w = best_two(f, ib, i, b, M)
+        j = ti.cast(w[2], ti.i32)
+        raise_by = eps
+        if w[1] < INF:
+            raise_by = w[1] - w[0] + eps
+        f[V + j] = f[V + j] + raise_by
+        prev = ib[Y + j]
+        ib[Y + j] = i
+        ib[X + i] = j
+        if prev >= 0:
+            ib[X + prev] = -1
+            ib[FREE + top] = prev
+            top += 1
+
+
+@ti.func
+def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Writes assignment[b, i] and matched_dist[b, i] = |p_i - t_assignment[i]|, the total
+    within M * eps of the optimum."""
+    M = ib[H_M]
+    P0, T0, V = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
+    X, Y, FREE = ib[O_LAP_X] + b * M, ib[O_LAP_Y] + b * M, ib[O_LAP_COLS] + b * M
+    G = ib[H_GT]
+    h = f[P_TCELL]
+    build(f, ib, M, T0, h, G, ib[O_TGRID_START] + b * (G + 1), ib[O_TGRID_ITEMS] + b * M, ib[O_TGRID_CELL] + b * M * 2)
+    eps_final = f[P_EPS]
+    if ib[env_at(ib, O_STEP, b)] == 0:  # a fresh episode: cold start, eps scaling
+        for j in range(M):
+            f[V + j] = 0.0
+        eps = ti.max(h, eps_final)
+        while True:
+            for j in range(M):
+                ib[Y + j] = -1
+            for i in range(M):
+                ib[X + i] = -1
+                ib[FREE + i] = M - 1 - i  # agent 0 bids first
+            _bid_until_assigned(f, ib, b, M, eps, M)
+            if eps <= eps_final:
+                break
+            eps = ti.max(eps / SCALING, eps_final)
+    else:  # warm: keep the agents still within eps of their best
+        for j in range(M):
+            ib[Y + j] = -1
+        for i in range(M):  # last step's assignment, read defensively (any array works)
+            j = ib[X + i]
+            if 0 <= j < M:
+                if ib[Y + j] < 0:
+                    ib[Y + j] = i
+                else:
+                    ib[X + i] = -1
+            else:
+                ib[X + i] = -1
+        num_free = 0
+        for i in range(M):
+            j = ib[X + i]
+            keep = False
+            if j >= 0:
+                dx, dy = f[P0 + 2 * i] - f[T0 + 2 * j], f[P0 + 2 * i + 1] - f[T0 + 2 * j + 1]
+                keep = ti.sqrt(dx * dx + dy * dy) + f[V + j] <= best_two(f, ib, i, b, M)[0] + eps_final
+            if not keep:
+                if j >= 0:
+                    ib[Y + j] = -1
+                ib[X + i] = -1
+                ib[FREE + num_free] = i
+                num_free += 1
+        # reversed: agents bid in increasing index (the stack pops from the top)
+        for k in range(num_free // 2):
+            a = ib[FREE + k]
+            ib[FREE + k] = ib[FREE + num_free - 1 - k]
+            ib[FREE + num_free - 1 - k] = a
+        _bid_until_assigned(f, ib, b, M, eps_final, num_free)
+    low = INF  # shift the prices so that the smallest is 0 (they only rise)
+    for j in range(M):
+        low = ti.min(low, f[V + j])
+    for j in range(M):
+        f[V + j] = f[V + j] - low
+    A, MD = ib[O_ASSIGN] + b * M, ib[O_MATCHED] + b * M
+    for i in range(M):
+        j = ib[X + i]
+        ib[A + i] = j
+        dx, dy = f[P0 + 2 * i] - f[T0 + 2 * j], f[P0 + 2 * i + 1] - f[T0 + 2 * j + 1]
+        f[MD + i] = ti.sqrt(dx * dx + dy * dy)

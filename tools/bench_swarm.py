@@ -1,0 +1,102 @@
+"""Simulator cost per agent-step as the team grows, at a fixed total of agents (one process).
+
+B x M = 10,000 agents (B = 1000 x M = 10, 100 x 100, 10 x 1000), coverage under "rc" with
+the density-scaled arena (scale="density": the agents per unit area of M = 10), random
+actions; the dense layout against neighbour lists (K = 16), with the exact assignment and
+with the auction; then M = 10,000 in one environment (lists and the auction: the dense
+layout and the exact solver need M x M blocks). Prints ns per agent-step, the ratio to
+M = 10 of the same layout, and the first call (make + reset + one step: compiling, unless
+cached; ``--cold`` compiles into a fresh cache directory).
+
+    python tools/bench_swarm.py            # about 2-5 minutes on 2 CPU cores
+    python tools/bench_swarm.py --cold --seconds 1
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+
+import numpy as np
+
+SIZES = ((1000, 10), (100, 100), (10, 1000))
+LAYOUTS = (
+    ("dense", {}),
+    ("lists K=16", {"neighbours": 16}),
+    ("lists K=16 auction", {"neighbours": 16, "assignment": "auction"}),
+)
+
+
+def measure(B: int, M: int, options: dict, seconds: float, comm_radius: float, min_steps: int = 3) -> dict:
+    import taichi_swarm
+
+    t0 = time.perf_counter()
+    env = taichi_swarm.make(
+        "coverage", B, M, comm="rc", comm_radius=comm_radius, scale="density", seed=0, array="numpy", **options
+    )
+    env.reset()
+    rng = np.random.default_rng(0)
+    actions = rng.integers(0, 5, size=(8, B, M))
+    env.step(actions[0])
+    first = time.perf_counter() - t0
+    env.step(actions[1])  # one more outside the clock
+    steps, t1 = 0, time.perf_counter()
+    while steps < min_steps or time.perf_counter() - t1 < seconds:
+        env.step(actions[steps % len(actions)])
+        steps += 1
+    per_step = (time.perf_counter() - t1) / steps
+    dropped = int(env.info["neighbours"]["dropped"].sum()) if "neighbours" in env.info else None
+    return {
+        "first_s": first,
+        "step_ms": 1e3 * per_step,
+        "ns": 1e9 * per_step / (B * M),
+        "steps": steps,
+        "dropped": dropped,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=2.0, help="timed stepping per configuration")
+    parser.add_argument("--comm-radius", type=float, default=1.0)
+    parser.add_argument("--cold", action="store_true", help="compile into a fresh kernel cache (compile times)")
+    parser.add_argument("--skip-dense-large", action="store_true", help="no dense layout at M = 1000")
+    parser.add_argument("--skip-10k", action="store_true", help="no M = 10,000 run")
+    args = parser.parse_args()
+    if args.seconds <= 0 or args.comm_radius <= 0:
+        parser.error("--seconds and --comm-radius must be > 0")
+    if args.cold:
+        os.environ["TAICHI_SWARM_CACHE"] = tempfile.mkdtemp(prefix="bench_swarm_cache_")
+
+    rows = []
+    print(f"coverage, rc (radius {args.comm_radius}), scale='density', random actions; B x M = 10,000 agents")
+    head = f"{'layout':<20} {'B':>5} {'M':>6} {'first call s':>12} {'ms/step':>9} {'ns/agent-step':>14} {'x M=10':>7}"
+    print(head)
+    print("-" * len(head))
+    for name, options in LAYOUTS:
+        base = None
+        for B, M in SIZES:
+            if name == "dense" and M >= 1000 and args.skip_dense_large:
+                continue
+            r = measure(B, M, options, args.seconds, args.comm_radius)
+            base = base or r["ns"]
+            rows.append((name, B, M, r))
+            print(
+                f"{name:<20} {B:>5} {M:>6} {r['first_s']:>12.1f} {r['step_ms']:>9.2f} {r['ns']:>14.0f} "
+                f"{r['ns'] / base:>7.2f}",
+                flush=True,
+            )
+    if not args.skip_10k:
+        name, options = LAYOUTS[2]
+        r = measure(1, 10_000, options, args.seconds, args.comm_radius, min_steps=3)
+        print(
+            f"{name:<20} {1:>5} {10_000:>6} {r['first_s']:>12.1f} {r['step_ms']:>9.2f} {r['ns']:>14.0f}"
+            f"  ({r['steps']} steps timed; dropped {r['dropped']})",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
