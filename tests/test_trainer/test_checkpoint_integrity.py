@@ -161,7 +161,6 @@ def test_nan_in_adam_moments_never_reaches_the_written_weights(run_dir, tmp_path
     # past the load checks: the optimiser's own state poisoned in memory
     cfg = tiny(tmp_path, run_dir=str(tmp_path / "guard"))
     state = build_state(cfg, checkpoint.load(run_dir), "cpu")
-    weights = {k: v.clone() for k, v in state.policy.state_dict().items()}
     for entry in state.optimizer.state.values():
         entry["exp_avg"].fill_(float("nan"))
     from trainer.train import collect_rollout, make_loss_fn
@@ -171,8 +170,6 @@ def test_nan_in_adam_moments_never_reaches_the_written_weights(run_dir, tmp_path
     loss_fn = make_loss_fn(state.policy, cfg.ppo)
     with pytest.raises(NonFiniteTraining, match="Adam"):
         ppo_update(state.policy, state.optimizer, [(g.buf, r.advantages, r.returns)], cfg.ppo, loss_fn)
-    for k, v in state.policy.state_dict().items():
-        assert torch.equal(v, weights[k]), k  # the step was undone
     from trainer.train import Run
 
     guard = Run(str(tmp_path / "guard-out"))
@@ -180,6 +177,22 @@ def test_nan_in_adam_moments_never_reaches_the_written_weights(run_dir, tmp_path
     with pytest.raises(NonFiniteTraining, match="not written"):
         save_checkpoint(guard, state, cfg)
     assert not os.listdir(guard.path)
+
+
+def test_nan_moments_past_the_load_checks_stop_the_run_before_a_write(run_dir, tmp_path, monkeypatch):
+    """The second line: were the moments' check missing, the step guard stops the resumed run
+    and neither checkpoint.pt nor policy.pt is rewritten."""
+
+    def poison(p):
+        for entry in p["optimizer"]["state"].values():
+            entry["exp_avg"].fill_(float("nan"))
+
+    copy = resigned(run_dir, tmp_path, poison)
+    before = {n: digest_of(os.path.join(copy, n)) for n in ("checkpoint.pt", "policy.pt")}
+    monkeypatch.setattr(checkpoint, "check_optimizer_state", lambda *args: None)
+    with pytest.raises(NonFiniteTraining):
+        train(resume=copy, updates=3)
+    assert {n: digest_of(os.path.join(copy, n)) for n in before} == before
 
 
 def test_a_file_without_a_digest_is_refused_unless_trusted(run_dir, tmp_path):
