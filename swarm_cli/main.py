@@ -24,6 +24,8 @@ COMMANDS = {
     "export": ("swarm_cli.deploy:export_main", "export a checkpoint to per-agent ONNX models"),
     "execute": ("swarm_cli.deploy:execute_main", "run exported models decentralised, one session per agent"),
     "replay": ("swarm_cli.deploy:replay_main", "play back or inspect a Rerun recording"),
+    "agent": ("swarm_cli.net:agent_main", "run one agent of an export as its own process, over Zenoh"),
+    "world": ("swarm_cli.net:world_main", "run the simulator as the world of agent processes (--spawn-agents)"),
     "bench": ("swarm_cli.bench:main", "benchmarks: sim | train | deploy"),
 }
 

@@ -1,0 +1,12 @@
+"""deploy.net: the team as processes, over Zenoh (optional extra ``net``).
+
+    swarm agent DIR --id I      one agent, as on a robot: its ONNX pieces, its observation,
+                                its K rounds of messages with whoever it hears   (agent.py)
+    swarm world --export DIR    the Taichi simulator at a fixed control rate; publishes the
+                                observations, collects the actions, steps         (world.py)
+                                (--spawn-agents: starts the M agents here too)
+
+protocol.py is the wire format (schema version 1), transport.py the Zenoh sessions (loopback
+by default, no multicast scouting), faults.py the faults injected at the receiving radio.
+docs/DEPLOY.md is the integrator's guide. Nothing here imports torch.
+"""

@@ -1,0 +1,286 @@
+"""One agent as a process (``swarm agent``): its own ONNX sessions, its own observation, its
+messages over Zenoh.
+
+Per control step t (the world's OBS packet for this agent starts it), for each of the B
+worlds the packet covers (B = 1 on a robot):
+
+    encode(own obs) -> h, message; publish MSG(t, round 0)
+    round r = 0..K-1: wait until every agent it hears this step (the OBS packet's row of the
+        graph, nothing more) has sent its MSG(t, r), or until the round deadline; then
+        round(h, heard) -> h, message and publish MSG(t, r + 1)   (the last round: round_heads
+        -> logits, action = argmax)
+    publish ACT(t): actions [B], attention [B, M], this agent's counters
+
+What arrives after its round closed, of an older step, or of another run is dropped and
+counted (late, foreign); a packet that does not decode is dropped and counted (malformed,
+version), with one line on stderr the first time, and never stops the agent. A newer OBS
+that arrives mid-step (this agent fell behind) abandons the step: the world has moved on.
+The heard messages are stacked in sender order, as the in-process executor does, so at zero
+faults the actions are the executor's bit for bit.
+"""
+
+from __future__ import annotations
+
+import heapq
+import sys
+import time
+
+import numpy as np
+
+from deploy.executor import Agent, DeployError, ExportedModel
+from deploy.net import protocol as P
+from deploy.net.faults import FaultSpec, LinkFaults
+from deploy.net.transport import Endpoint
+
+HELLO_EVERY_S = 0.25
+
+
+class NetAgent:
+    def __init__(
+        self,
+        model: ExportedModel,
+        agent_id: int,
+        endpoint: Endpoint,
+        round_deadline: float = 0.03,
+        faults: FaultSpec | None = None,
+        slow_ms: float = 0.0,
+        threads: int = 1,
+        quiet: bool = False,
+    ):
+        if agent_id < 0:
+            raise DeployError(f"--id must be >= 0, got {agent_id}")
+        if not round_deadline > 0:
+            raise DeployError(f"--round-deadline must be > 0 seconds, got {round_deadline}")
+        if slow_ms < 0:
+            raise DeployError(f"--slow-ms must be >= 0, got {slow_ms}")
+        self.id = agent_id
+        self.model = model
+        self.agent = Agent(agent_id, model, threads)
+        self.H, self.K = model.hidden, model.rounds
+        self.sha = model.manifest["manifest_sha256"]
+        self.ep = endpoint
+        self.round_deadline = float(round_deadline)
+        self.faults = LinkFaults(faults or FaultSpec(), agent_id, self.round_deadline)
+        self.slow_s = slow_ms / 1e3
+        self.quiet = quiet
+        self.run: int | None = None
+        self.step = -1
+        self.round = 0  # the round being collected; messages of earlier rounds of this step are late
+        self.B = self.M = None
+        self.box: dict[tuple[int, int], dict[int, dict[int, np.ndarray]]] = {}  # (step, round) -> world -> sender
+        self._pending: list = []  # heap of (release time, (seq, run, step, round, world, sender, message [2, H]))
+        self._held: dict[tuple[int, int], list] = {}  # reordered messages waiting for the next on their link
+        self._seq = 0
+        self._delivered: set[int] = set()
+        self._need: dict[int, list[set[int]]] = {}  # step -> per world, the agents it hears
+        self.next_obs = None
+        self.stopped = False
+        self.stats = dict.fromkeys(P.STATS, 0.0)
+        self.steps = 0
+        self._warned: set[str] = set()
+        endpoint.subscribe("obs", agent_id)
+        endpoint.subscribe("msg", "*")
+        endpoint.subscribe("stop")
+
+    # ------------------------------------------------------------------ receiving
+    def _drop(self, counter: str, why: str, n: int = 1) -> None:
+        self.stats[counter] += n
+        if counter not in self._warned and not self.quiet:
+            self._warned.add(counter)
+            print(f"swarm agent {self.id}: dropped a packet ({counter}): {why}", file=sys.stderr, flush=True)
+
+    def _on_packet(self, key: str, data: bytes, t: float) -> None:
+        topic = key[len(self.ep.ns) + 1 :].split("/")[0]
+        try:
+            if topic == "stop":
+                h = P.read_header(data)
+                if h.kind == P.STOP and (self.run is None or h.run == self.run):
+                    self.stopped = True
+            elif topic == "obs":
+                self._on_obs(P.decode_obs(data), t)
+            elif topic == "msg":
+                self._on_msg(*P.decode_msg(data, self.H), t)
+        except P.VersionError as exc:
+            self._drop("version", str(exc))
+        except P.PacketError as exc:
+            self._drop("malformed", f"{topic} on {key}: {exc}")
+
+    def _on_obs(self, obs, t: float) -> None:
+        h = obs[0]
+        if h.sender != self.id:
+            return self._drop("foreign", f"an observation addressed to agent {h.sender}")
+        if h.run == self.run and h.step <= self.step:
+            return self._drop("late", f"observation of step {h.step}, this agent is at step {self.step}")
+        if self.next_obs is not None:
+            self.stats["late"] += 1  # an older one never got its turn
+        self.next_obs = (*obs, t)
+
+    def _late(self, step: int, round_: int) -> bool:
+        return step < self.step or (step == self.step and round_ < self.round)
+
+    def _on_msg(self, h: P.Header, message: np.ndarray, t: float) -> None:
+        if h.sender == self.id:
+            return  # our own publication, delivered back by the session
+        if self.run is not None and h.run != self.run:
+            return self._drop("foreign", f"a message of run {h.run:08x}, this agent is in run {self.run:08x}")
+        if (self.M is not None and h.sender >= self.M) or (self.B is not None and h.envs != self.B):
+            return self._drop("foreign", f"a message from agent {h.sender} for {h.envs} worlds")
+        if h.round >= max(self.K, 1):
+            return self._drop("malformed", f"a message of round {h.round}; the policy has {self.K} rounds")
+        if self.run is not None and self._late(h.step, h.round):
+            # only what this agent would have used counts as late (a non-neighbour's message is no loss)
+            needs = self._need.get(h.step)
+            n = h.envs if needs is None else sum(h.sender in need for need in needs)
+            return self._drop("late", f"step {h.step} round {h.round} arrived after its deadline", n) if n else None
+        for b in range(h.envs):
+            fate = self.faults.fate(b, h.sender, h.round)
+            if fate is None:
+                continue
+            delay, held = fate
+            self._seq += 1
+            item = (self._seq, h.run, h.step, h.round, b, h.sender, message[b])
+            if held:  # delivered behind the next message on its link, or when its hold time is up
+                self._held.setdefault((b, h.sender), []).append(item)
+                heapq.heappush(self._pending, (t + max(delay, self.faults.spec.reorder_hold_ms / 1e3), item))
+            elif delay > 0:
+                heapq.heappush(self._pending, (t + delay, item))
+            else:
+                self._deliver(item)
+
+    def _deliver(self, item) -> None:
+        seq, run, step, round_, b, sender, vec = item
+        if seq in self._delivered:
+            return
+        self._delivered.add(seq)
+        held = self._held.get((b, sender))
+        if held:  # a held one whose time is up leaves the queue of its link
+            held[:] = [x for x in held if x[0] != seq]
+        if run != self.run:
+            return self._drop("foreign", f"a message of run {run:08x}")
+        if self._late(step, round_):
+            needs = self._need.get(step)
+            if needs is None or sender in needs[b]:
+                self._drop("late", f"step {step} round {round_} arrived after its deadline")
+            return
+        self.box.setdefault((step, round_), {}).setdefault(b, {})[sender] = vec
+        while held:  # the reordered ones come after this one
+            self._deliver(held.pop(0))
+
+    def _release_due(self) -> None:
+        now = time.perf_counter()
+        while self._pending and self._pending[0][0] <= now:
+            self._deliver(heapq.heappop(self._pending)[1])
+        if not self._pending and len(self._delivered) > 100_000:
+            self._delivered.clear()
+
+    def pump(self, until: float, done) -> bool:
+        """Handle packets and due messages until ``done()`` or the time ``until``; True if done."""
+        while not self.stopped:
+            self._release_due()
+            if done():
+                return True
+            now = time.perf_counter()
+            if now >= until:
+                return False
+            timeout = until - now
+            if self._pending:
+                timeout = min(timeout, self._pending[0][0] - now)
+            item = self.ep.get(timeout)
+            if item is not None:
+                self._on_packet(*item)
+        return False
+
+    # ------------------------------------------------------------------ deciding
+    def _decide(self, obs) -> None:
+        h, self_obs, entities, hears, t0 = obs
+        if self.run != h.run:
+            self.box.clear()
+        self.run, self.step, self.round = h.run, h.step, 0
+        B, M = h.envs, hears.shape[1]
+        self.B, self.M = B, M
+        try:
+            self.model.check_landmarks(self.model.task.get("task"), entities.shape[1])
+        except DeployError as exc:
+            return self._drop("foreign", f"an observation this export cannot take: {exc}")
+        if self.slow_s:
+            time.sleep(self.slow_s)
+        agent, H = self.agent, self.H
+        messages = np.empty((B, 2, H), np.float32)
+        hs = np.empty((B, H), np.float32)
+        for b in range(B):
+            messages[b] = agent.encode(self_obs[b], entities[b])
+            hs[b] = agent.h
+        expected = hears.copy()
+        expected[:, self.id] = False
+        need = [set(np.flatnonzero(expected[b]).tolist()) for b in range(B)]
+        self._need = {k: v for k, v in self._need.items() if k >= h.step - 1}
+        self._need[h.step] = need
+        actions = np.zeros(B, np.int64)
+        attention = np.zeros((B, M), np.float32)
+        if self.K == 0:
+            for b in range(B):
+                agent.h = hs[b]
+                logits, _ = agent.decide(None)
+                actions[b] = int(np.argmax(logits))
+                attention[b, self.id] = 1.0
+        for r in range(self.K):
+            self.round = r
+            self.ep.publish(P.msg_packet(h.run, h.step, r, self.id, messages), "msg", self.id)
+            box = self.box.setdefault((h.step, r), {})
+
+            def complete(box=box):
+                return all(need[b] <= box.get(b, {}).keys() for b in range(B))
+
+            self.pump(time.perf_counter() + self.round_deadline, lambda c=complete: c() or self.next_obs is not None)
+            if self.stopped or self.next_obs is not None:
+                self.stats["late"] += 1  # the world moved on: this step's action would be late
+                return
+            self.round = r + 1  # round r is closed
+            last = r == self.K - 1
+            nxt = messages if last else np.empty_like(messages)
+            for b in range(B):
+                got = box.get(b, {})
+                senders = sorted(j for j in got if expected[b, j])
+                self.stats["msgs_heard"] += len(senders)
+                self.stats["missed"] += len(need[b]) - len(senders)
+                heard = np.stack([got[j] for j in senders]) if senders else np.zeros((0, 2, H), np.float32)
+                agent.h = hs[b]
+                if last:
+                    logits, w = agent.decide(heard)
+                    actions[b] = int(np.argmax(logits))
+                    attention[b, self.id] = w[0]
+                    attention[b, senders] = w[1:]
+                else:
+                    nxt[b] = agent.round(heard)
+                    hs[b] = agent.h
+            messages = nxt
+        for key in [k for k in self.box if k[0] <= h.step]:
+            del self.box[key]
+        self.stats["decision_s"] = time.perf_counter() - t0
+        self.stats["cpu_s"] = time.process_time()
+        self.stats["msgs_sent"] = self.ep.sent + 1
+        self.stats["bytes_sent"] = self.ep.sent_bytes
+        stats = [self.stats[k] for k in P.STATS]
+        self.ep.publish(P.act_packet(h.run, h.step, self.id, actions, attention, stats), "act", self.id)
+        self.steps += 1
+
+    def serve(self, idle_timeout: float | None = None) -> str:
+        """Run until the world says stop (-> "stopped") or nothing arrives for ``idle_timeout`` s (-> "idle")."""
+        last_seen = time.perf_counter()
+        last_hello = 0.0
+        while not self.stopped:
+            if self.next_obs is not None:
+                obs, self.next_obs = self.next_obs, None
+                if obs[0].run != self.run:
+                    last_hello = float("inf")  # seen by a world: no more hellos needed
+                self._decide(obs)
+                last_seen = time.perf_counter()
+                continue
+            now = time.perf_counter()
+            if self.run is None and now - last_hello >= HELLO_EVERY_S:
+                self.ep.publish(P.hello_packet(0, self.id, self.sha), "hello", self.id)
+                last_hello = now
+            if idle_timeout is not None and now - last_seen > idle_timeout:
+                return "idle"
+            self.pump(now + HELLO_EVERY_S, lambda: self.next_obs is not None)
+        return "stopped"

@@ -1,0 +1,112 @@
+"""Faults injected between processes, at the receiving agent's radio (before the policy sees
+anything): every message of one world's link j -> i (j != i) goes through ``LinkFaults``.
+
+    drop p                independent loss of each message with probability p
+    burst_loss q, burst_len n
+                          Gilbert-Elliott loss: a two-state chain per link, good (delivers) and
+                          bad (loses); stationary loss q, mean length of a loss burst n messages
+                          (P(bad -> good) = 1/n, P(good -> bad) = q / (n (1 - q)))
+    latency_ms, jitter_ms each message arrives latency + U(-jitter, +jitter) ms late (at least 0)
+    reorder p             a message is held back with probability p and delivered after the next
+                          message on its link (or after reorder_hold_ms if none comes)
+    late_round r          every message of round r arrives after that round's deadline
+                          (counted late by the receiver, so the round goes on without it)
+
+All draws are seeded (``seed``, the receiving agent's id, the world index and the sender), so
+the same run loses the same messages. The agent-side faults (a slow agent, one that is killed,
+restarted or never starts) are options of ``swarm agent`` and of the launcher.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+
+class FaultError(ValueError):
+    """A fault parameter out of range."""
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    drop: float = 0.0
+    burst_loss: float = 0.0
+    burst_len: float = 4.0
+    latency_ms: float = 0.0
+    jitter_ms: float = 0.0
+    reorder: float = 0.0
+    reorder_hold_ms: float = 20.0
+    late_round: int | None = None
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("drop", "reorder"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise FaultError(
+                    f"--{name.replace('_', '-')} must be a probability in [0, 1], got {getattr(self, name)}"
+                )
+        if not 0.0 <= self.burst_loss < 1.0:
+            raise FaultError(f"--burst-loss must be in [0, 1), got {self.burst_loss}")
+        if not self.burst_len >= 1.0:
+            raise FaultError(f"--burst-len must be >= 1 message, got {self.burst_len}")
+        for name in ("latency_ms", "jitter_ms", "reorder_hold_ms"):
+            if not (getattr(self, name) >= 0.0 and np.isfinite(getattr(self, name))):
+                raise FaultError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}")
+        if self.late_round is not None and self.late_round < 0:
+            raise FaultError(f"--late-round must be >= 0, got {self.late_round}")
+
+    @property
+    def any(self) -> bool:
+        return self != FaultSpec(seed=self.seed)
+
+    def to_args(self) -> list[str]:
+        """The ``swarm agent`` options that give this spec."""
+        out = []
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is not None and v != f.default:
+                name = "fault-seed" if f.name == "seed" else f.name.replace("_", "-")
+                out += [f"--{name}", str(v)]
+        return out
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class LinkFaults:
+    """The fault state of every link into one agent: ``fate(world, sender, round)`` -> None (lost)
+    or (delay in seconds, held back behind the next message)."""
+
+    def __init__(self, spec: FaultSpec, receiver: int, round_deadline: float):
+        self.spec = spec
+        self.round_deadline = round_deadline
+        self._rng = np.random.default_rng([spec.seed, receiver, 0x5EED])
+        self._bad: dict[tuple[int, int], bool] = {}  # Gilbert-Elliott state per (world, sender)
+        if spec.burst_loss > 0:
+            self._to_good = 1.0 / spec.burst_len
+            self._to_bad = spec.burst_loss * self._to_good / (1.0 - spec.burst_loss)
+        self.injected_losses = 0
+
+    def fate(self, world: int, sender: int, round_: int):
+        s, rng = self.spec, self._rng
+        lost = s.drop > 0 and rng.random() < s.drop
+        if s.burst_loss > 0:
+            link = (world, sender)
+            bad = self._bad.get(link)
+            if bad is None:  # start in the stationary distribution
+                bad = rng.random() < s.burst_loss
+            else:
+                bad = (rng.random() >= self._to_good) if bad else (rng.random() < self._to_bad)
+            self._bad[link] = bad
+            lost = lost or bad
+        if lost:
+            self.injected_losses += 1
+            return None
+        delay = s.latency_ms / 1e3
+        if s.jitter_ms > 0:
+            delay += rng.uniform(-s.jitter_ms, s.jitter_ms) / 1e3
+        if s.late_round is not None and round_ == s.late_round:
+            delay = self.round_deadline * 1.5 + 0.005
+        held = s.reorder > 0 and rng.random() < s.reorder
+        return max(delay, 0.0), held

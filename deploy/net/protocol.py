@@ -1,0 +1,208 @@
+"""The wire format between the world and the agent processes (schema version 1).
+
+Every packet is one little-endian header followed by a kind-specific body:
+
+    header (20 bytes): magic b"TSWM", schema u8, kind u8, run u32, step u32, envs u16, round u8, pad u8, sender u16
+        run     a random id the world draws at start; packets of another run are foreign
+        step    the control step the packet belongs to (the world's counter, from 0)
+        envs    B, the number of parallel worlds the packet covers (1 on a real robot)
+        round   the communication round (MSG only)
+        sender  the agent id (OBS: the agent it is addressed to)
+
+    OBS   world -> agent i    M u16, L u16, self_obs f32 [B, 4], entities f32 [B, L, 2], hears u8 [B, M]
+                              (hears[b, j] = 1: agent i hears j in world b this step; row i of the graph only)
+    MSG   agent -> neighbours message f32 [B, 2, H]  (the sender's attention key and value, manifest "message")
+    ACT   agent -> world      M u16, actions u8 [B], attention f32 [B, M], then the agent's stats f32 [len(STATS)]
+    HELLO agent -> world      export manifest sha256 (64 ascii hex): an agent of another export is refused
+    STOP  world -> agents     empty: the run is over
+
+``decode`` raises ``PacketError`` (one line naming what is wrong) on anything else; receivers
+drop such a packet, count it and go on.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+SCHEMA_VERSION = 1
+MAGIC = b"TSWM"
+OBS, MSG, ACT, HELLO, STOP = 1, 2, 3, 4, 5
+KINDS = {OBS: "obs", MSG: "msg", ACT: "act", HELLO: "hello", STOP: "stop"}
+_HEADER = struct.Struct("<4sBBIIHBBH")
+HEADER_BYTES = _HEADER.size
+_MEL = struct.Struct("<HH")
+# what an agent reports with every action (cumulative since it started, except latency)
+STATS = (
+    "decision_s",  # obs received -> action sent, this step
+    "cpu_s",  # process CPU time
+    "msgs_sent",
+    "bytes_sent",
+    "msgs_heard",  # per-world messages of neighbours used in a round
+    "late",  # arrived after its round's deadline (stale step or round)
+    "malformed",
+    "foreign",  # another run, another team size or hidden width, a sender out of range
+    "version",  # another schema version
+    "missed",  # expected neighbour messages not there by the round deadline (per world)
+)
+
+
+class PacketError(ValueError):
+    """A packet that is not one of this schema's: truncated, wrong magic, wrong sizes."""
+
+
+class VersionError(PacketError):
+    """A packet of another schema version."""
+
+
+@dataclass
+class Header:
+    kind: int
+    run: int
+    step: int
+    envs: int
+    round: int
+    sender: int
+
+
+def header_bytes(kind: int, run: int, step: int, envs: int, round_: int, sender: int) -> bytes:
+    return _HEADER.pack(MAGIC, SCHEMA_VERSION, kind, run, step, envs, round_, 0, sender)
+
+
+def read_header(data: bytes) -> Header:
+    if len(data) < HEADER_BYTES:
+        raise PacketError(f"packet of {len(data)} bytes is shorter than the {HEADER_BYTES}-byte header")
+    magic, version, kind, run, step, envs, round_, _, sender = _HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise PacketError(f"packet does not start with {MAGIC!r} (got {magic!r})")
+    if version != SCHEMA_VERSION:
+        raise VersionError(f"packet of schema version {version}; this side speaks {SCHEMA_VERSION}")
+    if kind not in KINDS:
+        raise PacketError(f"unknown packet kind {kind}")
+    return Header(kind, run, step, envs, round_, sender)
+
+
+def _array(data: bytes, offset: int, dtype, shape: tuple[int, ...]) -> tuple[np.ndarray, int]:
+    n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    if offset + n > len(data):
+        raise PacketError(f"packet body is truncated (needs {offset + n} bytes, has {len(data)})")
+    return np.frombuffer(data, dtype, count=int(np.prod(shape)), offset=offset).reshape(shape), offset + n
+
+
+def _exact(data: bytes, end: int, what: str) -> None:
+    if end != len(data):
+        raise PacketError(f"{what} packet has {len(data) - end} bytes after its body")
+
+
+# ----------------------------------------------------------------------------- encoders
+def obs_packet(run: int, step: int, agent: int, self_obs: np.ndarray, entities: np.ndarray, hears: np.ndarray) -> bytes:
+    """self_obs [B, 4], entities [B, L, 2], hears [B, M] bool (row ``agent`` of each world's graph)."""
+    B, L = entities.shape[0], entities.shape[1]
+    return b"".join(
+        (
+            header_bytes(OBS, run, step, B, 0, agent),
+            _MEL.pack(hears.shape[1], L),
+            np.ascontiguousarray(self_obs, np.float32).tobytes(),
+            np.ascontiguousarray(entities, np.float32).tobytes(),
+            np.ascontiguousarray(hears, np.uint8).tobytes(),
+        )
+    )
+
+
+def msg_packet(run: int, step: int, round_: int, sender: int, message: np.ndarray) -> bytes:
+    """message [B, 2, H]."""
+    return (
+        header_bytes(MSG, run, step, message.shape[0], round_, sender)
+        + np.ascontiguousarray(message, np.float32).tobytes()
+    )
+
+
+def act_packet(run: int, step: int, sender: int, actions: np.ndarray, attention: np.ndarray, stats) -> bytes:
+    """actions [B] ints in 0..4, attention [B, M], stats: the values of STATS in order."""
+    B, M = attention.shape
+    return b"".join(
+        (
+            header_bytes(ACT, run, step, B, 0, sender),
+            _MEL.pack(M, len(STATS)),
+            np.asarray(actions, np.uint8).tobytes(),
+            np.ascontiguousarray(attention, np.float32).tobytes(),
+            np.asarray(stats, np.float32).tobytes(),
+        )
+    )
+
+
+def hello_packet(run: int, sender: int, manifest_sha256: str) -> bytes:
+    return header_bytes(HELLO, run, 0, 0, 0, sender) + manifest_sha256.encode("ascii")
+
+
+def stop_packet(run: int) -> bytes:
+    return header_bytes(STOP, run, 0, 0, 0, 0)
+
+
+# ----------------------------------------------------------------------------- decoders
+def decode_obs(data: bytes):
+    """-> (header, self_obs [B, 4], entities [B, L, 2], hears [B, M] bool)."""
+    h = read_header(data)
+    if h.kind != OBS:
+        raise PacketError(f"expected an obs packet, got {KINDS[h.kind]}")
+    if len(data) < HEADER_BYTES + _MEL.size:
+        raise PacketError("obs packet is truncated")
+    M, L = _MEL.unpack_from(data, HEADER_BYTES)
+    if h.envs < 1 or M < 1 or h.sender >= M:
+        raise PacketError(f"obs packet for agent {h.sender} of {M} agents in {h.envs} worlds")
+    off = HEADER_BYTES + _MEL.size
+    self_obs, off = _array(data, off, np.float32, (h.envs, 4))
+    entities, off = _array(data, off, np.float32, (h.envs, L, 2))
+    hears, off = _array(data, off, np.uint8, (h.envs, M))
+    _exact(data, off, "obs")
+    if not (np.isfinite(self_obs).all() and np.isfinite(entities).all()):
+        raise PacketError("obs packet holds a non-finite number")
+    return h, self_obs, entities, hears.astype(bool)
+
+
+def decode_msg(data: bytes, hidden: int):
+    """-> (header, message [B, 2, H]); a message of another hidden width is malformed."""
+    h = read_header(data)
+    if h.kind != MSG:
+        raise PacketError(f"expected a msg packet, got {KINDS[h.kind]}")
+    if h.envs < 1:
+        raise PacketError("msg packet for 0 worlds")
+    message, off = _array(data, HEADER_BYTES, np.float32, (h.envs, 2, hidden))
+    _exact(data, off, f"msg (hidden {hidden})")
+    if not np.isfinite(message).all():
+        raise PacketError("msg packet holds a non-finite number")
+    return h, message
+
+
+def decode_act(data: bytes):
+    """-> (header, actions int64 [B], attention [B, M], stats dict)."""
+    h = read_header(data)
+    if h.kind != ACT:
+        raise PacketError(f"expected an act packet, got {KINDS[h.kind]}")
+    if len(data) < HEADER_BYTES + _MEL.size:
+        raise PacketError("act packet is truncated")
+    M, n_stats = _MEL.unpack_from(data, HEADER_BYTES)
+    if n_stats != len(STATS):
+        raise PacketError(f"act packet carries {n_stats} stats, schema {SCHEMA_VERSION} has {len(STATS)}")
+    off = HEADER_BYTES + _MEL.size
+    actions, off = _array(data, off, np.uint8, (h.envs,))
+    attention, off = _array(data, off, np.float32, (h.envs, M))
+    stats, off = _array(data, off, np.float32, (n_stats,))
+    _exact(data, off, "act")
+    if (actions > 4).any():
+        raise PacketError(f"act packet holds action {int(actions.max())} (actions are 0..4)")
+    return h, actions.astype(np.int64), attention, dict(zip(STATS, stats.tolist(), strict=True))
+
+
+def decode_hello(data: bytes):
+    """-> (header, manifest sha256)."""
+    h = read_header(data)
+    body = data[HEADER_BYTES:]
+    if h.kind != HELLO or len(body) != 64:
+        raise PacketError("hello packet must carry a 64-character manifest sha256")
+    try:
+        return h, body.decode("ascii")
+    except UnicodeDecodeError:
+        raise PacketError("hello packet's manifest sha256 is not ascii") from None

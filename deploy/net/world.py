@@ -1,0 +1,326 @@
+"""The world as a process (``swarm world``): the Taichi simulator at a fixed control rate,
+talking to the agent processes over Zenoh.
+
+Per control step: publish each agent's own observation (its state, the landmarks it senses
+and the row of the communication graph that says whom it hears this step), wait for the
+actions until the action deadline (a missing one is a no-op, counted), step the simulator,
+then sleep out the rest of the control period. Episodes run B at a time side by side, as
+``swarm execute`` runs them (B parallel worlds; agent process i is agent i in each), with
+the same seed, so at zero faults the two give the same actions step for step.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from deploy.executor import DeployError, ExecuteSettings, ExportedModel
+from deploy.net import protocol as P
+from deploy.net.faults import FaultSpec
+from deploy.net.transport import Endpoint
+from taichi_swarm.metrics import format_results, result_header, run_first_episodes
+
+NOOP = 0  # ACTION_MEANINGS[0]
+
+
+@dataclass
+class NetSettings:
+    period: float = 0.1  # control period, s (0: step as soon as every action is in)
+    round_deadline: float = 0.03  # per communication round, s (passed to spawned agents)
+    action_deadline: float | None = None  # from publishing the observations, s; None: K rounds + 0.1 s
+    start_timeout: float = 60.0  # for the agents' hello before the first step, s
+
+    def __post_init__(self):
+        for name in ("period", "round_deadline", "action_deadline", "start_timeout"):
+            v = getattr(self, name)
+            low_ok = v is None or (v >= 0 if name == "period" else v > 0)
+            if not low_ok or (v is not None and not np.isfinite(v)):
+                raise DeployError(
+                    f"--{name.replace('_', '-')} must be {'>= 0' if name == 'period' else '> 0'} s, got {v}"
+                )
+
+    def deadline(self, rounds: int) -> float:
+        return self.action_deadline if self.action_deadline is not None else rounds * self.round_deadline + 0.1
+
+
+@dataclass
+class AgentReport:
+    """What the world knows of one agent: from its actions' packets only."""
+
+    missing: int = 0  # steps without its action by the deadline
+    late: int = 0  # actions of an older step
+    decision_s: list = field(default_factory=list)
+    first: dict | None = None  # stats at its first and last action (counters are cumulative)
+    last: dict | None = None
+    t_first: float = 0.0
+    t_last: float = 0.0
+    restarts: int = 0
+
+    def summary(self) -> dict:
+        d = np.asarray(self.decision_s) * 1e3
+        out = {
+            "missing_actions": self.missing,
+            "late_actions": self.late,
+            "decision_ms_p50": float(np.percentile(d, 50)) if d.size else None,
+            "decision_ms_p99": float(np.percentile(d, 99)) if d.size else None,
+        }
+        if self.last is not None:
+            span = max(self.t_last - self.t_first, 1e-9)
+            a, z = self.first, self.last
+            out.update(
+                msgs_per_s=(z["msgs_sent"] - a["msgs_sent"]) / span if z["msgs_sent"] >= a["msgs_sent"] else None,
+                bytes_per_s=(z["bytes_sent"] - a["bytes_sent"]) / span if z["bytes_sent"] >= a["bytes_sent"] else None,
+                cpu_frac=(z["cpu_s"] - a["cpu_s"]) / span if z["cpu_s"] >= a["cpu_s"] else None,
+                **{k: int(z[k]) for k in ("msgs_heard", "missed", "late", "malformed", "foreign", "version")},
+            )
+        return out
+
+
+class World:
+    """B parallel worlds of M agents whose decisions come over the network."""
+
+    def __init__(self, model: ExportedModel, s: ExecuteSettings, net: NetSettings, endpoint: Endpoint, quiet=False):
+        self.model, self.s, self.net, self.ep = model, s, net, endpoint
+        self.M, self.B = s.agents, s.episodes
+        self.run = secrets.randbits(32)
+        self.sha = model.manifest["manifest_sha256"]
+        self.quiet = quiet
+        self.reports = [AgentReport() for _ in range(self.M)]
+        self.refused: set[int] = set()  # agents of another export
+        self.heard: set[int] = set()
+        self.dropped = dict.fromkeys(("malformed", "version", "foreign"), 0)
+        self._warned: set[str] = set()
+        self.step = 0
+        self.history: list[np.ndarray] = []  # actions [B, M] of every step
+        self.overruns = 0  # steps that took longer than the period
+        self.step_hook = None  # called with the step number before each step (the launcher's faults)
+        endpoint.subscribe("act", "*")
+        endpoint.subscribe("hello", "*")
+
+    def _say(self, text: str) -> None:
+        if not self.quiet:
+            print(f"swarm world: {text}", file=sys.stderr, flush=True)
+
+    def _drop(self, counter: str, why: str) -> None:
+        self.dropped[counter] += 1
+        if counter not in self._warned:
+            self._warned.add(counter)
+            self._say(f"dropped a packet ({counter}): {why}")
+
+    def _on_packet(self, key: str, data: bytes, t: float, actions=None, attention=None, got=None):
+        topic = key[len(self.ep.ns) + 1 :].split("/")[0]
+        try:
+            if topic == "hello":
+                h, sha = P.decode_hello(data)
+                if h.sender >= self.M:
+                    return self._drop("foreign", f"agent {h.sender} announced itself in a team of {self.M}")
+                if sha != self.sha:
+                    if h.sender not in self.refused:
+                        self._say(
+                            f"agent {h.sender} runs another export (manifest {sha[:12]}, this world's is "
+                            f"{self.sha[:12]}): its actions are refused"
+                        )
+                    self.refused.add(h.sender)
+                    return
+                if h.sender in self.heard and self.step > 0:
+                    self.reports[h.sender].restarts += 1
+                self.refused.discard(h.sender)
+                self.heard.add(h.sender)
+            elif topic == "act":
+                h, a, att, stats = P.decode_act(data)
+                if h.run != self.run or h.sender >= self.M or h.envs != self.B or att.shape[1] != self.M:
+                    return self._drop("foreign", f"an action of run {h.run:08x} from agent {h.sender}")
+                if h.sender in self.refused:
+                    return
+                rep = self.reports[h.sender]
+                if h.step != self.step or got is None:
+                    rep.late += 1
+                    return
+                actions[:, h.sender] = a
+                attention[:, h.sender] = att
+                got.add(h.sender)
+                rep.decision_s.append(stats["decision_s"])
+                if rep.first is None:
+                    rep.first, rep.t_first = stats, t
+                rep.last, rep.t_last = stats, t
+        except P.VersionError as exc:
+            self._drop("version", str(exc))
+        except P.PacketError as exc:
+            self._drop("malformed", f"{topic} on {key}: {exc}")
+
+    def wait_for_agents(self, expected) -> set[int]:
+        """Wait up to start_timeout for the hello of every agent in ``expected``; returns who was heard."""
+        expected = set(expected)
+        until = time.perf_counter() + self.net.start_timeout
+        while not expected <= self.heard and time.perf_counter() < until:
+            item = self.ep.get(until - time.perf_counter())
+            if item is not None:
+                self._on_packet(*item)
+        missing = sorted(expected - self.heard)
+        if missing:
+            self._say(f"agents {missing} not heard within {self.net.start_timeout:g} s: their actions are no-ops")
+        time.sleep(0.3)  # let the agents' routes to each other settle before the first messages
+        return set(self.heard)
+
+    def decide(self, obs):
+        """One control step over the network -> (actions [B, M], attention [B, M, M])."""
+        t0 = time.perf_counter()
+        if self.step_hook is not None:
+            self.step_hook(self.step)
+        self_obs = np.asarray(obs["self"], np.float32)
+        entities = np.asarray(obs["entities"], np.float32)
+        adj = np.asarray(obs["adj"], bool)
+        for i in range(self.M):
+            self.ep.publish(P.obs_packet(self.run, self.step, i, self_obs[:, i], entities[:, i], adj[:, i]), "obs", i)
+        actions = np.full((self.B, self.M), NOOP, np.int64)
+        attention = np.zeros((self.B, self.M, self.M), np.float32)
+        got: set[int] = set()
+        until = t0 + self.net.deadline(self.model.rounds)
+        wanted = set(range(self.M)) - self.refused
+        while not wanted <= got:
+            now = time.perf_counter()
+            if now >= until:
+                break
+            item = self.ep.get(until - now)
+            if item is not None:
+                self._on_packet(*item, actions=actions, attention=attention, got=got)
+        for i in set(range(self.M)) - got:
+            self.reports[i].missing += 1
+        self.history.append(actions.copy())
+        self.step += 1
+        if self.net.period > 0:
+            rest = self.net.period - (time.perf_counter() - t0)
+            if rest > 0:
+                self._sleep_listening(rest)
+            else:
+                self.overruns += 1
+        return actions, attention
+
+    def _sleep_listening(self, seconds: float) -> None:
+        """Sleep out the control period while still reading (late actions, hellos)."""
+        until = time.perf_counter() + seconds
+        while (now := time.perf_counter()) < until:
+            item = self.ep.get(until - now)
+            if item is not None:
+                self._on_packet(*item)
+
+    def run_episodes(self, recorder=None) -> dict:
+        import taichi_swarm
+
+        s = self.s
+        env = taichi_swarm.make(
+            s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy"
+        )
+        t0 = time.perf_counter()
+        tally = run_first_episodes(env, self.decide, recorder)
+        wall = time.perf_counter() - t0
+        return {
+            **result_header(s.task, s.agents, s.comm, s.comm_radius, s.episodes, s.seed),
+            **tally.summary(s.task),
+            "steps": self.step,
+            "wall_s": wall,
+            "period_s": self.net.period,
+            "round_deadline_s": self.net.round_deadline,
+            "action_deadline_s": self.net.deadline(self.model.rounds),
+            "overruns": self.overruns,
+            "missing_actions": sum(r.missing for r in self.reports),
+            "dropped_at_world": dict(self.dropped),
+            "agents_report": [r.summary() for r in self.reports],
+        }
+
+    def stop_agents(self) -> None:
+        for _ in range(3):  # a few times: a stop is one small packet, and nothing answers it
+            self.ep.publish(P.stop_packet(self.run), "stop")
+            time.sleep(0.02)
+
+
+def format_net(row: dict) -> str:
+    """S% / T like ``swarm execute``, then one line per agent."""
+    lines = [format_results([row])]
+    lines.append(
+        f"{row['steps']} steps in {row['wall_s']:.1f} s (period {row['period_s']:g} s, {row['overruns']} overruns), "
+        f"{row['missing_actions']} missing actions (no-ops)"
+    )
+    head = f"{'agent':>5} {'missing':>7} {'p50 ms':>7} {'p99 ms':>7} {'msg/s':>7} {'kB/s':>7} {'cpu':>5} " + (
+        f"{'heard':>7} {'missed':>6} {'late':>5} {'bad':>4}"
+    )
+    lines.append(head)
+    for i, r in enumerate(row["agents_report"]):
+
+        def f(v, fmt):
+            return "-" if v is None else format(v, fmt)
+
+        bad = None if "malformed" not in r else r["malformed"] + r["foreign"] + r["version"]
+        lines.append(
+            f"{i:>5} {r['missing_actions']:>7} {f(r['decision_ms_p50'], '.2f'):>7} {f(r['decision_ms_p99'], '.2f'):>7} "
+            f"{f(r.get('msgs_per_s'), '.0f'):>7} {f(r.get('bytes_per_s') and r['bytes_per_s'] / 1e3, '.1f'):>7} "
+            f"{f(r.get('cpu_frac'), '.2f'):>5} {f(r.get('msgs_heard'), 'd'):>7} {f(r.get('missed'), 'd'):>6} "
+            f"{f(r.get('late'), 'd'):>5} {f(bad, 'd'):>4}"
+        )
+    return "\n".join(lines)
+
+
+class AgentProcesses:
+    """The launcher: M ``swarm agent`` processes on this machine, each stopped by ``stop`` (or ``kill``)."""
+
+    def __init__(
+        self,
+        export_dir: str,
+        agents: int,
+        connect: str,
+        ns: str,
+        round_deadline: float,
+        faults: FaultSpec | None = None,
+        slow: dict[int, float] | None = None,
+        log_dir: str | None = None,
+        command: list[str] | None = None,
+    ):
+        self.export_dir, self.M, self.connect, self.ns = export_dir, agents, connect, ns
+        self.round_deadline = round_deadline
+        self.faults = faults or FaultSpec()
+        self.slow = slow or {}
+        self.log_dir = log_dir
+        self.command = command or [sys.executable, "-m", "swarm_cli", "agent"]
+        self.procs: dict[int, subprocess.Popen] = {}
+        self._logs: list = []
+
+    def start(self, i: int) -> None:
+        argv = [
+            *self.command, self.export_dir, "--id", str(i), "--connect", self.connect, "--ns", self.ns,
+            "--round-deadline", str(self.round_deadline), "--idle-timeout", "30", *self.faults.to_args(),
+        ]  # fmt: skip
+        if self.slow.get(i):
+            argv += ["--slow-ms", str(self.slow[i])]
+        out = subprocess.DEVNULL
+        if self.log_dir:
+            os.makedirs(self.log_dir, exist_ok=True)
+            out = open(os.path.join(self.log_dir, f"agent-{i}.log"), "ab")  # noqa: SIM115 - closed in stop()
+            self._logs.append(out)
+        env = {**os.environ, "OMP_NUM_THREADS": "1"}
+        self.procs[i] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+
+    def kill(self, i: int) -> None:
+        p = self.procs.pop(i, None)
+        if p is not None:
+            p.kill()
+            p.wait(timeout=10)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Wait for the agents to leave (after the world's stop), then kill what is left."""
+        until = time.monotonic() + timeout
+        for p in self.procs.values():
+            try:
+                p.wait(timeout=max(until - time.monotonic(), 0.1))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(timeout=10)
+        self.procs.clear()
+        for f in self._logs:
+            f.close()
+        self._logs.clear()

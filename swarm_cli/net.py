@@ -1,0 +1,282 @@
+"""``swarm agent`` and ``swarm world``: the team as processes over Zenoh (deploy/net/).
+
+    swarm agent DIR --id 3 [--connect tcp/HOST:7447]         one agent, as on a robot
+    swarm world --export DIR [--spawn-agents] [faults...]    the simulator; prints S% / T like `swarm execute`
+
+Neither imports torch.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Annotated
+
+import tyro
+
+from swarm_cli.options import (
+    Default,
+    OptionError,
+    OutputOptions,
+    Positional,
+    SettingOptions,
+    at_least,
+    fail,
+    parse,
+)
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+@dataclass(kw_only=True)
+class FaultOptions:
+    """Faults injected at each agent's radio (between processes); all off by default."""
+
+    drop: float = 0.0
+    """independent loss of each message, probability"""
+    burst_loss: float = 0.0
+    """Gilbert-Elliott bursty loss: the mean loss probability"""
+    burst_len: float = 4.0
+    """Gilbert-Elliott bursty loss: the mean length of a loss burst, in messages"""
+    latency_ms: float = 0.0
+    """latency added to every message, ms"""
+    jitter_ms: float = 0.0
+    """uniform jitter around the latency, +- ms"""
+    reorder: float = 0.0
+    """probability that a message is held back behind the next one on its link"""
+    reorder_hold_ms: float = 20.0
+    """how long a held-back message waits at most for the next one, ms"""
+    late_round: int | None = None
+    """every message of this round (0-based) arrives after the round's deadline"""
+    fault_seed: int = 0
+    """seed of the injected faults"""
+
+    def fault_spec(self):
+        from deploy.net.faults import FaultSpec
+
+        return FaultSpec(
+            drop=self.drop, burst_loss=self.burst_loss, burst_len=self.burst_len, latency_ms=self.latency_ms,
+            jitter_ms=self.jitter_ms, reorder=self.reorder, reorder_hold_ms=self.reorder_hold_ms,
+            late_round=self.late_round, seed=self.fault_seed,
+        )  # fmt: skip
+
+
+@dataclass(kw_only=True)
+class AgentOptions(FaultOptions):
+    """Run one agent of an exported policy as its own process: it subscribes to its observation,
+    exchanges the K rounds of messages with whoever it hears and publishes its action."""
+
+    directory: Annotated[str, Positional, tyro.conf.arg(metavar="DIRECTORY")]
+    """directory written by `swarm export`"""
+    id: int
+    """this agent's index in the team (0..M-1)"""
+    connect: str = DEFAULT_ENDPOINT
+    """the world's Zenoh endpoint"""
+    listen: str = "tcp/127.0.0.1:0"
+    """this agent's own endpoint, where the other agents reach it (port 0: any free port)"""
+    ns: str = "swarm"
+    """key namespace of the team (one per team on a shared network)"""
+    round_deadline: float = 0.03
+    """seconds each communication round waits for the neighbours' messages"""
+    slow_ms: float = 0.0
+    """sleep this long before each decision (a slow agent)"""
+    idle_timeout: Annotated[float | None, Default("never")] = None
+    """leave after this many seconds without an observation"""
+    threads: int = 1
+    """onnxruntime intra-op threads per session"""
+    quiet: bool = False
+    """no line on stderr for dropped packets (they are still counted)"""
+
+    def __post_init__(self):
+        at_least(self.id, 0, "id")
+        at_least(self.threads, 1, "threads")
+        if not self.round_deadline > 0:
+            raise OptionError(f"--round-deadline must be > 0 seconds, got {self.round_deadline}")
+        if self.idle_timeout is not None and not self.idle_timeout > 0:
+            raise OptionError(f"--idle-timeout must be > 0 seconds, got {self.idle_timeout}")
+
+
+@dataclass(kw_only=True)
+class WorldOptions(SettingOptions, OutputOptions, FaultOptions):
+    """Run the simulator as the world of a team of agent processes: publishes each agent's
+    observation, waits for the actions until a deadline (a missing one is a no-op), steps at a
+    fixed control period; prints S%, T, DIST like `swarm execute` and the network's numbers."""
+
+    export: str
+    """directory written by `swarm export` (the policy the agents run: checked against the task)"""
+    agents: Annotated[int | None, Default("the manifest's")] = None
+    """team size M"""
+    episodes: int = 10
+    """episodes, run side by side (B parallel worlds, as `swarm execute` does)"""
+    seed: int = 12345
+    """seed of the episodes"""
+    listen: str = DEFAULT_ENDPOINT
+    """this world's Zenoh endpoint (the agents connect to it)"""
+    ns: str = "swarm"
+    """key namespace of the team"""
+    period: float = 0.1
+    """control period in seconds (0: step as soon as every action is in)"""
+    round_deadline: float = 0.03
+    """communication round deadline given to the agents it spawns, s"""
+    action_deadline: Annotated[float | None, Default("K round deadlines + 0.1 s")] = None
+    """seconds after publishing the observations that a missing action becomes a no-op"""
+    start_timeout: float = 60.0
+    """seconds to wait for the agents before the first step"""
+    spawn_agents: bool = False
+    """start the M agent processes on this machine too (and stop them at the end)"""
+    absent: tuple[int, ...] | None = None
+    """with --spawn-agents: agents never started"""
+    kill: tuple[str, ...] | None = None
+    """with --spawn-agents: I@STEP kills agent I at that step, I@STEP+S restarts it S seconds later"""
+    slow: tuple[str, ...] | None = None
+    """with --spawn-agents: I:MS makes agent I sleep MS ms before each decision"""
+    agent_logs: str | None = None
+    """with --spawn-agents: write each agent's output to DIR/agent-I.log"""
+    json: str | None = None
+    """also write the result row to this JSON file"""
+
+    def __post_init__(self):
+        SettingOptions.__post_init__(self)
+        OutputOptions.__post_init__(self)
+        at_least(self.episodes, 1, "episodes")
+        if not self.spawn_agents and (self.absent or self.kill or self.slow or self.agent_logs):
+            raise OptionError("--absent, --kill, --slow and --agent-logs need --spawn-agents")
+        self.kill_plan = [_kill(k) for k in self.kill or ()]
+        self.slow_plan = dict(_slow(x) for x in self.slow or ())
+
+
+def _kill(text: str) -> tuple[int, int, float | None]:
+    try:
+        who, when = text.split("@")
+        step, _, restart = when.partition("+")
+        out = int(who), int(step), (float(restart) if restart else None)
+    except ValueError:
+        raise OptionError(f"--kill {text!r}: expected I@STEP or I@STEP+SECONDS (e.g. 2@10+1.5)") from None
+    if out[0] < 0 or out[1] < 0 or (out[2] is not None and not out[2] >= 0):
+        raise OptionError(f"--kill {text!r}: agent, step and seconds must be >= 0")
+    return out
+
+
+def _slow(text: str) -> tuple[int, float]:
+    try:
+        who, ms = text.split(":")
+        out = int(who), float(ms)
+    except ValueError:
+        raise OptionError(f"--slow {text!r}: expected I:MS (e.g. 3:50)") from None
+    if out[0] < 0 or not out[1] >= 0:
+        raise OptionError(f"--slow {text!r}: agent and milliseconds must be >= 0")
+    return out
+
+
+# ----------------------------------------------------------------------------- agent
+def agent_main(argv: list[str]) -> int:
+    args = parse(AgentOptions, argv, "swarm agent")
+    from deploy.executor import DeployError, ExportedModel
+    from deploy.net.agent import NetAgent
+    from deploy.net.transport import Endpoint, TransportError, open_session
+
+    try:
+        spec = args.fault_spec()
+        model = ExportedModel(args.directory)
+        session = open_session("peer", [args.listen], [args.connect])
+        endpoint = Endpoint(session, args.ns)
+    except (DeployError, TransportError, ValueError) as exc:
+        return fail("swarm agent", exc)
+    try:
+        agent = NetAgent(model, args.id, endpoint, args.round_deadline, spec, args.slow_ms, args.threads, args.quiet)
+        how = agent.serve(idle_timeout=args.idle_timeout)
+    except (DeployError, ValueError) as exc:
+        return fail("swarm agent", exc)
+    finally:
+        endpoint.close()
+    if not args.quiet:
+        s = agent.stats
+        print(
+            f"swarm agent {args.id}: {how} after {agent.steps} steps; dropped late {int(s['late'])}, "
+            f"malformed {int(s['malformed'])}, foreign {int(s['foreign'])}, version {int(s['version'])}; "
+            f"missed {int(s['missed'])} neighbour messages"
+        )
+    return 0
+
+
+# ----------------------------------------------------------------------------- world
+def world_main(argv: list[str]) -> int:
+    from deploy.video import open_recorders
+
+    args = parse(WorldOptions, argv, "swarm world")
+    from deploy.executor import DeployError, ExportedModel, resolve_settings
+    from deploy.net.transport import Endpoint, TransportError, check_endpoint, check_namespace, open_session
+    from deploy.net.world import AgentProcesses, NetSettings, World, format_net
+
+    try:
+        from taichi_swarm.files import ensure_writable
+
+        for out, what in ((args.json, "--json"), (args.record, "--record")):
+            if out:
+                ensure_writable(out, what)
+        check_endpoint(args.listen, "--listen")
+        check_namespace(args.ns)
+        spec = args.fault_spec()
+        model = ExportedModel(args.export)
+        s = resolve_settings(
+            model, args.task, args.agents, args.comm, args.comm_radius, episodes=args.episodes, seed=args.seed
+        )
+        net = NetSettings(args.period, args.round_deadline, args.action_deadline, args.start_timeout)
+        for i in [*(args.absent or ()), *(k[0] for k in args.kill_plan), *args.slow_plan]:
+            if i >= s.agents:
+                raise OptionError(f"agent {i} named by --absent/--kill/--slow is not in a team of {s.agents}")
+        if spec.any and not args.spawn_agents:
+            raise OptionError("fault options go to the agents: give them to each `swarm agent`, or use --spawn-agents")
+        recorder = open_recorders(args, s.task, s.episodes, s.agents, s.comm, s.comm_radius)
+        session = open_session("router", [args.listen], [])
+    except (DeployError, TransportError, ValueError, OSError) as exc:
+        return fail("swarm world", exc)
+    endpoint = Endpoint(session, args.ns)
+    world = World(model, s, net, endpoint)
+    procs = None
+    try:
+        present = set(range(s.agents)) - set(args.absent or ())
+        if args.spawn_agents:
+            procs = AgentProcesses(
+                args.export, s.agents, args.listen, args.ns, args.round_deadline, spec, args.slow_plan, args.agent_logs
+            )
+            for i in sorted(present):
+                procs.start(i)
+            world.step_hook = _kill_hook(procs, args.kill_plan)
+        world.wait_for_agents(present)
+        row = world.run_episodes(recorder)
+    except BaseException:
+        if recorder is not None:
+            recorder.close(ok=False)
+        raise
+    finally:
+        world.stop_agents()
+        if procs is not None:
+            procs.stop()
+        endpoint.close()
+    if recorder is not None:
+        recorder.close()
+        recorder.report()
+    print(format_net(row))
+    if args.json:
+        from taichi_swarm.files import atomic_write_json
+
+        atomic_write_json(args.json, {"export": args.export, "faults": spec.to_dict(), "row": row})
+    return 0
+
+
+def _kill_hook(procs, plan):
+    """The step hook that kills (and restarts) agents as ``--kill`` says."""
+    restarts: list[tuple[float, int]] = []
+
+    def hook(step: int) -> None:
+        for who, at, restart in plan:
+            if step == at:
+                procs.kill(who)
+                if restart is not None:
+                    restarts.append((time.monotonic() + restart, who))
+        for due in [r for r in restarts if r[0] <= time.monotonic()]:
+            restarts.remove(due)
+            procs.start(due[1])
+
+    return hook
