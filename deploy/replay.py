@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -78,7 +79,28 @@ def view(path: str, serve_web: bool = False, port: int | None = None) -> int:
         if port:
             cmd += ["--web-viewer-port", str(port)]
         print(f"serving {path} in the web viewer (the URL is printed below; Ctrl-C stops it)", flush=True)
+    # its own process group: the viewer server the launcher starts is stopped with it, however
+    # this command is stopped (Ctrl-C, `kill PID`), instead of being left running
+    proc = subprocess.Popen(cmd, start_new_session=True)
     try:
-        return subprocess.call(cmd)
+        return proc.wait()
     except KeyboardInterrupt:
+        stop_group(proc)
         return 0
+    except BaseException:
+        stop_group(proc)
+        raise
+
+
+def stop_group(proc: subprocess.Popen, grace: float = 5.0) -> None:
+    """SIGTERM to ``proc``'s process group, SIGKILL after ``grace`` seconds; waits for it."""
+    for sig, wait in ((signal.SIGTERM, grace), (signal.SIGKILL, None)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            proc.wait(timeout=wait)
+            break
+        except subprocess.TimeoutExpired:
+            continue

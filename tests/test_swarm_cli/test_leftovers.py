@@ -148,3 +148,46 @@ def test_a_run_that_fails_before_its_first_checkpoint_leaves_no_run_directory(tm
     with pytest.raises(ValueError, match="simulator refused"):
         train(cfg)
     assert run_dir.is_dir()
+
+
+def test_a_stopped_replay_viewer_takes_its_server_with_it(tmp_path, monkeypatch):
+    """`swarm replay --serve-web` stopped by Ctrl-C or `kill PID` (both arrive as a
+    KeyboardInterrupt) stops the viewer's whole process group, the server it started too."""
+    import signal
+    import sys
+    import time
+
+    from deploy import replay
+
+    launcher = (
+        "import subprocess, sys, time\n"
+        "server = subprocess.Popen(['sleep', '60'])\n"
+        "open(sys.argv[1], 'w').write(str(server.pid))\n"
+        "time.sleep(60)\n"
+    )
+    monkeypatch.setattr(replay, "rerun_command", lambda: [sys.executable, "-c", launcher])
+    pid_file = tmp_path / "server.pid"
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 2.0)
+        assert replay.view(str(pid_file)) == 0
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    server = int(pid_file.read_text())
+
+    def running(pid: int) -> bool:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                return f.read().split(")")[-1].split()[0] != "Z"  # (a zombie has exited)
+        except FileNotFoundError:
+            return False
+
+    deadline = time.time() + 10
+    while running(server) and time.time() < deadline:
+        time.sleep(0.1)
+    assert not running(server), "the viewer's server outlived the command"
