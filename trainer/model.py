@@ -85,6 +85,13 @@ def gather_agents(x: torch.Tensor, slots: torch.Tensor) -> torch.Tensor:
     return x.reshape(N * M, D).index_select(0, flat).view(N, M, S, D)
 
 
+def lists_to_adj(slots: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """[self; listed] slots and mask [N, M, S] -> the dense adj [N, M, M] bool they describe."""
+    N, M, _ = slots.shape
+    heard = mask.new_zeros(N, M, M, dtype=torch.float32).scatter_add_(-1, slots, mask.float())
+    return heard > 0
+
+
 def lists_to_dense(weights: torch.Tensor, slots: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Attention over [self; listed] [N, M, S] -> the dense [N, M, M] (what recordings draw)."""
     N, M, _ = weights.shape
@@ -326,6 +333,11 @@ class SwarmPolicy(nn.Module):
         """
         lists = self._graph(self_obs, adj, nbr, nbr_mask)
         self._check_entity_mask(entities, entity_mask)
+        if lists is not None and not return_attention and self_obs.shape[1] <= lists[0].shape[-1]:
+            # M <= 1 + K: the team fits in the lists, and the dense rounds over M are cheaper
+            # than gathering 1 + K slots (the same function: the slots scattered into adj)
+            adj = lists_to_adj(*lists)
+            lists = None
         fw = self.fused_weights() if fused is None else fused
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]

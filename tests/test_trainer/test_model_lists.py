@@ -7,7 +7,7 @@ import os
 import pytest
 import torch
 
-from trainer.model import ModelConfig, SwarmPolicy, lists_to_dense, neighbour_slots, policy_inputs
+from trainer.model import ModelConfig, SwarmPolicy, lists_to_adj, lists_to_dense, neighbour_slots, policy_inputs
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 TOL = dict(atol=2e-5, rtol=2e-5)
@@ -290,3 +290,49 @@ def test_the_zoo_policy_scores_on_the_simulators_full_lists_what_it_scores_dense
     assert lists["success_rate"] > 0.5
     if "covered" in dense:  # the fraction of landmarks covered, where the simulator reports it
         assert lists["covered"] == dense["covered"] and dense["covered"] >= dense["success_rate"]
+
+
+def sparse_team(N=3, M=14, L=4, seed=11, radius=0.45):
+    """An RC team whose lists need fewer slots than teammates (1 + K < M): the gather path."""
+    s, e, adj = team(N, M, L, seed=seed, radius=radius)
+    K = int((adj.sum(-1) - 1).max())
+    assert 1 + K < M
+    return s, e, adj, K
+
+
+@pytest.mark.parametrize("mode", ["emp", "padded"])
+@pytest.mark.parametrize("path", ["forward", "forward_reference"])
+def test_gathered_rounds_equal_dense_outputs_and_gradients(mode, path):
+    s, e, adj, K = sparse_team()
+    nbr, mask = lists_from_adj(adj, K)
+    policy = make_policy(mode, 4)
+    dense = outputs_and_grads(policy, path, s, e, adj)
+    lists = outputs_and_grads(policy, path, s, e, nbr=nbr, nbr_mask=mask)
+    torch.testing.assert_close(lists[0], dense[0], **TOL)
+    torch.testing.assert_close(lists[1], dense[1], **TOL)
+    for gl, gd in zip(lists[2], dense[2], strict=True):
+        torch.testing.assert_close(gl, gd, atol=1e-4, rtol=1e-4)
+
+
+def test_gathered_rounds_ignore_list_order():
+    s, e, adj, K = sparse_team(seed=12)
+    a, b = lists_from_adj(adj, K + 2, seed=0), lists_from_adj(adj, K + 2, seed=1)
+    perm = torch.randperm(K + 2)
+    policy = make_policy("emp", 4)
+    ref = policy(s, e, nbr=a[0], nbr_mask=a[1])[0]
+    torch.testing.assert_close(policy(s, e, nbr=b[0], nbr_mask=b[1])[0], ref, **TOL)
+    torch.testing.assert_close(policy(s, e, nbr=a[0][..., perm], nbr_mask=a[1][..., perm])[0], ref, **TOL)
+
+
+def test_a_team_that_fits_in_its_lists_takes_the_dense_rounds_with_the_same_result():
+    """M <= 1 + K: forward scatters the lists into adj (cheaper); return_attention keeps
+    the gather; both the same function."""
+    s, e, adj = team(3, 6, 4, seed=13, radius=0.9)
+    nbr, mask = lists_from_adj(adj, 8)
+    policy = make_policy("emp", 4)
+    switched = policy(s, e, nbr=nbr, nbr_mask=mask)
+    gathered = policy(s, e, nbr=nbr, nbr_mask=mask, return_attention=True)
+    torch.testing.assert_close(switched[0], gathered[0], **TOL)
+    torch.testing.assert_close(switched[1], gathered[1], **TOL)
+    slots, listed = neighbour_slots(nbr, mask)
+    assert torch.equal(lists_to_adj(slots, listed), adj)
