@@ -8,7 +8,9 @@ the effect of the torch thread count on the update.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import os
 import shutil
 import tempfile
@@ -16,6 +18,14 @@ import tempfile
 from swarm_cli.options import BenchTrainOptions, fail, parse
 from trainer.config import PRESETS, TrainConfig
 from trainer.train import train
+
+CPU_MAX_ENVS = 256  # presets with more environments are for a GPU
+
+
+def default_presets(device: str) -> tuple[str, ...]:
+    """The presets that fit the device: on a CPU, not the GPU ones (4096 environments there
+    run for many minutes)."""
+    return tuple(p for p in PRESETS if device.startswith("cuda") or PRESETS[p].num_envs <= CPU_MAX_ENVS)
 
 
 def forward_flops(hidden: int, rounds: int, agents: int, landmarks: int, teams: int, emp: bool = True) -> float:
@@ -99,7 +109,8 @@ def measure(
             torch_threads=threads,
         )
         records: list[dict] = []
-        train(cfg, on_update=records.append)
+        with contextlib.redirect_stdout(io.StringIO()):  # (a stopped run's resume hint names this temp dir)
+            train(cfg, on_update=records.append)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     rows = records[1:]  # the first update includes kernel compilation and warm-up
@@ -134,7 +145,11 @@ def measure(
 
 def main(argv: list[str] | None = None) -> int:
     args = parse(BenchTrainOptions, argv, "swarm bench train", description=__doc__)
-    presets = args.presets or tuple(PRESETS)
+    from trainer.train import resolve_device
+
+    device = resolve_device(args.device)
+    presets = args.presets or default_presets(device)
+    skipped = [p for p in PRESETS if p not in presets and not args.presets]
     import taichi_swarm
 
     problems = []
@@ -144,27 +159,23 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--task must be one of {taichi_swarm.TASKS}, got {args.task!r}")
     if problems:
         return fail("swarm bench train", "; ".join(problems))
-    rows = [
-        measure(
-            p,
-            args.task,
-            args.agents,
-            args.updates,
-            t,
-            args.device,
-            args.arch,
-            args.num_envs,
-            args.compile,
-            x,
-            args.minibatches,
-        )
-        for p in presets
-        for t in args.threads
-        for x in args.precisions
-    ]
-    from trainer.train import resolve_device
-
-    device = resolve_device(args.device)
+    if skipped:
+        print(f"(not run on {device}: --presets {' '.join(skipped)}, the GPU presets; name them to run them)")
+    combos = [(p, t, x) for p in presets for t in args.threads for x in args.precisions]
+    rows = []
+    for k, (p, t, x) in enumerate(combos, 1):
+        print(f"[{k}/{len(combos)}] preset {p}, {t} thread(s), {x}: {args.updates + 1} updates ...", flush=True)
+        try:
+            rows.append(
+                measure(
+                    p, threads=t, precision=x, task=args.task, agents=args.agents, updates=args.updates,
+                    device=args.device, arch=args.arch, num_envs=args.num_envs, compile=args.compile,
+                    minibatches=args.minibatches,
+                )
+            )  # fmt: skip
+        except KeyboardInterrupt:
+            print("swarm bench train: stopped (nothing to resume: a benchmark starts afresh)")
+            raise
     if device.startswith("cuda"):  # one GPU peak; torch's CPU threads do not change it
         gpu_peak = sgemm_peak(1, 4096, device=device)
         peak = dict.fromkeys(args.threads, gpu_peak)

@@ -191,3 +191,11 @@ def test_a_stopped_replay_viewer_takes_its_server_with_it(tmp_path, monkeypatch)
     while running(server) and time.time() < deadline:
         time.sleep(0.1)
     assert not running(server), "the viewer's server outlived the command"
+
+
+def test_bench_train_defaults_fit_the_machine():
+    from swarm_cli.bench_train import default_presets
+    from trainer.config import PRESETS
+
+    assert "gpu" in PRESETS and "gpu" not in default_presets("cpu") and "fast" in default_presets("cpu")
+    assert default_presets("cuda") == tuple(PRESETS)
