@@ -63,6 +63,8 @@ def box_message(text: str) -> str:
 def cli(options_type, argv: list[str], prog: str, **kwargs):
     """``tyro.cli``, with a refusal printed as one line, ``prog: error: why``, as every other
     refusal is (tyro draws a box); --help and its exit pass through."""
+    if "-h" in argv or "--help" in argv:  # help as tyro draws it, at the terminal's width
+        return tyro.cli(options_type, args=argv, prog=prog, **kwargs)
     captured = io.StringIO()
     columns = os.environ.get("COLUMNS")
     os.environ["COLUMNS"] = "100000"  # no wrapping inside the box: its message is taken whole
