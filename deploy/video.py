@@ -53,6 +53,7 @@ class FrameRecorder:
                 "landmarks": to_numpy(state["landmarks"])[:D].copy(),
                 "targets": to_numpy(env.targets)[:D].copy(),
                 "adj": comm_graph(env.obs, D),
+                "arena": float(getattr(env, "arena", 1.0)),  # half side (scale="density" grows it)
                 "assignment": None if assignment is None else assignment.copy(),
                 "live": ~self._ended[:D].copy(),
             }
@@ -107,6 +108,10 @@ def ffmpeg_path() -> str | None:
     return imageio_ffmpeg.get_ffmpeg_exe()
 
 
+MAX_TRAILS = 20  # more agents are drawn as points, without trails, and smaller
+MAX_RADIUS_CIRCLES = 50  # RC's radius drawn round each agent up to this many
+
+
 def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=None, comm_radius=None, fps=10):
     """Draw ``frames`` (as FrameRecorder collects them) into ``path``; returns ``path``."""
     if not frames:
@@ -116,12 +121,15 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
     matplotlib.use("Agg")
     import matplotlib.animation as animation
     import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
     from tqdm import tqdm
 
     from deploy.recording import ARENA_HALF_SIZE, PALETTE
 
     outcome = outcome or {}
     D = frames[0]["pos"].shape[0]
+    # marker and line scale: the paper's sizes up to 20 agents, then smaller as the arena fills
+    w = min(1.0, math.sqrt(MAX_TRAILS / max(num_agents, 1)))
     cols = math.ceil(math.sqrt(D))
     rows = math.ceil(D / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.2 * rows), squeeze=False)
@@ -132,7 +140,8 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
         for b in range(rows * cols):
             ax = axes[b // cols][b % cols]
             ax.clear()
-            lim = ARENA_HALF_SIZE * 1.1
+            half = frames[k].get("arena", ARENA_HALF_SIZE)
+            lim = half * 1.1
             if b < D:  # MPE has no walls: widen the view when an agent leaves the arena
                 lim = max(
                     lim, float(np.abs(frames[last_live[b] if not frames[k]["live"][b] else k]["pos"][b]).max()) + 0.1
@@ -150,24 +159,27 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
             if frames[k]["live"][b]:
                 last_live[b] = k
             f = frames[last_live[b]]
-            ax.add_patch(plt.Rectangle((-1, -1), 2, 2, fill=False, lw=0.8, ec="0.4"))
+            half = f.get("arena", ARENA_HALF_SIZE)
+            ax.add_patch(plt.Rectangle((-half, -half), 2 * half, 2 * half, fill=False, lw=0.8, ec="0.4"))
             pos = f["pos"][b]
             adj = f["adj"][b]
-            for i, j in zip(*np.nonzero(np.triu(adj | adj.T, k=1)), strict=True):
-                ax.plot(*pos[[i, j]].T, color=(0.55, 0.6, 0.9), lw=0.7, alpha=0.6, zorder=1)
-            if comm_radius is not None:
+            # one LineCollection per kind of line: a swarm has thousands of edges and trails
+            i, j = np.nonzero(np.triu(adj | adj.T, k=1))
+            ax.add_collection(LineCollection(np.stack([pos[i], pos[j]], 1), colors=[(0.55, 0.6, 0.9)], lw=0.7 * w,
+                                             alpha=0.6, zorder=1))  # fmt: skip
+            if comm_radius is not None and num_agents <= MAX_RADIUS_CIRCLES:
                 for p in pos:
                     ax.add_patch(plt.Circle(p, comm_radius, fill=False, lw=0.4, ec=(0.55, 0.6, 0.9), alpha=0.4))
-            ax.scatter(*f["landmarks"][b].T, s=60, color="0.55", zorder=2)
-            ax.scatter(*f["targets"][b].T, s=25, marker="x", color="k", lw=1, zorder=3)
+            ax.scatter(*f["landmarks"][b].T, s=60 * w**2, color="0.55", zorder=2)
+            ax.scatter(*f["targets"][b].T, s=25 * w**2, marker="x", color="k", lw=w, zorder=3)
             if f["assignment"] is not None:
-                for i, t in enumerate(f["assignment"][b]):
-                    ax.plot(*np.stack([pos[i], f["targets"][b][t]]).T, color="0.3", lw=0.4, ls=":", zorder=2)
-            lo = max(0, last_live[b] - TRAIL)
-            trail = np.stack([frames[t]["pos"][b] for t in range(lo, last_live[b] + 1)])  # [S, M, 2]
-            for i in range(num_agents):
-                ax.plot(*trail[:, i].T, color=colors[i], lw=1, alpha=0.5, zorder=3)
-            ax.scatter(*pos.T, s=55, color=colors, edgecolors="k", linewidths=0.4, zorder=4)
+                links = np.stack([pos, f["targets"][b][f["assignment"][b]]], 1)
+                ax.add_collection(LineCollection(links, colors="0.3", lw=0.4 * w, linestyles=":", zorder=2))
+            if num_agents <= MAX_TRAILS:  # a swarm reads better as points
+                lo = max(0, last_live[b] - TRAIL)
+                trail = np.stack([frames[t]["pos"][b] for t in range(lo, last_live[b] + 1)], 1)  # [M, S, 2]
+                ax.add_collection(LineCollection(trail, colors=colors, lw=1, alpha=0.5, zorder=3))
+            ax.scatter(*pos.T, s=55 * w**2, color=colors, edgecolors="k", linewidths=0.4 * w, zorder=4)
             title = f"env {b}  step {f['step']}"
             if not frames[k]["live"][b] and b in outcome:
                 title = f"env {b}: {outcome[b]}"

@@ -202,3 +202,22 @@ def test_recordings_draw_the_graph_of_the_lists(emp, tmp_path):
     gif, rrd = str(tmp_path / "x.gif"), str(tmp_path / "x.rrd")
     assert eval_main([ckpt, "--episodes", "2", "--neighbours", "3", "--video", gif, "--record", rrd]) == 0
     assert os.path.getsize(gif) > 0 and os.path.getsize(rrd) > 0
+
+
+def test_a_swarm_video_draws_the_density_scaled_arena(tmp_path):
+    """M = 300 on lists with scale="density": frames carry the arena's half side, and the
+    swarm renders as points (no trails) with one line collection per kind of line."""
+    from deploy.video import FrameRecorder
+
+    M = 300
+    env = taichi_swarm.make("coverage", 1, M, comm="rc", comm_radius=0.5, seed=0, neighbours=8, scale="density")
+    video = FrameRecorder(str(tmp_path / "frames"), "coverage", 1, M, num_drawn=1, comm_radius=0.5)
+    rng = np.random.default_rng(0)
+    env.reset()
+    for step in range(3):
+        video.log_step(step, env)
+        env.step(torch.from_numpy(rng.integers(0, 5, size=(1, M))))
+    assert video.frames[0]["arena"] == pytest.approx((M / 10) ** 0.5) and video.frames[0]["adj"].shape == (1, M, M)
+    video.close()
+    names = sorted(os.listdir(tmp_path / "frames"))
+    assert len(names) >= 3 and names[0] == "frame_0000.png"
