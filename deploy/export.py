@@ -30,7 +30,7 @@ import warnings
 import torch
 from torch import nn
 
-from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, seal
+from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, integrator_contract, seal
 from taichi_swarm import TaskSetting
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
@@ -260,6 +260,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
                 "heads": ["h [H]"],
             },
         },
+        "contract": integrator_contract(setting.to_dict(), cfg.rounds, H),
         "action_meanings": list(ACTION_MEANINGS),
         "num_actions": NUM_ACTIONS,
         "opset": OPSET,

@@ -88,8 +88,47 @@ SCHEMA = {
             },
         },
         "manifest_sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+        "contract": {  # optional: exports made before it have none
+            "type": "object",
+            "required": ["control_period_s", "rounds", "comm", "comm_radius", "message_schema_version"],
+            "properties": {
+                "control_period_s": {"type": "number", "exclusiveMinimum": 0},
+                "rounds": {"type": "integer", "minimum": 0, "maximum": 64},
+                "comm": {"enum": list(COMMS)},
+                "comm_radius": {"type": "number", "minimum": 0},
+                "message_schema_version": _POSITIVE_INT,
+            },
+        },
     },
 }
+
+
+def integrator_contract(task: dict, rounds: int, hidden: int) -> dict:
+    """What a robot integrator needs beyond the ONNX files (``manifest["contract"]``; docs/DEPLOY.md):
+    the control period the policy was trained at, K, the communication graph, the observation
+    layout and units, the action and the wire format of the messages (deploy/net/protocol.py)."""
+    from deploy.net.protocol import HEADER_BYTES, SCHEMA_VERSION
+    from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY
+
+    return {
+        "control_period_s": DT,
+        "rounds": rounds,
+        "comm": task["comm"],
+        "comm_radius": task["comm_radius"],
+        "comm_doc": "uc: every agent hears every teammate; rc: it hears those within comm_radius "
+        "(world units, centre to centre), decided each control step",
+        "units": "world units (the arena: agents start uniformly in [-1, 1]^2) and seconds",
+        "observation": {
+            "self_obs": "float32 [4]: vx, vy (world units / s), px, py (world units), in the world frame",
+            "entities": "float32 [L, 2]: each landmark's position minus the agent's own (world units), "
+            "world frame, in the task's landmark order (coverage: M landmarks; formation: 1; line: 2)",
+        },
+        "action": "argmax of logits [5]: 0 noop, 1 -x, 2 +x, 3 -y, 4 +y; a force of "
+        f"{SENSITIVITY} along the axis held for one control period (mass {MASS}, damping {DAMPING} per step)",
+        "message_schema_version": SCHEMA_VERSION,
+        "message": f"little-endian: a {HEADER_BYTES}-byte header (magic TSWM, schema version, kind, run, step, "
+        f"worlds B, round, sender; deploy/net/protocol.py) then float32 [B, 2, {hidden}] (key; value per world)",
+    }
 
 
 class ManifestError(ValueError):

@@ -102,6 +102,9 @@ class World:
         self.step_hook = None  # called with the step number before each step (the launcher's faults)
         endpoint.subscribe("act", "*")
         endpoint.subscribe("hello", "*")
+        trained = model.manifest.get("contract", {}).get("control_period_s")
+        if trained and net.period > 0 and abs(net.period - trained) > 1e-9:
+            self._say(f"control period {net.period:g} s differs from the {trained:g} s the policy was trained at")
 
     def _say(self, text: str) -> None:
         if not self.quiet:

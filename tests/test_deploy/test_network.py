@@ -308,7 +308,7 @@ def test_world_refuses_an_export_that_does_not_fit_its_task(tmp_path):
     out = _swarm("world", "--export", concat, "--task", "coverage", "--agents", "4")
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()
-    assert lines[-1].startswith("swarm world: error:") and "concatenates 2 landmark offsets" in lines[-1]
+    assert lines[-1].startswith("swarm world: error:") and "line" in lines[-1] and "coverage" in lines[-1]
     assert "Traceback" not in out.stderr
 
 
@@ -336,3 +336,20 @@ def test_endpoints_are_checked():
         check_endpoint("localhost", "--listen")
     with pytest.raises(DeployError):
         NetSettings(period=-1)
+
+
+def test_manifest_states_the_integrator_contract(emp_dir):
+    """The export says the control period, K, the graph, the units and the message schema; a
+    manifest made before the contract existed still loads."""
+    from deploy.manifest import seal, validate
+
+    manifest = ExportedModel(emp_dir).manifest
+    c = manifest["contract"]
+    assert c["control_period_s"] == taichi_swarm.physics.DT == 0.1
+    assert (c["rounds"], c["comm"], c["comm_radius"]) == (2, "rc", 0.8)
+    assert c["message_schema_version"] == P.SCHEMA_VERSION
+    assert "vx, vy" in c["observation"]["self_obs"] and "[B, 2, 32]" in c["message"]
+    old = {k: v for k, v in manifest.items() if k not in ("contract", "manifest_sha256")}
+    validate(seal(old))
+    with pytest.raises(ValueError, match="contract"):
+        seal({**old, "contract": {**c, "control_period_s": 0}})
