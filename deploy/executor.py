@@ -410,5 +410,7 @@ def lists_to_dense(attention: np.ndarray, nbr: np.ndarray, nbr_mask: np.ndarray)
 
 
 def format_table(rows: list[dict]) -> str:
-    """Rows of run_episodes() results: S% (and T, DIST) against drop rate and delay."""
-    return format_results(rows, extra=("drop", "delay"))
+    """Rows of run_episodes() results: S% (and T, DIST) against drop rate and delay (and the
+    fraction of landmarks covered, where every row has it)."""
+    covered = ("covered",) if rows and all(r.get("covered") is not None for r in rows) else ()
+    return format_results(rows, extra=("drop", "delay", *covered))
