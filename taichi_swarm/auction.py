@@ -53,6 +53,7 @@ EPS = 1e-3  # default eps: the total matched distance is within M * EPS of the o
 # and the search must then reach that far anyway; with agents near their targets (a
 # trained policy) the prices stay small and one or two rings settle it.
 RING_LIMIT = 3
+RINGS_FROM = 256  # below this many targets a scan of them all costs less than the rings' 49 cells
 SCALING = 8.0  # cold start: eps shrinks by this factor per phase
 
 
@@ -84,7 +85,7 @@ def best_two(f: ti.template(), ib: ti.template(), i: ti.i32, b: ti.i32, M: ti.i3
     c = cell_of(px, py, h)
     best = ti.math.vec3(INF, INF, -1.0)
     finished = False
-    for rho in range(RING_LIMIT + 1):
+    for rho in range(RING_LIMIT + 1 if M >= RINGS_FROM else 0):
         if rho >= 2 and (rho - 1) * h >= best[1]:  # every target from this ring on is farther than w2
             finished = True
             break

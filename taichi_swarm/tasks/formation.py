@@ -2,7 +2,13 @@
 
 One landmark uniform in [-0.5, 0.5]^2; the targets, a regular M-gon of radius
 ``formation_radius`` round it, are re-anchored every step on the agent with the
-smallest angle round the landmark; reward -mean_i clip(d*_i, 0, 2)."""
+smallest angle round the landmark; reward -mean_i clip(d*_i, 0, 2).
+
+``scale="density"`` is refused (ValueError): the ring's spacing 2 pi r / M shrinks below
+the agents' width past M = 30, and keeping the spacing makes the ring (and each agent's
+travel) grow linearly with M. The rule that bounds both, a filled hexagonal lattice of
+side ~ sqrt(M) round the landmark, is not built yet (docs/SWARM.md). Its one landmark is
+always seen (no landmark lists)."""
 
 import math
 import sys

@@ -3,7 +3,12 @@
 Landmark 0 uniform in [-0.25, 0.25]^2, landmark 1 at distance ``line_length`` in a
 random direction (turned by 5 degrees until it lies inside the arena); the targets
 are fixed for the episode: t_k = l0 + k (l1 - l0) / (M - 1); reward
--mean_i clip(d*_i, 0, 2)."""
+-mean_i clip(d*_i, 0, 2).
+
+``scale="density"`` is refused (ValueError): keeping the spacing line_length / (M - 1)
+makes the segment grow linearly with M, beyond any agent's reach in 50 steps; the rule
+that bounds both spacing and travel (parallel segments, ~ sqrt(M) of them) is not built
+yet (docs/SWARM.md). Its two landmarks are always seen (no landmark lists)."""
 
 import math
 import sys
