@@ -72,6 +72,7 @@ def comm_graph(obs: dict, D: int) -> np.ndarray:
 
 
 TRAIL = 6  # steps of trail drawn behind each agent
+MAX_TRAILS = 20  # larger teams are drawn as points (no trails, labels or radius circles)
 
 
 def _circle(center: np.ndarray, radius: float, n: int = 48) -> np.ndarray:
@@ -141,6 +142,7 @@ class RolloutRecorder:
         self.labels = [str(i) for i in range(self.num_agents)]
         self.comm_radius = comm_radius  # drawn as a circle round each agent (RC)
         self._trail: list[list[np.ndarray]] = [[] for _ in range(self.drawn)]  # last TRAIL positions
+        self._arena = ARENA_HALF_SIZE  # the half side drawn (the env's, from the first step)
         for b in range(self.drawn):
             self.rec.log(
                 f"env_{b}/arena",
@@ -158,6 +160,13 @@ class RolloutRecorder:
         D = self.drawn
         if D == 0:
             return
+        half = float(getattr(env, "arena", ARENA_HALF_SIZE))  # scale="density" grows the arena
+        if half != self._arena:
+            self._arena = half
+            for b in range(D):
+                box = rr.Boxes2D(centers=[0.0, 0.0], half_sizes=[half] * 2, colors=[(60, 60, 60)])
+                rec.log(f"env_{b}/arena", box, static=True)
+        swarm = self.num_agents > MAX_TRAILS  # a swarm reads better as points: no trails, labels or circles
         state = env.get_state()
         pos = to_numpy(state["pos"])[:D]  # [D, M, 2]
         landmarks = to_numpy(state["landmarks"])[:D]  # [D, L, 2]
@@ -173,17 +182,18 @@ class RolloutRecorder:
             if self._ended[b]:
                 continue
             p = f"env_{b}"
-            trail = self._trail[b]
-            trail.append(pos[b].copy())
-            del trail[:-TRAIL]
-            strips = np.stack(trail, axis=1)  # [M, S, 2]
-            rec.log(f"{p}/trails", rr.LineStrips2D(list(strips), colors=self.colors, radii=0.003))
+            if not swarm:
+                trail = self._trail[b]
+                trail.append(pos[b].copy())
+                del trail[:-TRAIL]
+                strips = np.stack(trail, axis=1)  # [M, S, 2]
+                rec.log(f"{p}/trails", rr.LineStrips2D(list(strips), colors=self.colors, radii=0.003))
             if assign is not None:
                 lines = np.stack([pos[b], targets[b][assign[b]]], axis=1)  # agent -> its target
                 rec.log(f"{p}/assignment", rr.LineStrips2D(lines, colors=(40, 40, 40, 120), radii=0.002))
             if matched is not None:
                 rec.log(f"{p}/matched_dist_mean", rr.Scalars(float(matched[b].mean())))
-            if self.comm_radius is not None:  # RC: each agent's communication range
+            if self.comm_radius is not None and not swarm:  # RC: each agent's communication range
                 circles = [_circle(q, self.comm_radius) for q in pos[b]]
                 rec.log(f"{p}/comm_range", rr.LineStrips2D(circles, colors=(150, 150, 220, 60), radii=0.002))
             rec.log(f"{p}/landmarks", rr.Points2D(landmarks[b], radii=self.landmark_radius, colors=LANDMARK_COLOR))
@@ -194,7 +204,7 @@ class RolloutRecorder:
                     pos[b],
                     radii=self.agent_radius,
                     colors=self.colors,
-                    labels=[f"{i}:{int(a)}" for i, a in enumerate(acts[b])],
+                    labels=None if swarm else [f"{i}:{int(a)}" for i, a in enumerate(acts[b])],
                     class_ids=np.arange(self.num_agents),
                 ),
             )

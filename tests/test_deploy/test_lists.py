@@ -205,18 +205,24 @@ def test_recordings_draw_the_graph_of_the_lists(emp, tmp_path):
 
 
 def test_a_swarm_video_draws_the_density_scaled_arena(tmp_path):
-    """M = 300 on lists with scale="density": frames carry the arena's half side, and the
-    swarm renders as points (no trails) with one line collection per kind of line."""
+    """M = 300 on lists with scale="density": frames and the Rerun recording carry the
+    arena's half side, and the swarm is drawn as points (no trails)."""
+    from deploy.recording import RolloutRecorder
     from deploy.video import FrameRecorder
 
     M = 300
     env = taichi_swarm.make("coverage", 1, M, comm="rc", comm_radius=0.5, seed=0, neighbours=8, scale="density")
     video = FrameRecorder(str(tmp_path / "frames"), "coverage", 1, M, num_drawn=1, comm_radius=0.5)
+    rrd = RolloutRecorder(str(tmp_path / "x.rrd"), "coverage", 1, M, comm_radius=0.5)
     rng = np.random.default_rng(0)
     env.reset()
     for step in range(3):
+        actions = torch.from_numpy(rng.integers(0, 5, size=(1, M)))
         video.log_step(step, env)
-        env.step(torch.from_numpy(rng.integers(0, 5, size=(1, M))))
+        rrd.log_step(step, env, actions)
+        env.step(actions)
+    rrd.close()
+    assert rrd._arena == pytest.approx((M / 10) ** 0.5) and os.path.getsize(tmp_path / "x.rrd") > 0
     assert video.frames[0]["arena"] == pytest.approx((M / 10) ** 0.5) and video.frames[0]["adj"].shape == (1, M, M)
     video.close()
     names = sorted(os.listdir(tmp_path / "frames"))
