@@ -52,11 +52,14 @@ class TaskSetting:
     def resolve(cls, recorded: dict | None, what: str = "the checkpoint", **overrides) -> TaskSetting:
         """The recorded setting with the options a command sets (None: keep the recorded)."""
         base = {k: v for k, v in dict(recorded or {}).items() if v is not None}
-        task = overrides.get("task")
-        if task is not None and base.get("task") not in (None, task):  # its observations and reward are another's
-            raise ValueError(f"{what} holds a {base['task']} policy: it cannot run the {task} task (--task {task})")
+        own = base.get("task")
         base.update({k: v for k, v in overrides.items() if v is not None})
-        return cls.from_dict(base, what)
+        setting = cls.from_dict(base, what)  # (an unknown task is named first)
+        if own is not None and setting.task != own:  # its observations and reward are another task's
+            raise ValueError(
+                f"{what} holds a {own} policy: it cannot run the {setting.task} task (--task {setting.task})"
+            )
+        return setting
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

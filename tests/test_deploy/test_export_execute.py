@@ -257,14 +257,14 @@ def test_corrupted_file_is_refused(emp, tmp_path, capsys):
 def test_wrong_task_for_concat_model(concat, capsys, tmp_path):
     _, directory = concat
     code, err = _run(execute_main, [directory, "--task", "coverage", "--agents", "5", "--episodes", "1"], capsys)
-    assert code == 2 and "concatenates 2 landmark" in err and "coverage" in err
+    assert code == 2 and "holds a line policy" in err and "coverage" in err  # another task: refused as such
     # with outputs asked for: the same error, and nothing written or replaced
     old, gif = tmp_path / "old.rrd", tmp_path / "x.gif"
     old.write_bytes(b"RRF2 a recording from before")
     argv = [directory, "--task", "coverage", "--agents", "5", "--episodes", "1"]
     argv += ["--record", str(old), "--video", str(gif)]
     code, err = _run(execute_main, argv, capsys)
-    assert code == 2 and "concatenates 2 landmark" in err
+    assert code == 2 and "holds a line policy" in err
     assert old.read_bytes() == b"RRF2 a recording from before" and not gif.exists()
     assert sorted(os.listdir(tmp_path)) == ["old.rrd"]  # no temp file left either
 
@@ -294,7 +294,7 @@ def test_export_errors(tmp_path, capsys):
     assert code == 2 and "swarm export: error:" in err
     # a task setting the network cannot take is refused: its manifest would run nowhere
     policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1, entity_mode="concat", num_landmarks=2)).eval()
-    ckpt = _save(str(tmp_path / "line.pt"), policy, "line", 3)
+    ckpt = _save(str(tmp_path / "coverage-m2.pt"), policy, "coverage", 2)
     argv = [ckpt, "--out", str(tmp_path / "o2"), "--task", "coverage", "--agents", "5"]
     code, err = _run(export_main, argv, capsys)
     assert code == 2 and "concatenates 2 landmark offsets" in err and "coverage with 5 agents has 5" in err
