@@ -31,6 +31,7 @@ from . import assignment, auction, kernels, neighbours, rng, runtime
 from .layout import (
     FLOAT_HEADER,
     H_COMM_RC,
+    H_DENSITY,
     H_MAX_STEPS,
     P_AGENT_RADIUS,
     P_ARENA,
@@ -204,7 +205,7 @@ class SwarmEnv:
         if scale not in SCALES:
             raise ValueError(f"scale must be one of {SCALES}, got {scale!r}")
         if scale == "density" and not spec.density_scale:
-            raise ValueError(f"scale='density' is not implemented for task {spec.name!r} (only for coverage)")
+            raise ValueError(f"scale='density' is not implemented for task {spec.name!r} (coverage and formation)")
         self.scale = scale
         # spawn square half-width: sqrt(M / 10) keeps the agents per unit area of M = 10 in [-1, 1]^2
         self.arena = (self.num_agents / DENSITY_TEAM) ** 0.5 if scale == "density" else 1.0
@@ -299,6 +300,7 @@ class SwarmEnv:
     def _write_header(self) -> None:
         header = self.layout.header.copy()
         header[H_COMM_RC] = 1 if self.comm == "rc" else 0
+        header[H_DENSITY] = 1 if self.scale == "density" else 0
         header[H_MAX_STEPS] = self.params["max_steps"]
         spec = TASK_SPECS[self.task]
         fparams = np.zeros(FLOAT_HEADER, dtype=np.float32)

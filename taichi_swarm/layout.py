@@ -23,8 +23,8 @@ import numpy as np
 import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
-H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL, H_GT = range(10)
-SIZE_SLOTS = 10
+H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL, H_GT, H_DENSITY = range(11)
+SIZE_SLOTS = 11
 SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
 
 

@@ -4,11 +4,15 @@ One landmark uniform in [-0.5, 0.5]^2; the targets, a regular M-gon of radius
 ``formation_radius`` round it, are re-anchored every step on the agent with the
 smallest angle round the landmark; reward -mean_i clip(d*_i, 0, 2).
 
-``scale="density"`` is refused (ValueError): the ring's spacing 2 pi r / M shrinks below
-the agents' width past M = 30, and keeping the spacing makes the ring (and each agent's
-travel) grow linearly with M. The rule that bounds both, a filled hexagonal lattice of
-side ~ sqrt(M) round the landmark, is not built yet (docs/SWARM.md). Its one landmark is
-always seen (no landmark lists)."""
+``scale="density"``: the ring's spacing 2 pi r / M shrinks below the agents' width past
+M = 30, and keeping the spacing instead makes the ring, and each agent's travel, grow
+linearly with M. So the targets become a filled hexagonal lattice round the landmark,
+spacing LATTICE_SPACING (the chord of the paper's M = 10 ring, 2 r sin(pi / 10) = 0.309),
+the first M points of its hexagonal spiral (ring n holds 6 n points; size ~ sqrt(M)), in a
+fixed orientation (no re-anchoring: a lattice has no vertex to anchor on). The agents spawn
+uniformly in the disc round the landmark with the lattice's own area (M hexagonal cells),
+so that, as in density-scaled coverage, the distance each agent must travel is set by the
+spacing and not by M. Its one landmark is always seen (no landmark lists)."""
 
 import math
 import sys
@@ -17,7 +21,7 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import O_LMK, O_POS, O_TGT, P_TASK_PARAM, agent_at, team_size
+from ..layout import H_DENSITY, O_LMK, O_POS, O_TGT, P_TASK_PARAM, agent_at, team_size
 from .base import Task, get2, set2
 
 
@@ -34,13 +38,73 @@ def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
     return 1
 
 
+LATTICE_SPACING = 2.0 * 0.5 * math.sin(math.pi / 10.0)  # the paper's M = 10 ring: neighbours 0.309 apart
+SQRT3 = math.sqrt(3.0)
+
+
+def lattice_disc_radius(num_agents: int) -> float:
+    """Radius of the disc with the area of M hexagonal cells of the lattice (sqrt(3)/2 s^2 each)."""
+    return LATTICE_SPACING * math.sqrt(num_agents * SQRT3 / (2.0 * math.pi))
+
+
 @ti.func
 def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
-    set2(f, ib[O_LMK] + b * 2, rng.uniform2(ib, b, -0.5, 0.5))
+    centre = rng.uniform2(ib, b, -0.5, 0.5)
+    set2(f, ib[O_LMK] + b * 2, centre)
+    if ib[H_DENSITY] != 0:  # the agents, re-drawn over the lattice's own disc
+        M = team_size(sm, ib)
+        radius = LATTICE_SPACING * ti.sqrt(M * SQRT3 / (2.0 * math.pi))
+        for i in range(M):
+            r = radius * ti.sqrt(rng.uniform(ib, b))
+            ang = 2.0 * math.pi * rng.uniform(ib, b)
+            set2(f, agent_at(ib, O_POS, b, M, i, 2), centre + r * ti.math.vec2(ti.cos(ang), ti.sin(ang)))
+
+
+@ti.func
+def lattice_point(k: ti.i32) -> ti.math.vec2:
+    """Point k of the hexagonal spiral of unit spacing: 0 the centre, then ring n = 1, 2, ...
+    (6 n points from the corner n * (-1, 1) in axial coordinates, one side after another)."""
+    out = ti.math.vec2(0.0, 0.0)
+    if k > 0:
+        n = ti.cast((3.0 + ti.sqrt(12.0 * k - 3.0)) / 6.0, ti.i32)
+        while 3 * n * (n + 1) + 1 <= k:  # float rounding of the closed form
+            n += 1
+        while 3 * n * (n - 1) + 1 > k:
+            n -= 1
+        p = k - (3 * n * (n - 1) + 1)
+        side, step = p // n, p % n
+        # axial directions d0..d5 = (1, 0), (1, -1), (0, -1), (-1, 0), (-1, 1), (0, 1)
+        dq = ti.Vector([1, 1, 0, -1, -1, 0])
+        dr = ti.Vector([0, -1, -1, 0, 1, 1])
+        q, r = -n, n  # n * d4
+        for t in range(side):
+            q += n * dq[t]
+            r += n * dr[t]
+        q += step * dq[side]
+        r += step * dr[side]
+        out = ti.math.vec2(q + 0.5 * r, 0.5 * SQRT3 * r)
+    return out
 
 
 @ti.func
 def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    if ib[H_DENSITY] != 0:
+        place_lattice(sm, f, ib, b)
+    else:
+        place_ring(sm, f, ib, b)
+
+
+@ti.func
+def place_lattice(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    M = team_size(sm, ib)
+    centre = get2(f, ib[O_LMK] + b * 2)
+    tgt = ib[O_TGT] + b * M * 2
+    for k in range(M):
+        set2(f, tgt + 2 * k, centre + LATTICE_SPACING * lattice_point(k))
+
+
+@ti.func
+def place_ring(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     M = team_size(sm, ib)
     centre = get2(f, ib[O_LMK] + b * 2)
     tgt = ib[O_TGT] + b * M * 2
@@ -72,5 +136,6 @@ TASK = Task(
     landmarks=lambda num_agents: 1,
     funcs=sys.modules[__name__],
     kernel_param="formation_radius",
+    density_scale=True,
     doc="M agents form a regular M-gon round one landmark.",
 )

@@ -1,6 +1,6 @@
 """scale="density": coverage's spawn square grows as sqrt(M / 10) (the agents per unit area
-of the paper's M = 10); scale=None stays the paper's geometry. And the episode's
-fraction of targets covered."""
+of the paper's M = 10), formation's targets are a filled hexagonal lattice; scale=None
+stays the paper's geometry. And the episode's fraction of targets covered."""
 
 import numpy as np
 import pytest
@@ -52,3 +52,54 @@ def test_episode_reports_the_fraction_of_targets_covered():
     seen = int((want > 0).sum())
     assert seen > 0  # some targets are covered by chance: the check is not all zeros
     np.testing.assert_array_equal(ep["success"], want == 1.0)
+
+
+def _hex_spiral(M, spacing):
+    """Reference: the first M points of the hexagonal spiral (axial coordinates, ring n from
+    the corner n * (-1, 1), sides along (1, 0), (1, -1), (0, -1), (-1, 0), (-1, 1), (0, 1))."""
+    dirs = [(1, 0), (1, -1), (0, -1), (-1, 0), (-1, 1), (0, 1)]
+    pts, n = [(0, 0)], 1
+    while len(pts) < M:
+        q, r = -n, n
+        for dq, dr in dirs:
+            for _ in range(n):
+                pts.append((q, r))
+                q, r = q + dq, r + dr
+        n += 1
+    pts = np.asarray(pts[:M], dtype=np.float64)
+    return spacing * np.stack([pts[:, 0] + 0.5 * pts[:, 1], np.sqrt(3) / 2 * pts[:, 1]], axis=1)
+
+
+@pytest.mark.parametrize("M", [2, 7, 10, 50, 400])
+def test_density_formation_is_a_filled_hexagonal_lattice(M):
+    from taichi_swarm.tasks import formation
+
+    B = 3
+    env = taichi_swarm.make("formation", B, M, scale="density", seed=M, array="numpy")
+    env.reset()
+    rng = np.random.default_rng(0)
+    spacing = 2 * 0.5 * np.sin(np.pi / 10)
+    ref = _hex_spiral(M, spacing)
+    for t in range(3):
+        s = env.get_state()
+        centre = s["landmarks"][:, 0]
+        if t == 0:  # agents spawned over the lattice's disc round the landmark
+            r = np.linalg.norm(s["pos"] - centre[:, None], axis=-1)
+            assert r.max() <= formation.lattice_disc_radius(M) + 1e-5
+        for b in range(B):
+            np.testing.assert_allclose(env.targets[b] - centre[b], ref, atol=2e-5)
+        env.step(rng.integers(0, 5, size=(B, M)))
+    if M >= 3:  # every target has a neighbour one spacing away, none closer
+        gaps = np.linalg.norm(ref[:, None] - ref[None], axis=-1) + 9 * np.eye(M)
+        np.testing.assert_allclose(gaps.min(axis=1), spacing, rtol=1e-9)
+
+
+def test_density_formation_travel_stays_bounded():
+    """The mean matched distance at the start (what an agent must travel) does not grow with M."""
+    means = []
+    for M in (10, 100, 1000):
+        env = taichi_swarm.make("formation", 8, M, scale="density", neighbours=8, seed=1, array="numpy")
+        env.reset()
+        means.append(float(env.matched_dist.mean()))
+    assert max(means) < 0.45, means
+    assert means[2] < 2.0 * means[0], means
