@@ -205,7 +205,7 @@ class SwarmEnv:
         if scale not in SCALES:
             raise ValueError(f"scale must be one of {SCALES}, got {scale!r}")
         if scale == "density" and not spec.density_scale:
-            raise ValueError(f"scale='density' is not implemented for task {spec.name!r} (coverage and formation)")
+            raise ValueError(f"scale='density' is not implemented for task {spec.name!r}")
         self.scale = scale
         # spawn square half-width: sqrt(M / 10) keeps the agents per unit area of M = 10 in [-1, 1]^2
         self.arena = (self.num_agents / DENSITY_TEAM) ** 0.5 if scale == "density" else 1.0

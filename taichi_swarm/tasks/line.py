@@ -5,10 +5,16 @@ random direction (turned by 5 degrees until it lies inside the arena); the targe
 are fixed for the episode: t_k = l0 + k (l1 - l0) / (M - 1); reward
 -mean_i clip(d*_i, 0, 2).
 
-``scale="density"`` is refused (ValueError): keeping the spacing line_length / (M - 1)
-makes the segment grow linearly with M, beyond any agent's reach in 50 steps; the rule
-that bounds both spacing and travel (parallel segments, ~ sqrt(M) of them) is not built
-yet (docs/SWARM.md). Its two landmarks are always seen (no landmark lists)."""
+``scale="density"``: keeping the paper's spacing on one segment makes it grow linearly with M,
+beyond any agent's reach in 50 steps. So the targets become ``rows(M)`` = round(sqrt(M / 10))
+parallel segments (at least one), line_length apart, each of ``per_row(M)`` = ceil(M / rows)
+targets at the paper's M = 10 spacing line_length / 9, filled row by row (the last may be
+short): a block of side ~ sqrt(M). Landmark 0 is the start and landmark 1 the end of the
+first row (so they give the direction; the block is centred on a point uniform in
+[-0.25, 0.25]^2, in a uniformly random direction), and the agents spawn uniformly over the
+block's footprint (half a spacing / half a row gap round it), so each agent's travel is
+bounded by the row gap and the spacing, not by M. Its two landmarks are always seen (no
+landmark lists)."""
 
 import math
 import sys
@@ -17,7 +23,7 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import O_LMK, O_TGT, P_TASK_PARAM, team_size
+from ..layout import H_DENSITY, O_LMK, O_POS, O_TGT, P_TASK_PARAM, agent_at, team_size
 from .base import Task, get2, set2
 
 TURN = 5.0 * math.pi / 180.0  # turn the heading by 5 degrees until l1 fits
@@ -36,8 +42,53 @@ def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
     return 2
 
 
+PAPER_GAPS = 9  # the paper's M = 10 line: 9 gaps of line_length / 9
+
+
+def rows(num_agents: int) -> int:
+    """Parallel segments of the density-scaled line (the kernels' ``_rows``)."""
+    return max(1, int(math.floor(math.sqrt(num_agents / 10.0) + 0.5)))
+
+
+def per_row(num_agents: int) -> int:
+    return -(-num_agents // rows(num_agents))
+
+
+@ti.func
+def _rows(M: ti.i32) -> ti.i32:
+    return ti.max(1, ti.cast(ti.floor(ti.sqrt(M / 10.0) + 0.5), ti.i32))
+
+
 @ti.func
 def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    if ib[H_DENSITY] != 0:
+        spawn_rows(sm, f, ib, b)
+    else:
+        spawn_segment(sm, f, ib, b)
+
+
+@ti.func
+def spawn_rows(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    M = team_size(sm, ib)
+    n = _rows(M)
+    m = (M + n - 1) // n
+    gap = f[P_TASK_PARAM]
+    spacing = gap / PAPER_GAPS
+    centre = rng.uniform2(ib, b, -0.25, 0.25)
+    theta = 2.0 * math.pi * rng.uniform(ib, b)
+    along = ti.math.vec2(ti.cos(theta), ti.sin(theta))
+    across = ti.math.vec2(-along[1], along[0])
+    l0 = centre - 0.5 * (m - 1) * spacing * along - 0.5 * (n - 1) * gap * across
+    set2(f, ib[O_LMK] + b * 4, l0)
+    set2(f, ib[O_LMK] + b * 4 + 2, l0 + (m - 1) * spacing * along)
+    for i in range(M):  # the agents, re-drawn over the block's footprint
+        a = -0.5 * spacing + (m * spacing) * rng.uniform(ib, b)
+        c = -0.5 * gap + (n * gap) * rng.uniform(ib, b)
+        set2(f, agent_at(ib, O_POS, b, M, i, 2), l0 + a * along + c * across)
+
+
+@ti.func
+def spawn_segment(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     lmk = ib[O_LMK] + b * 4
     length = f[P_TASK_PARAM]
     l0 = rng.uniform2(ib, b, -0.25, 0.25)
@@ -59,8 +110,16 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
     tgt = ib[O_TGT] + b * M * 2
     l0 = get2(f, lmk)
     l1 = get2(f, lmk + 2)
-    for k in range(M):
-        set2(f, tgt + 2 * k, l0 + (l1 - l0) * (k / (M - 1)))
+    if ib[H_DENSITY] != 0:
+        n = _rows(M)
+        m = (M + n - 1) // n
+        step = (l1 - l0) / (m - 1)
+        across = ti.math.vec2(-step[1], step[0]) * (f[P_TASK_PARAM] / step.norm())
+        for k in range(M):
+            set2(f, tgt + 2 * k, l0 + (k % m) * step + (k // m) * across)
+    else:
+        for k in range(M):
+            set2(f, tgt + 2 * k, l0 + (l1 - l0) * (k / (M - 1)))
 
 
 @ti.func
@@ -78,5 +137,6 @@ TASK = Task(
     landmarks=lambda num_agents: 2,
     funcs=sys.modules[__name__],
     kernel_param="line_length",
+    density_scale=True,
     doc="M agents spread evenly on the segment between two landmarks.",
 )

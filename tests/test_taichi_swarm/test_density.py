@@ -103,3 +103,57 @@ def test_density_formation_travel_stays_bounded():
         means.append(float(env.matched_dist.mean()))
     assert max(means) < 0.45, means
     assert means[2] < 2.0 * means[0], means
+
+
+@pytest.mark.parametrize("M", [2, 5, 10, 23, 90, 400])
+def test_density_line_is_parallel_rows(M):
+    from taichi_swarm.tasks import line
+
+    B = 3
+    env = taichi_swarm.make("line", B, M, scale="density", seed=M, array="numpy")
+    env.reset()
+    n, m = line.rows(M), line.per_row(M)
+    assert n == max(1, round(np.sqrt(M / 10))) and n * m >= M > n * (m - 1) - 1
+    gap, spacing = 1.25, 1.25 / 9
+    s = env.get_state()
+    for b in range(B):
+        l0, l1 = s["landmarks"][b].astype(np.float64)
+        along = (l1 - l0) / np.linalg.norm(l1 - l0)
+        across = np.array([-along[1], along[0]])
+        np.testing.assert_allclose(np.linalg.norm(l1 - l0), (m - 1) * spacing, rtol=1e-5)
+        k = np.arange(M)
+        ref = l0 + np.outer(k % m, along) * spacing + np.outer(k // m, across) * gap
+        np.testing.assert_allclose(env.targets[b], ref, atol=2e-5 * max(1, m))
+        # agents spawned over the block's footprint, in the line's frame
+        rel = s["pos"][b] - l0
+        a, c = rel @ along, rel @ across
+        assert a.min() >= -0.5 * spacing - 1e-4 and a.max() <= (m - 0.5) * spacing + 1e-4
+        assert c.min() >= -0.5 * gap - 1e-4 and c.max() <= (n - 0.5) * gap + 1e-4
+        centre = l0 + 0.5 * (m - 1) * spacing * along + 0.5 * (n - 1) * gap * across
+        assert np.abs(centre).max() <= 0.25 + 1e-4
+    if M == 10:  # one row of the paper's length
+        assert n == 1 and m == 10
+
+
+def test_density_line_travel_stays_bounded():
+    means = []
+    for M in (10, 100, 1000):
+        env = taichi_swarm.make("line", 8, M, scale="density", neighbours=8, seed=1, array="numpy")
+        env.reset()
+        means.append(float(env.matched_dist.mean()))
+    assert max(means) < 0.6, means
+    assert means[2] < 2.0 * means[0], means
+
+
+def test_density_scale_is_refused_by_a_task_without_it():
+    import dataclasses
+
+    from taichi_swarm.tasks import TASK_SPECS, register, unregister
+
+    plain = dataclasses.replace(TASK_SPECS["coverage"], name="plain", task_id=77, density_scale=False)
+    register(plain)
+    try:
+        with pytest.raises(ValueError, match="scale='density' is not implemented for task 'plain'"):
+            taichi_swarm.make("plain", 2, 4, scale="density", array="numpy")
+    finally:
+        unregister("plain")

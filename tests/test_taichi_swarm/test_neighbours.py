@@ -229,7 +229,6 @@ def test_list_snapshots_restore_bit_identically():
         ("formation", {"landmark_neighbours": 1, "sense_radius": 0.5}, "keeps its landmarks global"),
         ("line", {"landmark_neighbours": 1, "sense_radius": 0.5}, "keeps its landmarks global"),
         ("coverage", {"scale": "area"}, "scale must be one of"),
-        ("line", {"scale": "density"}, "not implemented for task 'line'"),
     ],
 )
 def test_bad_list_options_are_refused(task, kwargs, message):
