@@ -335,8 +335,10 @@ def _check_cell(where: str, c: Cell) -> None:
             bad("a baseline cell needs algorithm (a BenchMARL algorithm name)")
         if c.algorithm.lower() not in BASELINE_ALGORITHMS:
             bad(f"algorithm must be one of {BASELINE_ALGORITHMS}, got {c.algorithm!r}")
-        if not 1 <= c.frames <= MAX_FRAMES:
-            bad(f"frames must be in [1, 10^12], got {c.frames}")
+        if c.frames < 1:
+            bad(f"frames must be >= 1, got {c.frames}")
+        if c.frames > MAX_FRAMES:
+            bad(f"frames must be <= 10^12, got {c.frames}")
         if c.obs_mode not in ("full", "local"):
             bad(f"obs_mode must be full or local, got {c.obs_mode!r}")
         if c.actions not in ("any", "discrete", "continuous"):
