@@ -10,6 +10,7 @@ cached; ``--cold`` compiles into a fresh cache directory).
 
     python tools/bench_swarm.py            # about 2-5 minutes on 2 CPU cores
     python tools/bench_swarm.py --cold --seconds 1
+    python tools/bench_swarm.py --arch cuda       # the GPU (torch tensors on the device)
 """
 
 from __future__ import annotations
@@ -29,16 +30,24 @@ LAYOUTS = (
 )
 
 
-def measure(B: int, M: int, options: dict, seconds: float, comm_radius: float, min_steps: int = 3) -> dict:
+def measure(
+    B: int, M: int, options: dict, seconds: float, comm_radius: float, arch: str = "cpu", min_steps: int = 3
+) -> dict:
     import taichi_swarm
 
     t0 = time.perf_counter()
+    array = "numpy" if arch == "cpu" else "torch"
     env = taichi_swarm.make(
-        "coverage", B, M, comm="rc", comm_radius=comm_radius, scale="density", seed=0, array="numpy", **options
-    )
+        "coverage", B, M, comm="rc", comm_radius=comm_radius, scale="density", seed=0, arch=arch, array=array,
+        **options,
+    )  # fmt: skip
     env.reset()
     rng = np.random.default_rng(0)
     actions = rng.integers(0, 5, size=(8, B, M))
+    if arch != "cpu":
+        import torch
+
+        actions = torch.from_numpy(actions).to("cuda")
     env.step(actions[0])
     first = time.perf_counter() - t0
     env.step(actions[1])  # one more outside the clock
@@ -46,6 +55,10 @@ def measure(B: int, M: int, options: dict, seconds: float, comm_radius: float, m
     while steps < min_steps or time.perf_counter() - t1 < seconds:
         env.step(actions[steps % len(actions)])
         steps += 1
+    if arch != "cpu":
+        import torch
+
+        torch.cuda.synchronize()
     per_step = (time.perf_counter() - t1) / steps
     dropped = int(env.info["neighbours"]["dropped"].sum()) if "neighbours" in env.info else None
     return {
@@ -64,6 +77,7 @@ def main() -> None:
     parser.add_argument("--cold", action="store_true", help="compile into a fresh kernel cache (compile times)")
     parser.add_argument("--skip-dense-large", action="store_true", help="no dense layout at M = 1000")
     parser.add_argument("--skip-10k", action="store_true", help="no M = 10,000 run")
+    parser.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
     args = parser.parse_args()
     if args.seconds <= 0 or args.comm_radius <= 0:
         parser.error("--seconds and --comm-radius must be > 0")
@@ -71,7 +85,9 @@ def main() -> None:
         os.environ["TAICHI_SWARM_CACHE"] = tempfile.mkdtemp(prefix="bench_swarm_cache_")
 
     rows = []
-    print(f"coverage, rc (radius {args.comm_radius}), scale='density', random actions; B x M = 10,000 agents")
+    print(
+        f"coverage, rc (radius {args.comm_radius}), scale='density', random actions, {args.arch}; B x M = 10,000 agents"
+    )
     head = f"{'layout':<20} {'B':>5} {'M':>6} {'first call s':>12} {'ms/step':>9} {'ns/agent-step':>14} {'x M=10':>7}"
     print(head)
     print("-" * len(head))
@@ -80,7 +96,7 @@ def main() -> None:
         for B, M in SIZES:
             if name == "dense" and M >= 1000 and args.skip_dense_large:
                 continue
-            r = measure(B, M, options, args.seconds, args.comm_radius)
+            r = measure(B, M, options, args.seconds, args.comm_radius, args.arch)
             base = base or r["ns"]
             rows.append((name, B, M, r))
             print(
@@ -90,7 +106,7 @@ def main() -> None:
             )
     if not args.skip_10k:
         name, options = LAYOUTS[2]
-        r = measure(1, 10_000, options, args.seconds, args.comm_radius, min_steps=3)
+        r = measure(1, 10_000, options, args.seconds, args.comm_radius, args.arch, min_steps=3)
         print(
             f"{name:<20} {1:>5} {10_000:>6} {r['first_s']:>12.1f} {r['step_ms']:>9.2f} {r['ns']:>14.0f}"
             f"  ({r['steps']} steps timed; dropped {r['dropped']})",

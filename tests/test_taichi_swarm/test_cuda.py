@@ -100,3 +100,50 @@ def test_cuda_training_end_to_end(tmp_path):
     )
     summary = train(cfg)
     assert summary["update"] == 2 and summary["last_eval"]["success_rate"] >= 0
+
+
+def test_cuda_neighbour_lists_and_auction():
+    """Lists holding everyone match the dense layout on the GPU; lists at M = 1000 are a
+    cKDTree's K nearest; the auction is eps-optimal."""
+    import torch
+    from scipy.optimize import linear_sum_assignment
+    from scipy.spatial import cKDTree
+
+    if runtime.current_arch() != "cuda":
+        pytest.skip("Taichi runs on the CPU in this session (set TAICHI_SWARM_TEST_ARCH=cuda)")
+    B, M = 16, 9
+    kw = dict(comm="rc", comm_radius=0.6, arch="cuda", seed=3)
+    dense = taichi_swarm.make("coverage", B, M, **kw)
+    lists = taichi_swarm.make("coverage", B, M, neighbours=M - 1, **kw)
+    dense.reset(), lists.reset()
+    for _ in range(60):
+        a = torch.randint(0, 5, (B, M), device="cuda")
+        od, *_ = dense.step(a)
+        ol, *_ = lists.step(a)
+        np.testing.assert_allclose(ol["self"].cpu().numpy(), od["self"].cpu().numpy(), atol=1e-5)
+        adj = od["adj"].cpu().numpy() & ~np.eye(M, dtype=bool)
+        heard = np.zeros_like(adj)
+        nbr, mask = ol["nbr"].cpu().numpy(), ol["nbr_mask"].cpu().numpy()
+        b, i, _ = np.nonzero(mask)
+        heard[b, i, nbr[mask]] = True
+        np.testing.assert_array_equal(heard, adj)
+    M, K, r = 1000, 16, 0.5
+    env = taichi_swarm.make(
+        "coverage", 2, M, comm="rc", comm_radius=r, neighbours=K, scale="density", assignment="auction", arch="cuda"
+    )
+    env.reset(seed=0)
+    env.step(torch.randint(0, 5, (2, M), device="cuda"))
+    pos = env.get_state()["pos"].cpu().numpy()
+    nbr, mask = env.obs["nbr"].cpu().numpy(), env.obs["nbr_mask"].cpu().numpy()
+    for b in range(2):
+        tree = cKDTree(pos[b].astype(np.float64))
+        for i in range(0, M, 37):
+            cand = [j for j in tree.query_ball_point(pos[b, i], r * 0.999) if j != i]
+            listed = set(nbr[b, i][mask[b, i]].tolist())
+            assert len(listed) == min(K, len(cand))
+            if len(cand) <= K:
+                assert listed == set(cand)
+        cost = np.linalg.norm(pos[b][:, None] - env.targets[b].cpu().numpy()[None], axis=-1)
+        rows, cols = linear_sum_assignment(cost)
+        got = cost[np.arange(M), env.assignment[b].cpu().numpy()].sum()
+        assert got <= cost[rows, cols].sum() + M * env.assignment_eps + 1e-4 * M
