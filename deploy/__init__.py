@@ -4,6 +4,8 @@
     swarm execute DIR --task ...     one onnxruntime agent object per agent, a message bus along the
                                      communication graph, drops and delays  (deploy/executor.py, no torch)
     swarm replay FILE.rrd            Rerun recordings of rollouts            (deploy/recording.py, deploy/replay.py)
+    swarm agent DIR --id I           one agent as its own process, and the simulator as the world of
+    swarm world --export DIR         such processes, over Zenoh (deploy/net/, docs/DEPLOY.md)
 
 (the commands live in swarm_cli/deploy.py; ``swarm bench deploy`` in swarm_cli/bench_deploy.py)
 

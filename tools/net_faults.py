@@ -117,9 +117,38 @@ def markdown(rows: dict, M: int, episodes: int) -> str:
     return "\n".join(lines)
 
 
+def plot(tables: list[tuple[str, dict]], path: str) -> None:
+    """S% per fault, a bar per table (e.g. M = 5 and M = 10), the in-process executor's as dots."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(dict.fromkeys(n for _, rows in tables for n in rows))
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    width = 0.8 / len(tables)
+    for k, (label, rows) in enumerate(tables):
+        x = [i + (k - (len(tables) - 1) / 2) * width for i, n in enumerate(names) if n in rows]
+        ys = [100 * rows[n]["success"] for n in names if n in rows]
+        ax.bar(x, ys, width, label=f"{label}: processes")
+        present = [n for n in names if n in rows]
+        ref = [
+            (xi, 100 * rows[n]["executor"]) for xi, n in zip(x, present, strict=True) if rows[n]["executor"] is not None
+        ]
+        if ref:
+            label_ref = f"{label}: in-process"
+            ax.plot(*zip(*ref, strict=True), "k_", markersize=14, mew=2, label=label_ref)
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("S%")
+    ax.set_ylim(0, 105)
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--export", required=True, help="directory written by `swarm export`")
+    p.add_argument("--export", help="directory written by `swarm export`")
     p.add_argument("--agents", type=int, default=None, help="team size M (default: the manifest's)")
     p.add_argument("--episodes", type=int, default=20, help="episodes per cell, side by side")
     p.add_argument("--seed", type=int, default=4242, help="seed of the episodes and of the faults")
@@ -127,7 +156,21 @@ def main(argv=None) -> int:
     p.add_argument("--round-deadline", type=float, default=0.03, help="communication round deadline, s")
     p.add_argument("--cells", nargs="+", default=None, help=f"a subset of the cells: {', '.join(CELLS)}")
     p.add_argument("--out", default=None, help="write the rows to this JSON file")
+    p.add_argument(
+        "--plot", nargs="+", default=None, metavar="ARG", help="draw instead of running: OUT.png LABEL=ROWS.json ..."
+    )
     args = p.parse_args(argv)
+    if args.plot:
+        tables = []
+        for item in args.plot[1:]:
+            label, _, path = item.rpartition("=")
+            with open(path) as f:
+                tables.append((label, json.load(f)["rows"]))
+        plot(tables, args.plot[0])
+        print(f"wrote {args.plot[0]}")
+        return 0
+    if not args.export:
+        p.error("--export DIR is needed (or --plot)")
     cells = args.cells or list(CELLS)
     unknown = [c for c in cells if c not in CELLS]
     if unknown:
