@@ -346,7 +346,9 @@ def resolve_settings(
         model.task, "the manifest", task=task, agents=agents, comm=comm, comm_radius=comm_radius
     )
     team_size = setting.team_size("the manifest")
-    swarm = rest.get("swarm") or {}
+    # the lists / scaling the policy trained on (its manifest's contract), the command's over them
+    swarm = {**(model.manifest.get("contract") or {}).get("swarm", {}), **(rest.get("swarm") or {})}
+    rest["swarm"] = swarm
     if swarm.get("landmark_neighbours") and model.entity_mode == "concat":
         raise DeployError("this model concatenates every landmark (entity_mode 'concat'): no --landmark-neighbours")
     L = swarm.get("landmark_neighbours") or TASK_SPECS[setting.task].num_landmarks(team_size)

@@ -260,7 +260,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
                 "heads": ["h [H]"],
             },
         },
-        "contract": integrator_contract(setting.to_dict(), cfg.rounds, H),
+        "contract": {**integrator_contract(setting.to_dict(), cfg.rounds, H), **swarm_contract(payload)},
         "action_meanings": list(ACTION_MEANINGS),
         "num_actions": NUM_ACTIONS,
         "opset": OPSET,
@@ -274,6 +274,21 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
         raise ValueError(f"refusing to export: {exc}") from None
     atomic_write_json(os.path.join(out_dir, MANIFEST), manifest)
     return manifest
+
+
+def swarm_contract(payload: dict) -> dict:
+    """The neighbour lists / density scaling the policy trained on, for ``manifest["contract"]``
+    (``swarm execute`` runs on them unless told otherwise); {} for a dense policy."""
+    swarm = payload.get("swarm") or {}
+    if not swarm:
+        return {}
+    return {
+        "swarm": dict(swarm),
+        "swarm_doc": "the simulator options it trained on: neighbours K: an agent hears its K nearest "
+        "(within comm_radius under rc), never more; landmark_neighbours KL: entities holds the KL nearest "
+        "landmarks within sense_radius, nearest first (unsensed slots left out of entities); "
+        "scale density: the arena's half side is sqrt(M / 10)",
+    }
 
 
 def write_bytes(path: str, data: bytes) -> None:

@@ -227,3 +227,27 @@ def test_a_swarm_video_draws_the_density_scaled_arena(tmp_path):
     video.close()
     names = sorted(os.listdir(tmp_path / "frames"))
     assert len(names) >= 3 and names[0] == "frame_0000.png"
+
+
+def test_a_policy_trained_on_lists_exports_and_executes_on_them(tmp_path):
+    """The export's contract names the lists the policy trained on; swarm execute runs on
+    them unless --neighbours says otherwise."""
+    import json
+
+    from swarm_cli.deploy import execute_main, export_main
+    from swarm_cli.main import main as swarm_main
+
+    run = str(tmp_path / "run")
+    args = ["train", "--task", "coverage", "--agents", "3", "--comm", "rc", "--neighbours", "2", "--updates", "1"]
+    args += ["--ppo.num-envs", "2", "--ppo.num-steps", "4", "--ppo.minibatches", "1", "--eval-every", "100"]
+    args += ["--model.hidden", "8", "--run-dir", run, "--no-progress", "--transfer-offsets"]
+    assert swarm_main(args) == 0
+    out = str(tmp_path / "onnx")
+    assert export_main([os.path.join(run, "policy.pt"), "--out", out]) == 0
+    with open(os.path.join(out, "manifest.json")) as f:
+        assert json.load(f)["contract"]["swarm"] == {"neighbours": 2}
+    for extra, K in (([], 2), (["--neighbours", "1"], 1)):
+        rows = str(tmp_path / f"rows{K}.json")
+        assert execute_main([out, "--episodes", "2", "--json", rows, *extra]) == 0
+        with open(rows) as f:
+            assert json.load(f)["rows"][0]["neighbours"] == K
