@@ -219,6 +219,9 @@ def test_a_file_without_a_digest_is_refused_unless_trusted(run_dir, tmp_path):
 
 
 def test_committed_files_unsigned_refused_legacy_signed_loaded():
+    for path in (UNSIGNED, LEGACY_SIGNED):
+        if not os.path.exists(path):  # (results/ archives come and go; the synthetic cases above stay)
+            pytest.skip(f"{os.path.relpath(path, ROOT)} is not in this checkout")
     with pytest.raises(checkpoint.UnsignedCheckpoint, match="carries no sha256"):
         checkpoint.load_policy(UNSIGNED)
     policy, payload = checkpoint.load_policy(UNSIGNED, trust_unsigned=True)
