@@ -1,7 +1,8 @@
 """The fault table of a team of agent processes (``swarm world --spawn-agents``), beside the
 in-process executor (``swarm execute``) at the same drop rate.
 
-    python tools/net_faults.py --export runs/net/cov-rc-m5 --episodes 20 --out runs/net/faults-m5.json
+    python tools/net_faults.py --export runs/net/coverage-rc-m5 --episodes 20 --out runs/net/faults-m5.json
+    python tools/net_faults.py --plot docs/media/net-faults.png "M = 5=runs/net/faults-m5.json"
 
 Each cell starts the M agents as `swarm agent` processes on 127.0.0.1 with one fault, runs
 the episodes side by side at the control period, and reports S% / T with the agents' decision

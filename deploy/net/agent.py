@@ -121,13 +121,15 @@ class NetAgent:
     def _on_msg(self, h: P.Header, message: np.ndarray, t: float) -> None:
         if h.sender == self.id:
             return  # our own publication, delivered back by the session
-        if self.run is not None and h.run != self.run:
+        if self.run is None:
+            return  # not in a run yet (just started or restarted): nothing to use it for
+        if h.run != self.run:
             return self._drop("foreign", f"a message of run {h.run:08x}, this agent is in run {self.run:08x}")
         if (self.M is not None and h.sender >= self.M) or (self.B is not None and h.envs != self.B):
             return self._drop("foreign", f"a message from agent {h.sender} for {h.envs} worlds")
         if h.round >= max(self.K, 1):
             return self._drop("malformed", f"a message of round {h.round}; the policy has {self.K} rounds")
-        if self.run is not None and self._late(h.step, h.round):
+        if self._late(h.step, h.round):
             # only what this agent would have used counts as late (a non-neighbour's message is no loss)
             needs = self._need.get(h.step)
             n = h.envs if needs is None else sum(h.sender in need for need in needs)

@@ -60,7 +60,6 @@ class AgentReport:
     last: dict | None = None
     t_first: float = 0.0
     t_last: float = 0.0
-    restarts: int = 0
 
     def summary(self) -> dict:
         d = np.asarray(self.decision_s) * 1e3
@@ -131,8 +130,6 @@ class World:
                         )
                     self.refused.add(h.sender)
                     return
-                if h.sender in self.heard and self.step > 0:
-                    self.reports[h.sender].restarts += 1
                 self.refused.discard(h.sender)
                 self.heard.add(h.sender)
             elif topic == "act":
