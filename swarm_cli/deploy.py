@@ -11,7 +11,9 @@ from swarm_cli.options import ExecuteOptions, ExportOptions, ReplayOptions, fail
 # ----------------------------------------------------------------------------- export
 def export_main(argv: list[str]) -> int:
     args = parse(ExportOptions, argv, "swarm export")
-    if not os.path.exists(args.checkpoint):
+    from trainer.zoo import looks_like_name
+
+    if not os.path.exists(args.checkpoint) and not looks_like_name(args.checkpoint):  # a zoo name loads below
         return fail("swarm export", f"checkpoint {args.checkpoint} does not exist")
     import logging
 
