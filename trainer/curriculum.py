@@ -97,6 +97,10 @@ def run_curriculum(
             f"--team-sizes {list(base.team_sizes)} cannot go with a curriculum: each stage trains on its "
             "own team size (--sizes)"
         )
+    for M in sizes:  # every stage's config checked before the run directory is made
+        dataclasses.replace(
+            base, agents=M, updates=max_updates_per_stage, target_success=threshold, min_updates=min_updates_per_stage
+        ).validate()
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []

@@ -242,6 +242,8 @@ def test_settings_that_would_run_wrongly_are_refused(tiny_policy, tmp_path):
         assert not run_dir.exists(), f"a refused train ({option} {value}) left {run_dir}"
     sizes = ["curriculum", "--run-dir", str(tmp_path / "cur"), "--sizes", "3", "3", "--no-compile", "--no-progress"]
     refused(sizes, "--sizes", "repeat")
+    refused(["curriculum", "--run-dir", str(tmp_path / "cur"), "--task", "soccer"], "task")
+    refused(["curriculum", "--run-dir", str(tmp_path / "cur"), "--ppo.lr-end", "5"], "lr_end")
     assert not (tmp_path / "cur").exists()
 
 
