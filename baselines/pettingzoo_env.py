@@ -187,6 +187,7 @@ class SwarmParallelEnv(ParallelEnv):
                     "length": int(episode["length"][0]),
                     "return": float(episode["return"][0]),
                     "dist": float(episode["dist"][0]),
+                    "covered": float(episode["covered"][0]),
                     "matched_dist": float(episode["matched_dist"][0, i]),
                 }
             infos[a] = d

@@ -28,7 +28,7 @@ from taichi_swarm.metrics import FirstEpisodes
 from .benchmarl_tasks import ACTION_CHOICES, SwarmTaskClass, get_task
 from .observations import OBS_MODES
 
-EPISODE_STATS = ("success", "length", "dist")
+EPISODE_STATS = ("success", "length", "dist", "covered")
 
 
 def algorithm_names() -> tuple[str, ...]:

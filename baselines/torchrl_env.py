@@ -12,7 +12,7 @@ Keys (batch_size [B]; one group "agents", agents agent_0..agent_{M-1}):
     ("agents", "reward")       float32 [B, M, 1]     the team reward, the same for every agent
     "done", "terminated", "truncated"            bool [B, 1]     episode end; success; time limit
     ("agents", "done" / "terminated" / "truncated") bool [B, M, 1]  the same per agent
-    ("episode", "success" / "length" / "return" / "dist")  [B, 1]  statistics of the episode that
+    ("episode", "success" / "length" / "return" / "dist" / "covered")  [B, 1]  statistics of the episode that
                                                      ended at this step (where "done"; 0 elsewhere)
 
 Auto-reset: the simulator restarts a finished environment inside its own step. Here a step
@@ -114,6 +114,7 @@ class SwarmTorchRLEnv(EnvBase):
             success=env_flag.clone(),
             length=Unbounded(shape=(B, 1), dtype=torch.int64, device=dev),
             dist=Unbounded(shape=(B, 1), dtype=torch.float32, device=dev),
+            covered=Unbounded(shape=(B, 1), dtype=torch.float32, device=dev),
             shape=(B,),
             device=dev,
         )
@@ -213,6 +214,7 @@ class SwarmTorchRLEnv(EnvBase):
                 "length": torch.zeros(B, 1, dtype=torch.int64, device=dev),
                 "return": torch.zeros(B, 1, dtype=torch.float32, device=dev),
                 "dist": torch.zeros(B, 1, dtype=torch.float32, device=dev),
+                "covered": torch.zeros(B, 1, dtype=torch.float32, device=dev),
             }
         else:  # the simulator keeps the last statistics of every env: keep those that just ended
             stats = {
@@ -220,6 +222,7 @@ class SwarmTorchRLEnv(EnvBase):
                 "length": torch.where(done, episode["length"], 0)[:, None].to(torch.int64),
                 "return": torch.where(done, episode["return"], 0.0)[:, None],
                 "dist": torch.where(done, episode["dist"], 0.0)[:, None],
+                "covered": torch.where(done, episode["covered"], 0.0)[:, None],
             }
         out = {
             GROUP: TensorDict(group, batch_size=(B, M), device=dev),
