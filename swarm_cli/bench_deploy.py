@@ -6,7 +6,7 @@ exactly what each ``deploy.executor.Agent`` does per step (``calls_per_step``
 onnxruntime calls: encode, K - 1 rounds, fused last round + heads). torch runs
 the same pieces of ``SwarmPolicy`` eagerly (``set_num_threads(1)``,
 ``no_grad``). Both get the same inputs; medians over many repetitions.
-Targets: <= 0.3 ms per agent-step with onnxruntime, >= 3x faster than torch.
+Target: <= 0.3 ms per agent-step with onnxruntime; the speedup over torch eager is printed as measured.
 """
 
 from __future__ import annotations
@@ -22,7 +22,6 @@ import numpy as np
 from swarm_cli.options import BenchDeployOptions, fail, parse
 
 TARGET_MS = 0.3
-TARGET_SPEEDUP = 3.0
 
 
 def _interleaved_median_ms(fns, repeats: int, warmup: int, block: int = 100) -> list[float]:
@@ -128,7 +127,6 @@ def run(
         "torch_ms": torch_ms,
         "speedup": speedup,
         "pass_latency": onnx_ms <= TARGET_MS,
-        "pass_speedup": speedup >= TARGET_SPEEDUP,
         "versions": {
             "torch": torch.__version__,
             "onnxruntime": onnxruntime.__version__,
@@ -152,7 +150,6 @@ def format_result(r: dict) -> str:
             f"  {'torch eager ' + r['versions']['torch']:<26} {r['torch_ms']:>13.4f}",
             f"  speedup onnxruntime vs torch: {r['speedup']:.2f}x",
             f"  target <= {TARGET_MS} ms per agent-step: {verdict(r['pass_latency'])} ({r['onnxruntime_ms']:.3f} ms)",
-            f"  target >= {TARGET_SPEEDUP:.0f}x faster than torch: {verdict(r['pass_speedup'])} ({r['speedup']:.2f}x)",
         ]
     )
 
