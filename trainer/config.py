@@ -166,6 +166,11 @@ class TrainConfig:
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
+    message_drop: float = 0.0
+    """Train through a lossy radio: every rollout draws, per environment, a drop rate uniformly
+    from [0, message_drop], and every step drops each message (an edge of the communication
+    graph, never an agent's own) with that rate, in the rollout and in the PPO update alike, so a
+    policy learns to act on what it hears (0: no faults; evaluations are always fault-free)."""
     preset: str = "paper"
     """PPO preset the ``ppo`` options and ``updates`` start from: fast (the recipe behind the model
     zoo) | paper (the paper's schedule) | gpu (4096 environments, for one GPU)."""
@@ -282,6 +287,8 @@ class TrainConfig:
             raise ValueError(f"comm_radius must be finite, got {self.comm_radius}")
         if not 0 <= self.min_updates <= self.updates:
             raise ValueError(f"min_updates must be in [0, updates={self.updates}], got {self.min_updates}")
+        if not 0 <= self.message_drop < 1:
+            raise ValueError(f"message_drop must be in [0, 1), got {self.message_drop}")
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
         if self.comm_radius < 0:

@@ -139,10 +139,29 @@ class RolloutResult:
 
 
 @torch.no_grad()
-def collect_rollout(policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, p, device) -> RolloutResult:
+def drop_messages(inputs: dict, rate: torch.Tensor) -> None:
+    """Drop each message of one step's stored graph with its environment's ``rate`` [E], in
+    place (the buffer then holds the graph the agents heard, so the update sees it too). An
+    agent always keeps its own state: the dense graph's diagonal is never dropped."""
+    if "adj" in inputs:
+        adj = inputs["adj"]  # [E, M, M]
+        keep = torch.rand(adj.shape, device=adj.device) >= rate[:, None, None]
+        keep |= torch.eye(adj.shape[-1], dtype=torch.bool, device=adj.device)
+        adj &= keep
+    else:  # neighbour lists hold others only
+        mask = inputs["nbr_mask"]  # [E, M, K]
+        mask &= torch.rand(mask.shape, device=mask.device) >= rate[:, None, None]
+
+
+def collect_rollout(
+    policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, p, device, message_drop: float = 0.0
+) -> RolloutResult:
     """T steps of every environment with sampled actions into ``buf`` [T, E, M, ...];
-    then per-agent GAE and advantage normalisation."""
+    then per-agent GAE and advantage normalisation. ``message_drop`` > 0: each environment
+    drops messages at a rate drawn from [0, message_drop] for the rollout (TrainConfig)."""
     T = buf.actions.shape[0]
+    # drawn from torch's generator, which the checkpoint carries: a resumed run draws the same
+    rate = torch.rand(buf.actions.shape[1], device=device) * message_drop if message_drop > 0 else None
     policy.eval()
     torch.set_num_threads(1)  # batches of E teams: more threads only add wake-up latency
     fused = policy.fused_weights()  # the weights do not change during the rollout
@@ -151,6 +170,8 @@ def collect_rollout(policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, 
     t_sim = t_policy = 0.0
     for t in range(T):
         inputs = buf.store(t, obs)  # dense adj or neighbour lists, as the simulator observes
+        if rate is not None:
+            drop_messages(inputs, rate)
         ta = time.perf_counter()
         logits, value = policy(**inputs, fused=fused)
         action, logprob = sample_actions(logits)  # [E, M]
@@ -624,7 +645,7 @@ def one_update(state: TrainingState, cfg: TrainConfig, loss_fn, device: str, run
         state.optimizer.param_groups[0]["lr"] = p.lr + (p.lr_end - p.lr) * min(frac, 1.0)
     rollouts = []
     for g in state.groups:
-        rollouts.append(collect_rollout(state.policy, g.env, g.obs, g.buf, g.scaler, p, device))
+        rollouts.append(collect_rollout(state.policy, g.env, g.obs, g.buf, g.scaler, p, device, cfg.message_drop))
         g.obs = rollouts[-1].next_obs
     tc = time.perf_counter()
     torch.set_num_threads(cfg.torch_threads)
