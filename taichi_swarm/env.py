@@ -160,9 +160,9 @@ class SwarmEnv:
         self.assignment_eps = auction.EPS if assignment == "auction" else 0.0
         auctioned = assignment == "auction"
         # compile-time M for small teams, else 0; with lists the kernels are the same code for
-        # every M (the dense physics' stack array is not compiled: any constant ``cap`` will do)
+        # every M (cap 0: no stack arrays sized by M; the dense physics is not compiled)
         self._sm = static_team_size(self.num_agents) if self.neighbours is None and not auctioned else 0
-        self._cap = assignment_capacity(self.num_agents) if self.neighbours is None else 4
+        self._cap = assignment_capacity(self.num_agents) if self.neighbours is None else 0
         self._lists = (
             (kernels.AGENT_LISTS if self.neighbours is not None else 0)
             | (kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0)

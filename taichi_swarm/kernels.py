@@ -12,7 +12,8 @@ statistics, terminal observation and auto-reset, then the observations and
 communication graph.
 
 Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (size of the dense
-physics' per-thread force array), ``lists`` (AGENT_LISTS | LANDMARK_LISTS: neighbour
+physics' per-thread force array and of the small-M assignment's work arrays; 0 with
+neighbour lists: no per-M stack arrays), ``lists`` (AGENT_LISTS | LANDMARK_LISTS: neighbour
 and landmark lists through cell grids instead of the dense adjacency, neighbours.py),
 ``sm`` (M itself for M <= layout.STATIC_M_MAX, so the loops over agents unroll; else 0
 and M is read from the header) and ``parallel`` (serial env loop for small batches, see
@@ -91,13 +92,21 @@ U8 = ti.types.ndarray(dtype=ti.u8, ndim=1)
 
 
 @ti.func
-def match(task: ti.template(), sm: ti.template(), lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+def match(
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    lists: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    b: ti.i32,
+):
     """Targets, optimal (or, with AUCTION, eps-optimal) assignment and matched distances d*_i of env b."""
     tasks.place_targets(task, sm, f, ib, b)
     if ti.static(lists & AUCTION):
         auction.solve(f, ib, b)
     else:
-        assignment.solve(sm, f, ib, b)
+        assignment.solve(cap, sm, f, ib, b)
 
 
 @ti.func
@@ -246,12 +255,18 @@ def target_dist(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i3
 
 @ti.func
 def start_episode(
-    task: ti.template(), sm: ti.template(), lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    lists: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    b: ti.i32,
 ):
     tasks.spawn(task, sm, f, ib, b)
     ib[env_at(ib, O_STEP, b)] = 0
     f[env_at(ib, O_RET_ACC, b)] = 0.0
-    match(task, sm, lists, f, ib, b)
+    match(task, cap, sm, lists, f, ib, b)
 
 
 @ti.kernel
@@ -267,7 +282,7 @@ def reset_kernel(
 ):
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
-        start_episode(task, sm, lists, f, ib, b)
+        start_episode(task, cap, sm, lists, f, ib, b)
         f[env_at(ib, O_REWARD, b)] = 0.0
         u8[env_at(ib, O_DONE, b)] = ti.u8(0)
         write_team_obs(task, sm, lists, f, ib, u8, b, False)
@@ -287,7 +302,7 @@ def refresh_kernel(
     """Recompute targets, assignment and observations after ``set_state``."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
-        match(task, sm, lists, f, ib, b)
+        match(task, cap, sm, lists, f, ib, b)
         write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
@@ -419,7 +434,7 @@ def step_env(
         physics_step(cap, sm, f, ib, b, u, continuous)
     t = ib[env_at(ib, O_STEP, b)] + 1
     ib[env_at(ib, O_STEP, b)] = t
-    match(task, sm, lists, f, ib, b)
+    match(task, cap, sm, lists, f, ib, b)
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
     for i in range(M):
         d = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
@@ -444,7 +459,7 @@ def step_env(
         for i in range(M):
             f[agent_at(ib, O_EP_MATCHED, b, M, i, 1)] = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
         write_team_obs(task, sm, lists, f, ib, u8, b, True)
-        start_episode(task, sm, lists, f, ib, b)
+        start_episode(task, cap, sm, lists, f, ib, b)
     write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
@@ -501,7 +516,7 @@ def reset_masked_kernel(
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):
         if mask[b] != 0:
-            start_episode(task, sm, lists, f, ib, b)
+            start_episode(task, cap, sm, lists, f, ib, b)
             f[env_at(ib, O_REWARD, b)] = 0.0
             u8[env_at(ib, O_DONE, b)] = ti.u8(0)
             write_team_obs(task, sm, lists, f, ib, u8, b, False)
