@@ -179,7 +179,7 @@ class SwarmEnv:
             _ANNOUNCED_CAPACITIES.add(self._cap)
             print(
                 f"taichi_swarm: compiling kernels for teams of up to {self._cap} agents (first use in this "
-                f"process; M >= 100 can take minutes: docs/BENCHMARKS.md lists the sizes measured)",
+                f"process; up to a minute at M = 1000; neighbour lists compile once for every M: docs/SWARM.md)",
                 file=sys.stderr,
                 flush=True,
             )
