@@ -138,7 +138,6 @@ class RolloutResult:
     time_policy: float  # seconds in the policy forward and sampling
 
 
-@torch.no_grad()
 def drop_messages(inputs: dict, rate: torch.Tensor) -> None:
     """Drop each message of one step's stored graph with its environment's ``rate`` [E], in
     place (the buffer then holds the graph the agents heard, so the update sees it too). An
@@ -153,6 +152,7 @@ def drop_messages(inputs: dict, rate: torch.Tensor) -> None:
         mask &= torch.rand(mask.shape, device=mask.device) >= rate[:, None, None]
 
 
+@torch.no_grad()
 def collect_rollout(
     policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, p, device, message_drop: float = 0.0
 ) -> RolloutResult:
