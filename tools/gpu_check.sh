@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The prepared GPU check (issue: training throughput, GPU): in under 8 minutes on one
-# GPU, run the CUDA tests and `swarm bench train` on CUDA, and print env steps/s.
+# GPU, run the CUDA tests, `swarm bench train` on CUDA (env steps/s) and the large-team
+# simulator benchmark (agent-steps/s at M = 10 to 10,000).
 #
 #   tools/gpu_check.sh              # run it (needs the project installed with a CUDA torch)
 #   tools/gpu_check.sh --dry-run    # print the commands only
@@ -15,7 +16,7 @@
 # Target on one H100: >= 100k env steps/s at M = 3 (docs/BENCHMARKS.md, GPU).
 set -uo pipefail
 
-usage() { sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,16p' "$0" | sed 's/^# \{0,1\}//'; }
 dry_run=0
 agents="3 10"
 updates=3
@@ -66,6 +67,9 @@ for m in $agents; do
     run "$python" -m swarm_cli bench train --device cuda --arch cuda --presets gpu --threads 1 --agents "$m" \
         --updates "$updates" --num-envs "$num_envs" --no-compile --precisions $precisions
 done
+# large teams on CUDA: simulator cost per agent-step at M = 10 / 100 / 1000 (10,000 agents per
+# step) with neighbour lists, and one environment of M = 10,000 (docs/SWARM.md)
+run "$python" tools/bench_swarm.py --arch cuda --seconds 1 --skip-dense-large
 if [ "$train_seconds" -gt 0 ]; then
     # SIGINT at the limit: the trainer saves its checkpoint and exits 130 (not a failure
     # here); a process still there 60 s later is killed

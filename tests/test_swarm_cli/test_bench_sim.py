@@ -146,6 +146,7 @@ def test_gpu_check_script_arguments():
     bench = [x for x in lines if "bench train" in x]
     assert len(bench) == 2 and "--agents 3" in bench[0] and "--agents 5" in bench[1] and "--device cuda" in bench[0]
     assert not any("swarm_cli train" in x for x in lines)  # no training unless asked
+    assert any("tools/bench_swarm.py --arch cuda" in x for x in lines)  # large teams on CUDA
     r = subprocess.run(
         [script, "--dry-run", "--python", "python3", "--train-seconds", "60", "--precisions", "bf16"],
         capture_output=True,
