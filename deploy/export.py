@@ -21,7 +21,6 @@ agent attends to itself alone, as an isolated agent does in the batched policy).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import platform
@@ -36,6 +35,7 @@ from taichi_swarm.files import atomic_write_bytes, atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
 from trainer.checkpoint import CheckpointError, load_policy
 from trainer.model import NUM_ACTIONS, PADDED_SLOTS, SELF_DIM, SwarmPolicy
+from trainer.zoo import file_sha256
 
 OPSET = 18
 
@@ -108,14 +108,6 @@ PIECES = {
     "heads": (HeadsPiece, ("h",), ("logits", "value")),
     "round_heads": (RoundHeadsPiece, ("h", "heard"), ("logits", "value", "weights", "h_out")),
 }
-
-
-def sha256_file(path: str) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def _example_inputs(name: str, policy: SwarmPolicy) -> tuple[tuple[torch.Tensor, ...], dict]:
@@ -217,7 +209,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
         onnx.checker.check_model(path, full_check=True)
         files[name] = {
             "file": f"{name}.onnx",
-            "sha256": sha256_file(path),
+            "sha256": file_sha256(path),
             "inputs": list(inputs),
             "outputs": list(outputs),
         }

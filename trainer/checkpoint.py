@@ -14,6 +14,7 @@ import torch
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json, clean_leftovers, ensure_writable  # noqa: F401
 from trainer import zoo
 from trainer.model import ModelConfig, SwarmPolicy
+from trainer.zoo import file_sha256
 
 MAX_ROUNDS = 64  # message rounds (the export manifest's schema has the same bound)
 MAX_HIDDEN = 4096  # hidden width: 4096 is ~170 M weights, 0.7 GB
@@ -79,15 +80,6 @@ def payload_digest(payload: dict) -> str:
     environment buffers, reward normalisers, RNG states, counters, configs."""
     h = hashlib.sha256()
     _feed(h, {k: v for k, v in payload.items() if k != "sha256"}, "payload")
-    return h.hexdigest()
-
-
-def file_sha256(path: str) -> str:
-    """sha256 of a file's bytes (what a model index records of a shipped file)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
     return h.hexdigest()
 
 

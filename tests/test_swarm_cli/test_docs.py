@@ -15,7 +15,9 @@ from swarm_cli.main import COMMANDS
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", ".."))
 README = open(os.path.join(ROOT, "README.md")).read()
 DOCS = ["README.md", "models/README.md"] + sorted(
-    os.path.join("docs", f) for f in os.listdir(os.path.join(ROOT, "docs")) if f.endswith(".md") and f not in ("CLI.md", "HISTORY.md")
+    os.path.join("docs", f)
+    for f in os.listdir(os.path.join(ROOT, "docs"))
+    if f.endswith(".md") and f not in ("CLI.md", "HISTORY.md")
 )
 
 
