@@ -127,7 +127,7 @@ def test_readme_headline_table_matches_the_zoo():
         assert e.paper_success is not None and round(100 * e.paper_success) == int(paper), name
 
 
-HISTORY = re.compile(r"\bsessions? \d+|\bsession-\d+|\(session\b", re.I)
+HISTORY = re.compile(r"\bsessions? \d+|\bsession-\d+", re.I)
 
 
 def test_no_history_in_code_specs_or_docs():
