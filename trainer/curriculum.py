@@ -99,7 +99,12 @@ def run_curriculum(
         )
     for M in sizes:  # every stage's config checked before the run directory is made
         dataclasses.replace(
-            base, agents=M, updates=max_updates_per_stage, target_success=threshold, min_updates=min_updates_per_stage
+            base,
+            agents=M,
+            updates=max_updates_per_stage,
+            target_success=threshold,
+            min_updates=min_updates_per_stage,
+            init_carry="weights",  # what a stage carries comes from the stage before it (checked as it starts)
         ).validate()
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")

@@ -759,7 +759,7 @@ def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path, monkeypa
             "the weights would not fit",
         ),
         (lambda t: t.replace("polish_updates = 1", "polish_updates = -1"), "polish_updates must be >= 0"),
-        (lambda t: t.replace("polish_lr = 1e-5", "polish_lr = 0.0"), "polish_lr must be > 0"),
+        (lambda t: t.replace("polish_lr = 1e-5", "polish_lr = 0.0"), r"polish_lr must be in \(0, 1\]"),
         (lambda t: t.replace("sizes = [3, 4]", "sizes = [3, 4]\npolish_updates = 3"), "only train and curriculum"),
         (lambda t: t.replace('init_from = "train-cov"\n', "init_agents = 2\n"), "set init_from too"),
     ],
