@@ -210,8 +210,7 @@ def test_policy_inputs_maps_the_simulator_keys():
     "rel",
     [
         "coverage-uc-m3",  # emp (a model zoo name)
-        "formation-uc-m5",  # concat
-        "results/gpu-h200-s19/curriculum-cov-rc-noemp/m5/policy.pt",  # padded
+        "formation-uc-m5",  # concat (padded networks: the random-weight tests above)
     ],
 )
 def test_committed_policies_give_the_same_outputs_on_full_lists(rel):
