@@ -174,3 +174,12 @@ def test_zoo_index_and_cards_are_current():
 def test_cli_reference_is_generated_from_help():
     r = _tool("cli_reference.py", "--check")
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_readme_python_example_runs():
+    """The README's "use a pretrained policy" lines run as written and print a success rate."""
+    blocks = re.findall(r"```python\n(.*?)```", README, flags=re.S)
+    assert blocks
+    out = subprocess.run([sys.executable, "-c", blocks[0]], capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert 0.0 <= float(out.stdout.strip().splitlines()[-1]) <= 1.0
