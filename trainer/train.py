@@ -145,7 +145,7 @@ def drop_messages(inputs: dict, rate: torch.Tensor) -> None:
     if "adj" in inputs:
         adj = inputs["adj"]  # [E, M, M]
         keep = torch.rand(adj.shape, device=adj.device) >= rate[:, None, None]
-        keep |= torch.eye(adj.shape[-1], dtype=torch.bool, device=adj.device)
+        keep.diagonal(dim1=-2, dim2=-1).fill_(True)
         adj &= keep
     else:  # neighbour lists hold others only
         mask = inputs["nbr_mask"]  # [E, M, K]

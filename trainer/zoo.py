@@ -3,9 +3,9 @@
 ``models/index.toml`` lists one entry per published setting (task x UC/RC x team size,
 and the transfer policies): where its weights lie, their sha256, what trained them and
 what they score on 500 fresh greedy episodes. Every command that takes a checkpoint also
-takes a zoo name (``swarm eval coverage-rc-m10``): ``resolve`` turns the name into the
-weights' path after checking the file against the index's sha256, so a name always
-means the bytes that were measured.
+takes a zoo name (``swarm eval coverage-rc-m10``): ``trainer.checkpoint.load`` turns the
+name into the weights' path and checks the file against the index's sha256, so a name
+always means the bytes that were measured.
 
 The weights are the spec results themselves (``results/reproduce-*``, where the generated
 tables read them): the zoo names them, it does not copy them.
@@ -131,18 +131,6 @@ def file_sha256(path: str) -> str:
 def looks_like_name(text: str) -> bool:
     """A zoo name has no path separator and no file suffix (``coverage-rc-m10``)."""
     return bool(text) and os.sep not in text and "/" not in text and not os.path.splitext(text)[1]
-
-
-def resolve(path_or_name: str) -> str:
-    """A checkpoint path as given, or the checked weights of the zoo entry of that name.
-
-    An existing file or directory always wins over a zoo name; anything else that looks like
-    a name must be one. The file is checked against the index's sha256 before use."""
-    if os.path.exists(path_or_name) or not looks_like_name(path_or_name):
-        return path_or_name
-    entry = get(path_or_name)
-    verify(entry)
-    return entry.path
 
 
 def verify(entry: ZooEntry) -> None:
