@@ -15,9 +15,6 @@ from trainer.config import PPOConfig, TrainConfig
 from trainer.model import ModelConfig, SwarmPolicy
 from trainer.train import NonFiniteTraining, build_state, ppo_update, save_checkpoint, train
 
-ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
-UNSIGNED = os.path.join(ROOT, "results", "formation-curriculum-uc", "m5", "policy.pt")  # from before digests
-LEGACY_SIGNED = os.path.join(ROOT, "results", "coverage-curriculum-rc-from-uc3", "m10-500", "policy.pt")
 
 
 def tiny(tmp_path, **kw):
@@ -218,16 +215,25 @@ def test_a_file_without_a_digest_is_refused_unless_trusted(run_dir, tmp_path):
         checkpoint.load(str(tmp_path / "stripped.pt"), trust_unsigned=True)
 
 
-def test_committed_files_unsigned_refused_legacy_signed_loaded():
-    for path in (UNSIGNED, LEGACY_SIGNED):
-        if not os.path.exists(path):  # (results/ archives come and go; the synthetic cases above stay)
-            pytest.skip(f"{os.path.relpath(path, ROOT)} is not in this checkout")
+def test_version_1_files_unsigned_refused_legacy_signed_loaded(run_dir, tmp_path):
+    """The two layouts written before version 2: no digest at all (refused unless trusted),
+    and a digest over the weights only ("model_sha256", still checked)."""
+    payload = checkpoint.load(os.path.join(run_dir, "policy.pt"))
+    v1 = {k: v for k, v in payload.items() if k not in ("sha256", "model_sha256")} | {"version": 1}
+    unsigned, legacy, tampered = (str(tmp_path / f"{n}.pt") for n in ("unsigned", "legacy", "tampered"))
+    torch.save(v1, unsigned)
+    torch.save(v1 | {"model_sha256": checkpoint.weights_digest(v1["model"])}, legacy)
     with pytest.raises(checkpoint.UnsignedCheckpoint, match="carries no sha256"):
-        checkpoint.load_policy(UNSIGNED)
-    policy, payload = checkpoint.load_policy(UNSIGNED, trust_unsigned=True)
-    assert payload["version"] == 1 and isinstance(policy, SwarmPolicy)
-    _, legacy = checkpoint.load_policy(LEGACY_SIGNED)  # version 1: weights-only digest, still checked
-    assert legacy["version"] == 1 and "model_sha256" in legacy
+        checkpoint.load_policy(unsigned)
+    policy, loaded = checkpoint.load_policy(unsigned, trust_unsigned=True)
+    assert loaded["version"] == 1 and isinstance(policy, SwarmPolicy)
+    _, loaded = checkpoint.load_policy(legacy)
+    assert loaded["version"] == 1 and "model_sha256" in loaded
+    name = next(iter(v1["model"]))
+    changed = dict(v1["model"], **{name: v1["model"][name] + 1})
+    torch.save(v1 | {"model": changed, "model_sha256": checkpoint.weights_digest(v1["model"])}, tampered)
+    with pytest.raises(checkpoint.CheckpointError):
+        checkpoint.load_policy(tampered, trust_unsigned=True)
 
 
 def test_crafted_network_sizes_and_special_files_are_refused(run_dir, tmp_path):
