@@ -61,6 +61,7 @@ SCHEMA = {
                 "rounds": {"type": "integer", "minimum": 0, "maximum": 64},
                 "entity_mode": {"enum": list(ENTITY_MODES)},
                 "num_landmarks": {"type": "integer", "minimum": 0},
+                "self_position": {"enum": ["absolute", "none"]},
             },
         },
         "rounds": {"type": "integer", "minimum": 0, "maximum": 64},

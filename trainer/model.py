@@ -36,6 +36,7 @@ from taichi_swarm.physics import NUM_ACTIONS
 PADDED_SLOTS = 10  # the paper's "without EMP" baseline: 10 landmarks x 2 = 20 inputs
 MASK_FILL = -1e9  # finite: an all-masked row must not turn into NaN (and exports cleanly)
 ENTITY_MODES = ("emp", "concat", "padded")
+SELF_POSITIONS = ("absolute", "none")
 
 # the simulator's observation keys -> the forward's arguments (``policy_inputs``)
 OBS_INPUTS = {
@@ -113,10 +114,18 @@ class ModelConfig:
     fixed L); "padded": the paper's "without EMP" baseline, 10 zero-padded slots."""
     num_landmarks: int = 0
     """L the "concat" mode was built for (unused otherwise; 0: the trainer takes the task's)."""
+    self_position: str = "absolute"
+    """"absolute": an agent's input holds its own position (px, py), as the paper's does;
+    "none": zeroed, so everything the agent sees is its velocity and relative offsets. A
+    density-scaled arena (scale="density") grows as sqrt(M), and absolute positions there
+    leave the range seen in training; relative inputs are what a robot without a shared
+    frame has too (docs/SWARM.md)."""
 
     def __post_init__(self):
         if self.entity_mode not in ENTITY_MODES:
             raise ValueError(f"entity_mode must be one of {ENTITY_MODES}, got {self.entity_mode!r}")
+        if self.self_position not in SELF_POSITIONS:
+            raise ValueError(f"self_position must be one of {SELF_POSITIONS}, got {self.self_position!r}")
         if self.hidden < 1 or self.rounds < 0:
             raise ValueError(f"hidden must be >= 1 and rounds >= 0, got {self.hidden}, {self.rounds}")
         if self.num_landmarks < 0:
@@ -219,6 +228,14 @@ class SwarmPolicy(nn.Module):
                 nn.init.zeros_(module.bias)
 
     # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
+    def own_input(self, self_obs: torch.Tensor) -> torch.Tensor:
+        """The agent's own observation as the encoder takes it: (vx, vy, px, py), or with
+        self_position "none" (vx, vy, 0, 0) (zeroed, not dropped: the encoder's shape, and so
+        every checkpoint, is the same either way)."""
+        if self.config.self_position == "none":
+            return torch.cat([self_obs[..., :2], torch.zeros_like(self_obs[..., 2:])], dim=-1)
+        return self_obs
+
     def encode(
         self, self_obs: torch.Tensor, entities: torch.Tensor, entity_mask: torch.Tensor | None = None
     ) -> torch.Tensor:
@@ -226,6 +243,7 @@ class SwarmPolicy(nn.Module):
         encoder and entity message passing."""
         mode = self.config.entity_mode
         self._check_entity_mask(entities, entity_mask)
+        self_obs = self.own_input(self_obs)
         if mode == "emp":
             h = torch.relu(self.agent_encoder(self_obs))
             e = torch.relu(self.entity_encoder(entities))  # [..., L, H]
@@ -342,7 +360,7 @@ class SwarmPolicy(nn.Module):
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]
         if self.config.entity_mode == "emp":
-            h = torch.relu(self.agent_encoder(self_obs)).reshape(N * M, H)  # [NM, H]
+            h = torch.relu(self.agent_encoder(self.own_input(self_obs))).reshape(N * M, H)  # [NM, H]
             e = torch.relu(self.entity_encoder(entities)).reshape(N * M, -1, H)  # [NM, L, H]
             own, own_bias, heard = fw.entity
             q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]

@@ -511,7 +511,9 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     init_payload = None
     if cfg.init_from and payload is None:
         init_policy, init_payload = checkpoint.load_policy(cfg.init_from, trust_unsigned=cfg.trust_unsigned)
-        if init_policy.config != policy.config:
+        # the same shapes; self_position only changes what the encoder is fed, so a policy
+        # may be fine-tuned into relative inputs
+        if dataclasses.replace(init_policy.config, self_position=policy.config.self_position) != policy.config:
             raise checkpoint.CheckpointError(
                 f"--init-from {cfg.init_from} has model {init_policy.config}, this run wants {policy.config}"
             )

@@ -251,3 +251,27 @@ def test_a_policy_trained_on_lists_exports_and_executes_on_them(tmp_path):
         assert execute_main([out, "--episodes", "2", "--json", rows, *extra]) == 0
         with open(rows) as f:
             assert json.load(f)["rows"][0]["neighbours"] == K
+
+
+def test_an_export_without_absolute_position_matches_torch(tmp_path):
+    """self_position "none" is inside the exported encoder: the executor's actions are
+    torch's, and its manifest says so."""
+    torch.manual_seed(4)
+    policy = SwarmPolicy(ModelConfig(hidden=32, rounds=2, self_position="none")).eval()
+    path = str(tmp_path / "ckpt.pt")
+    checkpoint.save(
+        path,
+        {
+            "model_config": policy.config.to_dict(),
+            "model": policy.state_dict(),
+            "task": {"task": "coverage", "agents": 3, "comm": "rc", "comm_radius": 0.8},
+        },
+    )
+    export(path, str(tmp_path / "onnx"))
+    model = ExportedModel(str(tmp_path / "onnx"))
+    assert model.manifest["model_config"]["self_position"] == "none"
+    executor = Executor(model, 2, 6)
+    for obs in _states(6, 5):
+        want, _ = _torch(policy, obs)
+        got, _, _ = executor.decide(obs["self"], obs["entities"], nbr=obs["nbr"], nbr_mask=obs["nbr_mask"])
+        np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)

@@ -335,3 +335,27 @@ def test_a_team_that_fits_in_its_lists_takes_the_dense_rounds_with_the_same_resu
     torch.testing.assert_close(switched[1], gathered[1], **TOL)
     slots, listed = neighbour_slots(nbr, mask)
     assert torch.equal(lists_to_adj(slots, listed), adj)
+
+
+def test_self_position_none_feeds_the_encoder_no_absolute_position():
+    """self_position "none": moving the whole team (positions change, every offset stays)
+    changes nothing, on both forward paths and both layouts; "absolute" does see it."""
+    N, M, L, K = 2, 6, 6, 5
+    self_obs, entities, adj = team(N, M, L, seed=3)
+    shifted = self_obs.clone()
+    shifted[..., 2:] += torch.tensor([3.0, -2.0])
+    nbr, mask = lists_from_adj(adj, K)
+    for mode in ("emp", "padded"):
+        torch.manual_seed(0)
+        policy = SwarmPolicy(ModelConfig(hidden=16, rounds=2, entity_mode=mode, self_position="none"))
+        for graph in (dict(adj=adj), dict(nbr=nbr, nbr_mask=mask)):
+            for fn in (policy, policy.forward_reference):
+                a, va = fn(self_obs, entities, **graph)
+                b, vb = fn(shifted, entities, **graph)
+                torch.testing.assert_close(a, b, **TOL)
+                torch.testing.assert_close(va, vb, **TOL)
+        absolute = SwarmPolicy(ModelConfig(hidden=16, rounds=2, entity_mode=mode))
+        absolute.load_state_dict(policy.state_dict())  # the same weights, the same shapes
+        assert not torch.allclose(absolute(self_obs, entities, adj)[0], absolute(shifted, entities, adj)[0])
+    with pytest.raises(ValueError, match="self_position must be one of"):
+        ModelConfig(self_position="relative")
