@@ -15,6 +15,7 @@ Shapes: B environments, M agents, L landmarks.
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
+    info["agent_reward"] float32 [B, M]    each agent's own reward terms (their mean: reward)
     done             bool    [B]           the episode ended at this step
 Every returned array is a zero-copy view of the env's preallocated buffers and
 is overwritten by the next ``step``/``reset``: copy what you keep.
@@ -273,6 +274,9 @@ class SwarmEnv:
                 "covered": v("ep_covered"),  # fraction of targets matched within success_threshold
             },
             "terminal_obs": term,
+            # [B, M] each agent's own reward for the step just taken: the task's named
+            # per-agent terms (Task.reward_terms); the team reward is their mean
+            "agent_reward": v("agent_reward"),
         }
         if self.neighbours is not None:
             # of the lists in ``obs`` (after an auto-reset: the new episode's first)

@@ -62,6 +62,7 @@ from .layout import (
     O_POS,
     O_RET_ACC,
     O_REWARD,
+    O_AGENT_REWARD,
     O_STEP,
     O_TERM_ADJ,
     O_TERM_ENT,
@@ -254,6 +255,14 @@ def target_dist(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i3
 
 
 @ti.func
+def clear_agent_rewards(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    """A reset's rewards are 0, the team's and each agent's."""
+    M = team_size(sm, ib)
+    for i in range(M):
+        f[agent_at(ib, O_AGENT_REWARD, b, M, i, 1)] = 0.0
+
+
+@ti.func
 def start_episode(
     task: ti.template(),
     cap: ti.template(),
@@ -284,6 +293,7 @@ def reset_kernel(
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
         start_episode(task, cap, sm, lists, f, ib, b)
         f[env_at(ib, O_REWARD, b)] = 0.0
+        clear_agent_rewards(sm, f, ib, b)
         u8[env_at(ib, O_DONE, b)] = ti.u8(0)
         write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
@@ -438,6 +448,7 @@ def step_env(
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
     for i in range(M):
         d = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
+        f[agent_at(ib, O_AGENT_REWARD, b, M, i, 1)] = tasks.agent_reward(task, d)
         sum_d += d
         sum_clipped += ti.math.clamp(d, 0.0, 2.0)
         within = d < f[P_SUCCESS]
@@ -518,5 +529,6 @@ def reset_masked_kernel(
         if mask[b] != 0:
             start_episode(task, cap, sm, lists, f, ib, b)
             f[env_at(ib, O_REWARD, b)] = 0.0
+            clear_agent_rewards(sm, f, ib, b)
             u8[env_at(ib, O_DONE, b)] = ti.u8(0)
             write_team_obs(task, sm, lists, f, ib, u8, b, False)

@@ -73,6 +73,7 @@ BLOCKS = (
     BlockSpec("obs_self", "f32", ("M", SELF_DIM)),
     BlockSpec("obs_entities", "f32", ("M", "LE", 2)),  # LE: L, or KL with landmark lists
     BlockSpec("reward", "f32"),
+    BlockSpec("agent_reward", "f32", ("M",)),  # each agent's own terms (the team reward is their mean)
     BlockSpec("matched_dist", "f32", ("M",)),
     BlockSpec("ep_matched_dist", "f32", ("M",)),
     BlockSpec("ep_dist", "f32"),
@@ -128,6 +129,7 @@ O_POS, O_VEL, O_LMK, O_TGT = SLOT["pos"], SLOT["vel"], SLOT["landmarks"], SLOT["
 O_OBS_SELF, O_OBS_ENT, O_ADJ = SLOT["obs_self"], SLOT["obs_entities"], SLOT["adj"]
 O_REWARD, O_DONE, O_STEP, O_RNG = SLOT["reward"], SLOT["done"], SLOT["step"], SLOT["rng"]
 O_MATCHED, O_RET_ACC = SLOT["matched_dist"], SLOT["return_acc"]
+O_AGENT_REWARD = SLOT["agent_reward"]
 O_EP_MATCHED, O_EP_DIST, O_EP_RETURN = SLOT["ep_matched_dist"], SLOT["ep_dist"], SLOT["ep_return"]
 O_EP_LEN, O_EP_SUCCESS, O_EP_TRUNC = SLOT["ep_length"], SLOT["ep_success"], SLOT["ep_truncated"]
 O_TERM_SELF, O_TERM_ENT, O_TERM_ADJ = SLOT["term_self"], SLOT["term_entities"], SLOT["term_adj"]

@@ -82,6 +82,12 @@ def reward(task: ti.template(), mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f3
     return _FUNCS_BY_ID[task].reward(mean_d, mean_clipped_d)
 
 
+@ti.func
+def agent_reward(task: ti.template(), d: ti.f32) -> ti.f32:
+    """Agent i's own reward from its matched distance d*_i (the task's named terms, summed)."""
+    return _FUNCS_BY_ID[task].agent_reward(d)
+
+
 __all__ = [
     "COMMON_PARAMS",
     "COVERAGE",

@@ -11,6 +11,11 @@ A task module (coverage.py, formation.py, line.py) defines
                                         (the agents are spawned by the caller first)
     ``place_targets(sm, f, ib, b)``     the M targets of env b from its current state
     ``reward(mean_d, mean_clipped_d)``  the team reward from the matched distances
+    ``agent_reward(d) -> f32``          agent i's own reward from its matched distance
+                                        d*_i: the sum of the task's named per-agent
+                                        terms (``Task.reward_terms``, one ti.func each),
+                                        so a new term (a collision penalty, say) is a
+                                        change in the task module alone
 - and ``TASK = Task(...)``, registered in tasks/__init__.py.
 
 Success is the same rule for every task (every matched distance below
@@ -25,7 +30,7 @@ import taichi as ti
 
 # Overridable parameters every task has (``taichi_swarm.make(..., max_steps=...)``).
 COMMON_PARAMS = {"max_steps": 50}
-FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward")
+FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward", "agent_reward")
 
 
 @dataclass(frozen=True)
@@ -54,10 +59,15 @@ class Task:
     landmark_lists: bool = False
     """Whether its landmarks may be sensed as lists (``landmark_neighbours``): the tasks
     with one landmark per agent; formation and line keep their landmarks global."""
+    reward_terms: tuple[str, ...] = ()
+    """The named per-agent reward terms ``agent_reward`` sums, each a Taichi function of
+    the module, ``term(d) -> f32`` (d: the agent's matched distance d*_i)."""
     doc: str = ""
 
     def __post_init__(self):
-        missing = [name for name in FUNCS if not callable(getattr(self.funcs, name, None))]
+        if not self.reward_terms:
+            raise ValueError(f"task {self.name!r}: reward_terms must name at least one per-agent term")
+        missing = [name for name in FUNCS + self.reward_terms if not callable(getattr(self.funcs, name, None))]
         if missing:
             raise ValueError(f"task {self.name!r}: its funcs lack the Taichi functions {missing}")
         if not dataclasses.is_dataclass(self.params_type):

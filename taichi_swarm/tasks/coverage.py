@@ -54,6 +54,18 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
     return ti.math.clamp(-mean_d, -15.0, 15.0)
 
 
+@ti.func
+def matched_distance(d: ti.f32) -> ti.f32:
+    """-d*_i: the agent's share of the team reward, whose mean it is (the clip at 15 binds
+    only in arenas far larger than the paper's)."""
+    return ti.math.clamp(-d, -15.0, 15.0)
+
+
+@ti.func
+def agent_reward(d: ti.f32) -> ti.f32:
+    return matched_distance(d)
+
+
 TASK = Task(
     name="coverage",
     task_id=0,
@@ -66,5 +78,6 @@ TASK = Task(
     reports_dist=True,
     density_scale=True,
     landmark_lists=True,
+    reward_terms=("matched_distance",),
     doc="M agents cover M landmarks (MPE simple_spread with matched distances).",
 )

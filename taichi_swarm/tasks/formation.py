@@ -126,6 +126,17 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
     return -mean_clipped_d
 
 
+@ti.func
+def matched_distance(d: ti.f32) -> ti.f32:
+    """-clip(d*_i, 0, 2): the agent's share of the team reward, whose mean it is."""
+    return -ti.math.clamp(d, 0.0, 2.0)
+
+
+@ti.func
+def agent_reward(d: ti.f32) -> ti.f32:
+    return matched_distance(d)
+
+
 TASK = Task(
     name="formation",
     task_id=1,
@@ -137,5 +148,6 @@ TASK = Task(
     funcs=sys.modules[__name__],
     kernel_param="formation_radius",
     density_scale=True,
+    reward_terms=("matched_distance",),
     doc="M agents form a regular M-gon round one landmark.",
 )

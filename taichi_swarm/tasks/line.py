@@ -127,6 +127,17 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
     return -mean_clipped_d
 
 
+@ti.func
+def matched_distance(d: ti.f32) -> ti.f32:
+    """-clip(d*_i, 0, 2): the agent's share of the team reward, whose mean it is."""
+    return -ti.math.clamp(d, 0.0, 2.0)
+
+
+@ti.func
+def agent_reward(d: ti.f32) -> ti.f32:
+    return matched_distance(d)
+
+
 TASK = Task(
     name="line",
     task_id=2,
@@ -138,5 +149,6 @@ TASK = Task(
     funcs=sys.modules[__name__],
     kernel_param="line_length",
     density_scale=True,
+    reward_terms=("matched_distance",),
     doc="M agents spread evenly on the segment between two landmarks.",
 )

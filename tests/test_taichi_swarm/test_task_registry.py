@@ -48,6 +48,16 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
     return -2.0 * mean_d
 
 
+@ti.func
+def distance(d: ti.f32) -> ti.f32:  # the one named per-agent term
+    return -2.0 * d
+
+
+@ti.func
+def agent_reward(d: ti.f32) -> ti.f32:
+    return distance(d)
+
+
 GATHER = Task(
     name="gather",
     task_id=99,
@@ -58,6 +68,7 @@ GATHER = Task(
     landmarks=lambda num_agents: 1,
     funcs=sys.modules[__name__],
     kernel_param="spread",
+    reward_terms=("distance",),
     doc="M agents gather round one landmark (a test task).",
 )
 
@@ -84,6 +95,7 @@ def test_a_new_task_is_one_module_and_a_register_call(gather):
     assert done.all() and info["episode"]["success"].all()  # every d < 0.4
     d = info["episode"]["matched_dist"]  # [B, M] at the end
     np.testing.assert_allclose(reward, -2.0 * d.mean(-1), rtol=1e-5)
+    np.testing.assert_allclose(info["agent_reward"], -2.0 * d, rtol=1e-5)  # its named term
     # too far: no success; the time limit ends the episode
     env.reset()
     far = (env.get_state()["landmarks"] + np.array([[0.9, 0.0]] * M, np.float32)[None]).astype(np.float32)
@@ -101,6 +113,10 @@ def test_registry_errors():
         tasks.register(Task(**{**GATHER.__dict__, "task_id": 0}))
     with pytest.raises(ValueError, match="lack the Taichi functions"):
         Task(**{**GATHER.__dict__, "funcs": object()})
+    with pytest.raises(ValueError, match=r"lack the Taichi functions \['bump'\]"):
+        Task(**{**GATHER.__dict__, "reward_terms": ("distance", "bump")})
+    with pytest.raises(ValueError, match="reward_terms must name"):
+        Task(**{**GATHER.__dict__, "reward_terms": ()})
     with pytest.raises(ValueError, match="kernel_param 'nope'"):
         Task(**{**GATHER.__dict__, "kernel_param": "nope"})
 
