@@ -32,10 +32,9 @@ from torchrl.envs import EnvBase
 
 from taichi_swarm import COMMS, TASKS
 
+from .config import ACTION_CHOICES
 from .observations import check_obs_mode
 from .torchrl_env import GROUP, SwarmTorchRLEnv
-
-ACTION_CHOICES = ("any", "discrete", "continuous")
 
 
 @dataclass

@@ -23,7 +23,8 @@ from functools import cache
 
 import numpy as np
 
-OBS_MODES = ("local", "full")
+from .config import OBS_MODES
+
 SELF_DIM = 4
 
 

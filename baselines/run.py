@@ -19,14 +19,13 @@ import sys
 import time
 
 import torch
-import yaml
 
 from taichi_swarm import TASKS, NaNActionsError
 from taichi_swarm.files import atomic_write_json, ensure_writable
 from taichi_swarm.metrics import FirstEpisodes
 
-from .benchmarl_tasks import ACTION_CHOICES, SwarmTaskClass, get_task
-from .observations import OBS_MODES
+from .benchmarl_tasks import SwarmTaskClass, get_task
+from .config import ACTION_CHOICES, OBS_MODES, BaselineConfig, parse_overrides
 
 EPISODE_STATS = ("success", "length", "dist", "covered")
 
@@ -304,26 +303,6 @@ def evaluate_policy(
     }
 
 
-def _parse_overrides(items: list[str]) -> dict:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ValueError(f"--experiment takes KEY=VALUE, got {item!r}")
-        out[key.strip()] = _parse_value(value.strip())
-    return out
-
-
-def _parse_value(text: str):
-    """An int, a float (also 3e-4, which YAML 1.1 reads as a string), else YAML (true, null, [csv])."""
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return yaml.safe_load(text)
-
-
 def _count(text: str) -> int:
     """An env-step count: 1000000, 1_000_000 or 1e6."""
     try:
@@ -336,64 +315,59 @@ def _count(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The command line over BaselineConfig: one option per field (its docstring's help, its
+    default); ``--experiment KEY=VALUE`` repeated for the ``experiment`` overrides."""
+    d = {f.name: f.default for f in dataclasses.fields(BaselineConfig) if f.name != "experiment"}
     ap = argparse.ArgumentParser(
         prog="run_baselines.py",
         description="Train a BenchMARL algorithm on a taichi_swarm task, then evaluate it greedily "
         "(S%%, T, DIST on fresh episodes) and write the result as JSON.",
     )
-    ap.add_argument(
-        "--algorithm", default="mappo", help="BenchMARL algorithm: mappo, ippo, maddpg, iql, ... (default mappo)"
+    add = ap.add_argument
+    add(
+        "--algorithm", default=d["algorithm"], help="BenchMARL algorithm: mappo, ippo, maddpg, iql, ... (default mappo)"
     )
-    ap.add_argument("--task", default="coverage", help=f"one of {', '.join(TASKS)} (default coverage)")
-    ap.add_argument("--agents", type=int, default=3, help="team size M (default 3)")
-    ap.add_argument("--comm", default="uc", help="uc or rc: the comm graph (local observations only; default uc)")
-    ap.add_argument("--comm-radius", type=float, default=1.0, help="rc radius (default 1.0)")
-    ap.add_argument(
-        "--obs-mode",
-        default="full",
-        help=f"one of {OBS_MODES}: full = the paper's baselines (default), local = the paper's own observation",
-    )
-    ap.add_argument(
-        "--actions",
-        default="any",
-        help=f"one of {ACTION_CHOICES}: any lets the algorithm choose "
-        "(continuous where it can, BenchMARL's prefer_continuous_actions)",
-    )
-    ap.add_argument("--max-steps", type=int, default=50, help="episode length limit (default 50)")
-    ap.add_argument("--frames", type=_count, default=1_000_000, help="training budget in env steps (default 1e6)")
-    ap.add_argument("--num-envs", type=int, default=32, help="environments stepped together (default 32)")
-    ap.add_argument(
-        "--frames-per-batch",
-        type=int,
-        default=4096,
-        help="env steps collected per iteration (default 4096 = 32 x 128, the paper's PPO batch)",
-    )
-    ap.add_argument("--model", default="mlp", help="BenchMARL model for actor and critic (default mlp)")
-    ap.add_argument("--seed", type=int, default=0, help="training seed (default 0)")
-    ap.add_argument("--eval-episodes", type=int, default=500, help="evaluation episodes (default 500)")
-    ap.add_argument("--eval-seed", type=int, default=12345, help="evaluation seed (default 12345)")
-    ap.add_argument("--device", default="cpu", help="cpu or cuda: simulator, sampling and training (default cpu)")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1; 0 = torch's default)")
-    ap.add_argument(
+    add("--task", default=d["task"], help=f"one of {', '.join(TASKS)} (default coverage)")
+    add("--agents", type=int, default=d["agents"], help="team size M (default 3)")
+    add("--comm", default=d["comm"], help="uc or rc: the comm graph (local observations only; default uc)")
+    add("--comm-radius", type=float, default=d["comm_radius"], help="rc radius (default 1.0)")
+    add("--obs-mode", default=d["obs_mode"], help=f"one of {OBS_MODES}: full = the paper's baselines (default)")
+    add("--actions", default=d["actions"], help=f"one of {ACTION_CHOICES}: any lets the algorithm choose")
+    add("--max-steps", type=int, default=d["max_steps"], help="episode length limit (default 50)")
+    add("--frames", type=_count, default=d["frames"], help="training budget in env steps (default 1e6)")
+    add("--num-envs", type=int, default=d["num_envs"], help="environments stepped together (default 32)")
+    add("--frames-per-batch", type=int, default=d["frames_per_batch"], help="env steps per iteration (default 4096)")
+    add("--model", default=d["model"], help="BenchMARL model for actor and critic (default mlp)")
+    add("--seed", type=int, default=d["seed"], help="training seed (default 0)")
+    add("--eval-episodes", type=int, default=d["eval_episodes"], help="evaluation episodes (default 500)")
+    add("--eval-seed", type=int, default=d["eval_seed"], help="evaluation seed (default 12345)")
+    add("--device", default=d["device"], help="cpu or cuda: simulator, sampling and training (default cpu)")
+    add("--threads", type=int, default=d["threads"], help="torch threads (default 1; 0 = torch's default)")
+    add(
         "--experiment",
         action="append",
         default=[],
         metavar="KEY=VALUE",
         help="override a BenchMARL ExperimentConfig field, e.g. --experiment lr=3e-4 (repeatable)",
     )
-    ap.add_argument(
+    add(
         "--checkpoint-every",
         type=int,
-        default=25,
+        default=d["checkpoint_every"],
         help="iterations between checkpoints (default 25; 0 = only at the end); the last two are kept",
     )
-    ap.add_argument(
+    add(
         "--out",
         required=True,
         help="output directory: BenchMARL's experiment folder and results.json; a run stopped "
         "part-way resumes from its latest checkpoint when the same command is given again",
     )
     return ap
+
+
+def config_from_args(args: argparse.Namespace) -> BaselineConfig:
+    """The parsed command line as the run's BaselineConfig (a ValueError names a bad value)."""
+    return BaselineConfig(**{**vars(args), "experiment": parse_overrides(args.experiment)})
 
 
 class TrainingDiverged(RuntimeError):
@@ -416,76 +390,66 @@ def _diverged_message(algorithm: str, out_dir: str, cause: Exception) -> str:
     )
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Check everything, train, evaluate, write ``<out>/results.json``; returns the result."""
-    for name in ("frames", "num_envs", "frames_per_batch", "eval_episodes", "agents", "max_steps"):
-        if getattr(args, name) < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.checkpoint_every < 0:
-        raise ValueError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
-    if args.frames_per_batch % args.num_envs:
-        # TorchRL would round each batch up, and checkpoints at multiples of the batch never come
-        raise ValueError(
-            f"--frames-per-batch ({args.frames_per_batch}) must be a multiple of --num-envs ({args.num_envs})"
-        )
-    if args.threads < 0:
-        raise ValueError(f"--threads must be >= 0, got {args.threads}")
-    algorithm_config(args.algorithm)  # a bad name fails here, before any work
+def run(cfg: BaselineConfig) -> dict:
+    """Train, evaluate, write ``<cfg.out>/results.json``; returns the result."""
+    if not cfg.out:
+        raise ValueError("out: the run needs an output directory")
+    algorithm_config(cfg.algorithm)  # a bad name fails here, before any work
     task = get_task(
-        args.task,
+        cfg.task,
         {
-            "num_agents": args.agents,
-            "comm": args.comm,
-            "comm_radius": args.comm_radius,
-            "obs_mode": args.obs_mode,
-            "action_space": args.actions,
-            "max_steps": args.max_steps,
+            "num_agents": cfg.agents,
+            "comm": cfg.comm,
+            "comm_radius": cfg.comm_radius,
+            "obs_mode": cfg.obs_mode,
+            "action_space": cfg.actions,
+            "max_steps": cfg.max_steps,
         },
     )
-    out_json = os.path.join(args.out, "results.json")
+    out_json = os.path.join(cfg.out, "results.json")
     ensure_writable(out_json, "--out")
-    os.makedirs(args.out, exist_ok=True)
+    os.makedirs(cfg.out, exist_ok=True)
     config = experiment_config(
-        args.frames,
-        args.num_envs,
-        args.frames_per_batch,
-        os.path.abspath(args.out),
-        args.device,
-        _parse_overrides(args.experiment),
-        args.checkpoint_every,
+        cfg.frames,
+        cfg.num_envs,
+        cfg.frames_per_batch,
+        os.path.abspath(cfg.out),
+        cfg.device,
+        cfg.experiment,
+        cfg.checkpoint_every,
     )
-    restore = latest_checkpoint(args.out)
+    restore = latest_checkpoint(cfg.out)
     if restore is not None:
         print(f"run_baselines.py: resuming from {restore}", file=sys.stderr)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
     start = time.time()
     try:
-        experiment = train(args.algorithm, task, args.seed, config, args.model, restore_file=restore)
+        experiment = train(cfg.algorithm, task, cfg.seed, config, cfg.model, restore_file=restore)
     except NaNActionsError as exc:
-        raise TrainingDiverged(_diverged_message(args.algorithm, args.out, exc)) from exc
+        raise TrainingDiverged(_diverged_message(cfg.algorithm, cfg.out, exc)) from exc
     train_s = time.time() - start
     continuous = bool(experiment.continuous_actions)
     start = time.time()
     try:
         result = evaluate_policy(
-            experiment.policy, task, continuous, episodes=args.eval_episodes, seed=args.eval_seed, device=args.device
+            experiment.policy, task, continuous, episodes=cfg.eval_episodes, seed=cfg.eval_seed, device=cfg.device
         )
     except NaNActionsError as exc:
         raise TrainingDiverged(
-            f"the trained {args.algorithm} policy ({experiment.total_frames} env steps) gives NaN actions ({exc}): "
+            f"the trained {cfg.algorithm} policy ({experiment.total_frames} env steps) gives NaN actions ({exc}): "
             "its weights diverged; checkpoints are in "
-            f"{os.path.join(args.out, '*', 'checkpoints')} (an earlier one may still be finite: keep it alone "
+            f"{os.path.join(cfg.out, '*', 'checkpoints')} (an earlier one may still be finite: keep it alone "
             "there and give --frames its env steps)"
         ) from exc
     eval_s = time.time() - start
     summary = {
-        "algorithm": args.algorithm.lower(),
-        "obs_mode": args.obs_mode,
+        "algorithm": cfg.algorithm.lower(),
+        "obs_mode": cfg.obs_mode,
         "actions": "continuous" if continuous else "discrete",
-        "max_steps": args.max_steps,
+        "max_steps": cfg.max_steps,
         "frames": int(experiment.total_frames),
-        "train_seed": args.seed,
+        "train_seed": cfg.seed,
         "S%": 100.0 * result["success_rate"],
         "T": result["mean_length"],
         "DIST": result["dist"],
@@ -501,7 +465,7 @@ def run(args: argparse.Namespace) -> dict:
     }
     atomic_write_json(out_json, summary)
     try:
-        plot_curves(args.out)
+        plot_curves(cfg.out)
     except Exception as exc:  # noqa: BLE001 - a missing plot never loses a result
         print(f"(could not draw curves: {exc})", file=sys.stderr)
     return summary
@@ -567,7 +531,7 @@ def _versions() -> dict:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        summary = run(args)
+        summary = run(config_from_args(args))
     except ValueError as exc:
         print(f"run_baselines.py: error: {exc}", file=sys.stderr)
         return 2
@@ -587,7 +551,9 @@ __all__ = [
     "TrainingDiverged",
     "algorithm_config",
     "algorithm_names",
+    "BaselineConfig",
     "build_parser",
+    "config_from_args",
     "evaluate_policy",
     "experiment_config",
     "latest_checkpoint",

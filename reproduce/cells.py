@@ -19,13 +19,14 @@ stopped training.
 
 from __future__ import annotations
 
-import argparse
+import copy
+import dataclasses
 import json
 import os
 import socket
 import time
 
-from reproduce.spec import Cell, SpecError, train_config
+from reproduce.spec import Cell, SpecError, canonical
 from taichi_swarm.files import atomic_write_json
 from trainer.lock import RunDirLock, is_held
 
@@ -62,19 +63,36 @@ def read_result(root: str, cell: Cell, seed: int, source: Cell | None = None) ->
 
 def _retrained(path: str, cell: Cell) -> str:
     return (
-        f"{path}: cell {cell.id!r} was trained from a policy of its init_from {cell.init_from!r} that has been "
+        f"{path}: cell {cell.id!r} was trained from a policy of its init_from {cell.needs!r} that has been "
         f"trained again since (or is being); delete {os.path.dirname(path)} to train it from the new one"
     )
 
 
 def check_same_definition(path: str, cell: Cell, stored: dict) -> None:
-    now = cell.definition()
-    changed = sorted(k for k in set(now) | set(stored) if now.get(k) != stored.get(k))
+    """Refuse a result or run directory made by another definition of the cell: ``stored``,
+    of any schema, read as today's code reads a definition (``reproduce.spec.canonical``)."""
+    try:
+        then = canonical(stored)
+    except (ValueError, TypeError, KeyError) as exc:  # (SpecError too)
+        raise SpecError(f"{path}: its definition of cell {cell.id!r} cannot be read ({exc})") from None
+    changed = _differences(cell.definition(), then)
     if changed:
         raise SpecError(
             f"{path} was made by another definition of cell {cell.id!r} (differs in {changed}); "
             "reproduce into another --root, or delete that directory to run the cell again"
         )
+
+
+def _differences(now: dict, then: dict, prefix: str = "") -> list[str]:
+    """The keys (ppo.lr: nested; a run's config: its own names) whose values differ."""
+    out = []
+    for key in sorted(set(now) | set(then)):
+        a, b = now.get(key), then.get(key)
+        if isinstance(a, dict) and isinstance(b, dict) and a != b:
+            out += _differences(a, b, "" if key == "config" else f"{prefix}{key}.")
+        elif a != b:
+            out.append(prefix + key)
+    return out
 
 
 def cell_state(root: str, cell: Cell, seed: int) -> str:
@@ -94,7 +112,8 @@ def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> 
     from trainer.evaluate import evaluate
 
     policy, _ = load_policy(policy_path)
-    r = evaluate(policy, cell.task, agents, cell.comm, cell.comm_radius, cell.final_episodes, cell.eval_seed, arch=arch)
+    run = cell.run
+    r = evaluate(policy, run.task, agents, run.comm, run.comm_radius, run.final_episodes, run.eval_seed, arch=arch)
     return {k: r[k] for k in ("agents", "success_rate", "mean_length", "dist", "episodes", "seed")}
 
 
@@ -104,9 +123,9 @@ def policy_path(root: str, cell: Cell, seed: int, agents: int = 0, polished: boo
     d = cell_dir(root, cell, seed)
     if cell.kind == "curriculum":
         d = os.path.join(d, f"stage-m{agents}")
-        if cell.polish_updates and polished:
+        if cell.run.polish_updates and polished:
             d += "-polish"  # trainer.curriculum's layout
-    elif cell.polish_updates and polished:
+    elif cell.run.polish_updates and polished:
         d = os.path.join(d, POLISH_DIR)
     return os.path.join(d, "policy.pt")
 
@@ -116,12 +135,12 @@ def run_dirs(root: str, cell: Cell, seed: int) -> list[str]:
     curriculum: stage by stage, each followed by its polish)."""
     d = cell_dir(root, cell, seed)
     if cell.kind == "train":
-        return [d] + ([os.path.join(d, POLISH_DIR)] if cell.polish_updates else [])
+        return [d] + ([os.path.join(d, POLISH_DIR)] if cell.run.polish_updates else [])
     if cell.kind == "curriculum":
         return [
             os.path.dirname(policy_path(root, cell, seed, M, polished))
-            for M in cell.sizes
-            for polished in ((False, True) if cell.polish_updates else (False,))
+            for M in cell.run.sizes
+            for polished in ((False, True) if cell.run.polish_updates else (False,))
         ]
     return []
 
@@ -176,22 +195,22 @@ def _bring_to_result(
     done = read_result(root, cell, seed, source)  # (finished by another process meanwhile)
     if done is not None:
         return done
-    init = policy_path(root, source, seed, cell.init_agents or source.agents) if cell.init_from else ""
+    run = cell.run
+    init_from = getattr(run, "init_from", "")
+    init = policy_path(root, source, seed, run.init_agents or source.run.agents) if init_from else ""
     directory = cell_dir(root, cell, seed)
     # options checked before anything is written: a fixed spec must not find a stale definition
-    if cell.kind == "train":
-        cfg = train_config(cell, seed, directory, cell.agents, cell.updates, arch, device, init)
-    elif cell.kind == "curriculum":
-        cfg = train_config(cell, seed, directory, cell.sizes[0], cell.max_updates_per_stage, arch, device, init)
+    if cell.kind in ("train", "curriculum"):
+        cfg = run_config(cell, seed, directory, arch, device, init)
     elif cell.kind == "baseline":
-        baseline = baseline_args(cell, seed, directory, device)
+        cfg = baseline_config(cell, seed, directory, device)
     definition_path = os.path.join(directory, DEFINITION)
     if os.path.exists(definition_path):  # started before: by the same definition?
         with open(definition_path) as f:
             check_same_definition(definition_path, cell, json.load(f))
     else:
         atomic_write_json(definition_path, cell.definition())
-    if cell.init_from:  # a run resumes only from the upstream policy it started from
+    if init_from:  # a run resumes only from the upstream policy it started from
         upstream_path = os.path.join(directory, UPSTREAM)
         if not os.path.exists(upstream_path):
             atomic_write_json(upstream_path, {"cell": source.id, "finished": source_result["finished"]})
@@ -206,25 +225,19 @@ def _bring_to_result(
         from trainer.train import train_or_resume
 
         record = _training(run_record(train_or_resume(cfg)))
-        if cell.polish_updates:
+        if run.polish_updates:
             polish_dir = os.path.join(directory, POLISH_DIR)
-            polish = polish_stage(cfg, polish_dir, cell.polish_updates, cell.polish_lr, 0, 0, record["updates"])
-            before = final_eval(policy_path(root, cell, seed, polished=False), cell, cell.agents, arch)
+            polish = polish_stage(cfg, polish_dir, run.polish_updates, run.polish_lr, 0, 0, record["updates"])
+            before = final_eval(policy_path(root, cell, seed, polished=False), cell, run.agents, arch)
             record = _polished(record, polish, before)
-        rows = [{**final_eval(policy_path(root, cell, seed), cell, cell.agents, arch), **record}]
+        rows = [{**final_eval(policy_path(root, cell, seed), cell, run.agents, arch), **record}]
     elif cell.kind == "curriculum":
         from trainer.curriculum import run_curriculum
 
         stages = run_curriculum(
-            cfg,
-            list(cell.sizes),
-            cell.threshold,
-            cell.max_updates_per_stage,
-            directory,
-            cell.min_updates_per_stage,
-            polish_updates=cell.polish_updates,
-            polish_lr=cell.polish_lr,
-        )
+            cfg.train_config(), list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, directory,
+            cfg.min_updates_per_stage, cfg.fresh_eval_episodes, cfg.fresh_eval_seed, cfg.polish_updates, cfg.polish_lr,
+        )  # fmt: skip
         rows = []
         for stage in stages:
             M = stage["agents"]
@@ -238,10 +251,10 @@ def _bring_to_result(
                 record = _polished(record, stage["polish"], before)
             rows.append({**final_eval(policy_path(root, cell, seed, M), cell, M, arch), **record})
     elif cell.kind == "baseline":
-        rows = [run_baseline(cell, baseline)]
+        rows = [run_baseline(cfg)]
     else:
-        path = policy_path(root, source, seed, cell.source_agents)
-        rows = [final_eval(path, cell, M, arch) for M in cell.sizes]
+        path = policy_path(root, source, seed, run.source_agents)
+        rows = [final_eval(path, cell, M, arch) for M in run.sizes]
     result = {
         "cell": cell.id,
         "table": cell.table,
@@ -259,48 +272,41 @@ def _bring_to_result(
     return result
 
 
-def baseline_args(cell: Cell, seed: int, directory: str, device: str = "cpu") -> argparse.Namespace:
-    """The options of baselines/run.py for a baseline cell's run into ``directory``."""
+def run_config(cell: Cell, seed: int, directory: str, arch: str = "cpu", device: str = "cpu", init_from: str = ""):
+    """A train or curriculum cell's TrainConfig / CurriculumConfig for one run: the spec's,
+    with the run's seed, directory, machine and start (a policy path), and the cell's transfer
+    offsets; checked by the trainer."""
+    cfg = dataclasses.replace(
+        copy.deepcopy(cell.run.config), seed=seed, run_dir=directory, arch=arch, device=device,
+        init_from=init_from, transfer_offsets=cell.transfer_offsets,
+    )  # fmt: skip
+    try:
+        (cfg.train_config() if cell.kind == "curriculum" else cfg).validate()
+    except ValueError as exc:
+        raise SpecError(f"cell {cell.id!r}: {exc}") from None
+    return cfg
+
+
+def baseline_config(cell: Cell, seed: int, directory: str, device: str = "cpu"):
+    """A baseline cell's BaselineConfig for one run (baselines.run.run takes it)."""
     from trainer.train import resolve_device
 
+    return dataclasses.replace(cell.run.config, seed=seed, out=directory, device=resolve_device(device))
+
+
+def run_baseline(cfg) -> dict:
+    """Train and evaluate a stock BenchMARL algorithm (baselines.run.run) as ``cfg`` says; the
+    row in this module's format. A stopped one resumes from its latest BenchMARL checkpoint
+    (baselines/run.py writes one every 25 iterations)."""
     try:
-        from baselines.run import build_parser
+        from baselines.run import run
     except ImportError as exc:
-        raise SpecError(
-            f'cell {cell.id!r} is a BenchMARL baseline: pip install -c constraints.txt -e ".[baselines]" ({exc})'
-        ) from None
-    argv = [
-        "--algorithm", cell.algorithm, "--task", cell.task, "--agents", str(cell.agents),
-        "--comm", cell.comm, "--comm-radius", str(cell.comm_radius), "--obs-mode", cell.obs_mode,
-        "--actions", cell.actions, "--frames", str(cell.frames), "--seed", str(seed),
-        "--eval-episodes", str(cell.final_episodes), "--eval-seed", str(cell.eval_seed),
-        "--device", resolve_device(device), "--out", directory,
-    ]  # fmt: skip
-    for key, value in cell.baseline_options.items():
-        for item in value if isinstance(value, list) else [value]:  # a list: the option repeated
-            argv += [f"--{key.replace('_', '-')}", str(item)]
-    parser = build_parser()
-    parser.exit_on_error = False  # a bad option value raises ArgumentError instead of exiting
-    try:
-        args, unknown = parser.parse_known_args(argv)
-    except argparse.ArgumentError as exc:
-        raise SpecError(f"cell {cell.id!r}: baseline_options: {exc}") from None
-    if unknown:
-        raise SpecError(f"cell {cell.id!r}: baseline_options has options run_baselines does not know: {unknown}")
-    return args
-
-
-def run_baseline(cell: Cell, args: argparse.Namespace) -> dict:
-    """Train and evaluate a stock BenchMARL algorithm (baselines/run.py) with ``args``
-    (baseline_args); the row in this module's format. A stopped one resumes from its latest
-    BenchMARL checkpoint (baselines/run.py writes one every 25 iterations)."""
-    from baselines.run import run
-
-    summary = _finished_baseline(args.out, args)
+        raise SpecError(f'a BenchMARL baseline: pip install -c constraints.txt -e ".[baselines]" ({exc})') from None
+    summary = _finished_baseline(cfg)
     if summary is None:  # (a run killed after BenchMARL's results.json is not trained again)
-        summary = run(args)
+        summary = run(cfg)
     return {
-        "agents": cell.agents,
+        "agents": cfg.agents,
         "success_rate": summary["success_rate"],
         "mean_length": summary["mean_length"],
         "dist": summary["dist"],
@@ -313,23 +319,23 @@ def run_baseline(cell: Cell, args: argparse.Namespace) -> dict:
     }
 
 
-def _finished_baseline(directory: str, args) -> dict | None:
-    """baselines/run.py's results.json in ``directory`` if it answers these ``args``."""
-    path = os.path.join(directory, "results.json")
+def _finished_baseline(cfg) -> dict | None:
+    """baselines/run.py's results.json in ``cfg.out`` if it answers ``cfg``."""
+    path = os.path.join(cfg.out, "results.json")
     if not os.path.exists(path):
         return None
     with open(path) as f:
         summary = json.load(f)
     same = (
-        summary.get("algorithm") == args.algorithm.lower()
-        and summary.get("task") == args.task
-        and summary.get("agents") == args.agents
-        and summary.get("obs_mode") == args.obs_mode
-        and summary.get("train_seed") == args.seed
-        and summary.get("frames", 0) >= args.frames
-        and summary.get("episodes") == args.eval_episodes
-        and summary.get("seed") == args.eval_seed
-        and args.actions in ("any", summary.get("actions"))
+        summary.get("algorithm") == cfg.algorithm
+        and summary.get("task") == cfg.task
+        and summary.get("agents") == cfg.agents
+        and summary.get("obs_mode") == cfg.obs_mode
+        and summary.get("train_seed") == cfg.seed
+        and summary.get("frames", 0) >= cfg.frames
+        and summary.get("episodes") == cfg.eval_episodes
+        and summary.get("seed") == cfg.eval_seed
+        and cfg.actions in ("any", summary.get("actions"))
     )
     return summary if same else None
 

@@ -174,7 +174,7 @@ def format_progress(cells: list[Cell], seeds: list[int], root: str, workers: int
                 if cell.kind == "zero-shot":
                     remaining_fixed += ZERO_SHOT_SECONDS
                 elif cell.kind == "baseline":
-                    remaining_fixed += cell.frames / BASELINE_FRAMES_PER_SECOND
+                    remaining_fixed += cell.run.config.frames / BASELINE_FRAMES_PER_SECOND
                 else:
                     remaining_updates += max(budget - p["updates"], 0)
                     if rate:

@@ -35,9 +35,13 @@ import hashlib
 import json
 import os
 import sys
+import types
+import typing
 from dataclasses import dataclass, field
 
+from baselines.config import BaselineConfig
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
+from trainer.config import PRESETS, CurriculumConfig, TrainConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -45,111 +49,225 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 SPECS_DIR = os.path.join(os.path.dirname(__file__), "specs")
-KINDS = ("train", "curriculum", "zero-shot", "baseline")
-BASELINE_FIELDS = ("algorithm", "frames", "obs_mode", "actions", "baseline_options")
-# BenchMARL 1.5's algorithms (benchmarl.algorithms.algorithm_config_registry; a test holds them equal)
-BASELINE_ALGORITHMS = ("iddpg", "ippo", "iql", "isac", "maddpg", "mappo", "masac", "qmix", "vdn")
+SCHEMA_VERSION = 2
+"""Of ``Cell.definition()``: 1 was one flat dict of every cell key; 2 is {kind, asdict(run)}."""
 MAX_TEAM_SIZE = 2**16  # any team size a cell names (the simulator's buffers are indexed with int32)
-MAX_FRAMES = 10**12
-MAX_ENVS = 2**20  # environments of one batch (trainer.config.MAX_NUM_ENVS)
-ENTITY_MODES = ("emp", "concat", "padded")  # trainer.model.ENTITY_MODES
+# TrainConfig fields that are swarm reproduce's, not the spec's: the run's seed, directory and
+# machine (set per run), its start (init_from names a cell), what it logs (transfer_offsets:
+# the cell's, reporting only) and a curriculum's fresh evaluations (the cell's final ones instead)
+SET_BY_REPRODUCE = {
+    "seed": 0, "run_dir": "", "init_from": "", "init_carry": "weights", "trust_unsigned": False, "arch": "cpu",
+    "device": "cpu", "torch_threads": 1, "progress": False, "transfer_offsets": (),
+    "fresh_eval_episodes": 0, "fresh_eval_seed": 777,
+}  # fmt: skip
+STAGE_SET = ("agents", "updates", "target_success", "min_updates")  # a curriculum's stages set them
+BASELINE_SET = ("seed", "out", "device", "threads", "eval_episodes")  # (eval_episodes: final_episodes)
 
 
 class SpecError(ValueError):
     """A spec file or a selection of it is wrong; the message names the cell and the key."""
 
 
+def _min_agents(task: str) -> int:
+    return TASK_SPECS[task].min_agents if task in TASK_SPECS else 1
+
+
+def _check_sizes(name: str, sizes, task: str) -> None:
+    smallest = _min_agents(task)
+    if not sizes or any(not smallest <= m <= MAX_TEAM_SIZE for m in sizes):
+        raise ValueError(f"{name} must be team sizes in [{smallest}, {MAX_TEAM_SIZE}], got {list(sizes)}")
+    if len(set(sizes)) != len(sizes):
+        raise ValueError(f"{name} repeats a size: {list(sizes)}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Evaluated:
+    final_episodes: int = 500
+    """Fresh greedy episodes of every number the cell reports."""
+    eval_seed: int = 777
+    """Their seed (training never draws seeds below 2**40)."""
+
+    def __post_init__(self):
+        if not 1 <= self.final_episodes <= 2**20:
+            raise ValueError(f"final_episodes must be in [1, 2^20] (one environment each), got {self.final_episodes}")
+        if not 0 <= self.eval_seed < 2**40:
+            raise ValueError(f"eval_seed must be in [0, 2**40): training draws its seeds above, got {self.eval_seed}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class _FromCell(_Evaluated):
+    init_from: str = ""
+    """The id of a train or curriculum cell whose final policy (weights only) the run starts from."""
+    init_agents: int = 0
+    """init_from a curriculum: which stage's policy."""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.init_agents and not self.init_from:
+            raise ValueError("init_agents names a stage of init_from: set init_from too")
+
+    @property
+    def task(self) -> str:
+        return self.config.task
+
+    @property
+    def comm(self) -> str:
+        return self.config.comm
+
+    @property
+    def comm_radius(self) -> float:
+        return self.config.comm_radius
+
+
+@dataclass(frozen=True, kw_only=True)
+class Train(_FromCell):
+    """One run at ``config.agents`` for ``config.updates``, then ``polish_updates`` more at
+    the constant ``polish_lr`` from its weights (fresh optimiser); the row reports the polished policy."""
+
+    config: TrainConfig
+    polish_updates: int = 0
+    polish_lr: float = 3e-5
+
+    def __post_init__(self):
+        super().__post_init__()
+        _check_sizes("agents", [self.config.agents], self.task)
+        if self.config.team_sizes:
+            _check_sizes("team_sizes", self.config.team_sizes, self.task)
+        if self.polish_updates < 0:
+            raise ValueError(f"polish_updates must be >= 0, got {self.polish_updates}")
+        if not 0 < self.polish_lr <= 1:  # (NaN and inf too)
+            raise ValueError(f"polish_lr must be in (0, 1], got {self.polish_lr}")
+        self.config.validate()
+
+    @property
+    def agents(self) -> int:
+        return self.config.agents
+
+    def budget_updates(self) -> int:
+        return self.config.updates + self.polish_updates
+
+
+@dataclass(frozen=True, kw_only=True)
+class Curriculum(_FromCell):
+    """Stages over ``config.sizes``, each from the previous stage's weights (trainer.curriculum)."""
+
+    config: CurriculumConfig
+
+    def __post_init__(self):
+        from trainer.curriculum import check_curriculum
+
+        super().__post_init__()
+        c = self.config
+        _check_sizes("sizes", c.sizes, c.task)
+        if c.model.entity_mode == "concat" and c.task == "coverage":
+            raise ValueError(
+                "entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size"
+            )
+        c.agents, c.updates = c.sizes[0], c.max_updates_per_stage  # (the stages set them: the first stage's)
+        check_curriculum(
+            c.train_config(), c.sizes, c.threshold, c.max_updates_per_stage, c.min_updates_per_stage,
+            c.fresh_eval_episodes, c.fresh_eval_seed, c.polish_updates, c.polish_lr,
+        )  # fmt: skip
+
+    sizes = property(lambda self: self.config.sizes)
+    polish_updates = property(lambda self: self.config.polish_updates)
+    polish_lr = property(lambda self: self.config.polish_lr)
+
+    def budget_updates(self) -> int:  # (a curriculum may stop stages earlier)
+        return (self.config.max_updates_per_stage + self.config.polish_updates) * len(self.sizes)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ZeroShot(_Evaluated):
+    """The policy of cell ``source`` (its stage at ``source_agents`` for a curriculum)
+    evaluated at ``sizes`` without fine-tuning."""
+
+    task: str
+    source: str
+    sizes: tuple[int, ...]
+    source_agents: int = 0
+    comm: str = "uc"
+    comm_radius: float = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
+        if self.comm not in COMMS:
+            raise ValueError(f"comm must be one of {COMMS}, got {self.comm!r}")
+        _check_sizes("sizes", self.sizes, self.task)
+        if not self.source:
+            raise ValueError("a zero-shot cell needs source (the id of the cell whose policy it evaluates)")
+
+    def budget_updates(self) -> int:
+        return 0
+
+
+@dataclass(frozen=True, kw_only=True)
+class Baseline:
+    """A stock BenchMARL algorithm (baselines/, the ``baselines`` extra) at ``config.agents``
+    for ``config.frames`` env steps; a stopped one resumes from its latest checkpoint."""
+
+    config: BaselineConfig
+
+    def __post_init__(self):
+        _check_sizes("agents", [self.config.agents], self.config.task)
+
+    task = property(lambda self: self.config.task)
+    comm = property(lambda self: self.config.comm)
+    comm_radius = property(lambda self: self.config.comm_radius)
+    agents = property(lambda self: self.config.agents)
+    eval_seed = property(lambda self: self.config.eval_seed)
+
+    @property
+    def final_episodes(self) -> int:
+        return self.config.eval_episodes
+
+    def budget_updates(self) -> int:  # ``frames`` env steps, not PPO updates of ours
+        return 0
+
+
+RUNS = {"train": Train, "curriculum": Curriculum, "zero-shot": ZeroShot, "baseline": Baseline}
+KINDS = tuple(RUNS)
+
+
 @dataclass(frozen=True)
 class Cell:
-    """One cell of a table: one training run, one curriculum chain or one zero-shot row."""
+    """One cell of a table: what it runs (``run``, one dataclass per kind), and how it is reported."""
 
     id: str
     table: int
-    kind: str
-    task: str
-    comm: str = "uc"
-    comm_radius: float = 1.0
-    entity_mode: str = "emp"
-    preset: str = "paper"
-    ppo: dict = field(default_factory=dict)
-    """Overrides of the preset's PPO options (e.g. {num_envs = 8})."""
-    agents: int = 0
-    """train, baseline: the team size (train: the size evaluated and reported)."""
-    team_sizes: tuple[int, ...] = ()
-    """train: train on these team sizes at once, one group of environments per size in
-    every rollout (``swarm train --team-sizes``); empty: ``agents`` alone."""
-    updates: int = 0
-    """train: PPO updates."""
-    sizes: tuple[int, ...] = ()
-    """curriculum: the stages' team sizes; zero-shot: the sizes evaluated."""
-    threshold: float = 0.85
-    max_updates_per_stage: int = 4000
-    min_updates_per_stage: int = 0
-    """curriculum: a stage trains at least this many updates, past the threshold."""
-    source: str = ""
-    """zero-shot: the id of the cell whose policy is evaluated."""
-    init_from: str = ""
-    """train, curriculum: the id of a train or curriculum cell whose final policy (weights
-    only) the run, or the first stage, starts from."""
-    init_agents: int = 0
-    """init_from a curriculum: which stage's policy."""
-    polish_updates: int = 0
-    """train, curriculum: after the run (each stage), this many updates more at the
-    constant learning rate polish_lr from its weights (fresh optimiser); the next stage
-    starts from the polished policy and the row reports it."""
-    polish_lr: float = 3e-5
-    source_agents: int = 0
-    """zero-shot from a curriculum: which stage's policy."""
-    algorithm: str = ""
-    """baseline: a BenchMARL algorithm (mappo, ippo, maddpg, qmix, vdn, iql, masac, ...)."""
-    frames: int = 0
-    """baseline: the training budget in env steps."""
-    obs_mode: str = "full"
-    """baseline: "full" (the paper's baselines: everything observed, no communication) or "local"."""
-    actions: str = "any"
-    """baseline: discrete | continuous | any (the algorithm's preference)."""
-    baseline_options: dict = field(default_factory=dict)
-    """baseline: more options of tools/run_baselines.py, e.g. {num_envs = 4, frames_per_batch = 64}."""
-    eval_every: int = 50
-    eval_episodes: int = 200
-    """Episodes of the evaluations during training (stages advance on them)."""
-    transfer_offsets: tuple[int, ...] = ()
-    """train, curriculum (others ignore it, as [defaults] give it to every cell): the
-    evaluations during training also report S% at these offsets
-    from the training team size (metrics.jsonl ``eval_transfer``, the curves): reporting
-    only, so not part of the definition (adding them leaves existing results valid)."""
-    final_episodes: int = 500
-    eval_seed: int = 777
-    checkpoint_every: int = 25
-    compile: bool = True
-    label: str = ""
-    """Row label in the rendered table (default: task and comm)."""
+    run: Train | Curriculum | ZeroShot | Baseline
     paper: dict = field(default_factory=dict)
     """What the paper reported, by team size: {"3" = {S = 100, T = 14.12, DIST = 0.047, N = 1100}}."""
+    label: str = ""
+    """Row label in the rendered table (default: task and comm)."""
+    transfer_offsets: tuple[int, ...] = ()
+    """train, curriculum: the evaluations during training also report S% at these offsets from
+    the training team size (metrics.jsonl ``eval_transfer``): reporting only, not in the definition."""
+
+    def __post_init__(self):
+        from trainer.config import MAX_TRANSFER_OFFSET
+
+        if not self.id or any(ch in self.id for ch in "/\\ ") or self.id.startswith("."):
+            raise ValueError("id must be a plain name (no slashes or spaces)")
+        offsets = self.transfer_offsets
+        if any(d == 0 or abs(d) > MAX_TRANSFER_OFFSET for d in offsets):
+            raise ValueError(f"transfer_offsets must be small non-zero team-size offsets, got {list(offsets)}")
+        if len(set(offsets)) != len(offsets):
+            raise ValueError(f"transfer_offsets has a repeated offset: {list(offsets)}")
+        for size, row in self.paper.items():
+            if not str(size).isdigit() or not isinstance(row, dict):
+                raise ValueError(f"paper must map team sizes to tables of numbers, got {size!r} = {row!r}")
+
+    @property
+    def kind(self) -> str:
+        return next(k for k, cls in RUNS.items() if type(self.run) is cls)
 
     def definition(self) -> dict:
-        """Everything that decides what is run (not the paper's numbers or the label)."""
-        d = dataclasses.asdict(self)
-        for key in ("paper", "label", "table", "transfer_offsets"):  # reporting only
-            d.pop(key)
-        if self.kind != "baseline":  # fields only a baseline reads (older results lack them)
-            for key in BASELINE_FIELDS:
-                d.pop(key)
-        # added later: older definitions lack them, so their defaults are left out
-        if not self.min_updates_per_stage:
-            d.pop("min_updates_per_stage")
-        if not self.init_from:
-            d.pop("init_from")
-            d.pop("init_agents")
-        if not self.polish_updates:
-            d.pop("polish_updates")
-            d.pop("polish_lr")
-        if self.team_sizes:
-            d["team_sizes"] = list(self.team_sizes)
-        else:
-            d.pop("team_sizes")
-        d["sizes"] = list(self.sizes)
-        return d
+        """Everything that decides what is run: the run's config (not the paper's numbers,
+        the label, the table or the transfer offsets), as JSON holds it."""
+        return _as_json({"schema": SCHEMA_VERSION, "kind": self.kind, **dataclasses.asdict(self.run)})
 
     def digest(self) -> str:
         return hashlib.sha256(json.dumps(self.definition(), sort_keys=True).encode()).hexdigest()[:16]
@@ -158,21 +276,171 @@ class Cell:
         if self.label:
             return self.label
         if self.kind == "baseline":
-            return f"{self.task} {self.algorithm.upper()} ({self.obs_mode} obs.)"
-        return f"{self.task} {self.comm.upper()}"
+            return f"{self.run.task} {self.run.config.algorithm.upper()} ({self.run.config.obs_mode} obs.)"
+        return f"{self.run.task} {self.run.comm.upper()}"
 
     @property
     def needs(self) -> str:
         """The id of the cell whose policy this one reads (source or init_from), or ""."""
-        return self.source or self.init_from
+        return getattr(self.run, "source", "") or getattr(self.run, "init_from", "")
 
     def budget_updates(self) -> int:
         """Most PPO updates the cell can take (a curriculum may stop stages earlier)."""
-        if self.kind == "train":
-            return self.updates + self.polish_updates
-        if self.kind == "curriculum":
-            return (self.max_updates_per_stage + self.polish_updates) * len(self.sizes)
-        return 0  # zero-shot: none; baseline: ``frames`` env steps (not PPO updates of ours)
+        return self.run.budget_updates()
+
+
+def _as_json(value):
+    return json.loads(json.dumps(value))
+
+
+# --- definitions stored by older versions ----------------------------------------------
+
+
+def migrate(definition: dict, version: int) -> dict:
+    """A definition stored by schema ``version`` in the current schema's terms; the keys it
+    lacks take the run dataclasses' defaults when it is read (``canonical``), so a field added
+    with a default (the behaviour before it) leaves every stored definition matching."""
+    if version == SCHEMA_VERSION:
+        return definition
+    if version != 1:
+        raise SpecError(f"a definition of schema {version}: this code reads schemas 1 to {SCHEMA_VERSION}")
+    d = definition  # 1: one flat dict of every cell key; the keys its kind did not read are dropped
+
+    def pick(names: str) -> dict:
+        return {k: d[k] for k in names.split() if k in d}  # (absent: added after it, at the default)
+
+    kind = d["kind"]
+    head = {"schema": SCHEMA_VERSION, "kind": kind}
+    evaluation = pick("final_episodes eval_seed")
+    if kind == "zero-shot":
+        return {**head, **pick("task comm comm_radius source sizes source_agents"), **evaluation}
+    if kind == "baseline":
+        from baselines.config import parse_overrides
+
+        options = dict(d.get("baseline_options", {}))
+        if "experiment" in options:
+            items = options["experiment"]
+            options["experiment"] = parse_overrides(items if isinstance(items, list) else [items])
+        config = pick("algorithm task agents comm comm_radius obs_mode actions frames eval_seed")
+        return {**head, "config": {**config, "eval_episodes": d["final_episodes"], **options}}
+    ppo = dataclasses.asdict(dataclasses.replace(PRESETS[d["preset"]], **d["ppo"]))
+    config = {**_set_by_reproduce(kind), "model": {"entity_mode": d["entity_mode"]}, "ppo": ppo}
+    config.update(pick("task comm comm_radius preset eval_every eval_episodes checkpoint_every compile"))
+    if kind == "train":
+        config.update(pick("agents updates team_sizes"))
+        return {**head, "config": config, **pick("init_from init_agents polish_updates polish_lr"), **evaluation}
+    config.update(pick("sizes threshold max_updates_per_stage min_updates_per_stage polish_updates polish_lr"))
+    return {**head, "config": config, **pick("init_from init_agents"), **evaluation}
+
+
+def canonical(stored: dict) -> dict:
+    """A stored definition (result.json, definition.json) as ``Cell.definition()`` of today's
+    code would write it: migrated from its schema, read into the run's dataclass."""
+    d = migrate(stored, stored.get("schema", 1))
+    run = RUNS[d["kind"]]
+    values = {k: v for k, v in d.items() if k not in ("schema", "kind")}
+    return _as_json({"schema": SCHEMA_VERSION, "kind": d["kind"], **dataclasses.asdict(convert(run, values))})
+
+
+# --- TOML values into the dataclasses ---------------------------------------------------
+
+_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", dict: "a table"}
+
+
+def convert(cls, data: dict, prefix: str = ""):
+    """``cls(**data)`` with every value checked against the field's type (nested dataclasses
+    from tables, tuples from lists, ints as floats); a SpecError names the field."""
+    try:
+        return cls(**_typed(cls, data, prefix))
+    except TypeError as exc:  # a missing key
+        raise SpecError(f"{prefix}{exc}") from None
+
+
+def _typed(cls, data: dict, prefix: str = "") -> dict:
+    if not isinstance(data, dict):
+        raise SpecError(f"{prefix.rstrip('.')} must be a table, got {data!r}")
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise SpecError(f"{prefix.rstrip('.')} has unknown options {unknown}" if prefix else f"unknown keys {unknown}")
+    hints = typing.get_type_hints(cls)
+    return {k: _value(hints[k], v, prefix + k) for k, v in data.items()}
+
+
+def _value(tp, value, name: str):
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        return _value(next(a for a in args if a is not type(None)), value, name)
+    if origin is typing.Literal:
+        if value not in args:
+            raise SpecError(f"{name} must be one of {args}, got {value!r}")
+        return value
+    if origin is tuple:
+        item = args[0]
+        if not isinstance(value, (list, tuple)) or not all(_is(item, v) for v in value):
+            raise SpecError(f"{name} must be a list of {_TYPE_NAMES[item].split(' ', 1)[1]}s, got {value!r}")
+        return tuple(value)
+    if dataclasses.is_dataclass(tp):
+        return convert(tp, value, "" if name == "config" else name + ".")  # (a run's config: its own names)
+    want = origin or tp
+    if want in _TYPE_NAMES and not _is(want, value):
+        raise SpecError(f"{name} must be {_TYPE_NAMES[want]}, got {value!r}")
+    return float(value) if want is float else value
+
+
+def _is(want: type, value) -> bool:
+    if want is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if want is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, want)
+
+
+CELL_KEYS = ("id", "table", "kind", "paper", "label", "transfer_offsets")
+
+
+def _keys(kind: str) -> set[str]:
+    """The spec keys of a ``kind`` cell (besides CELL_KEYS)."""
+    run = RUNS[kind]
+    own = {f.name for f in dataclasses.fields(run)} - {"config"}
+    if kind == "zero-shot":
+        return own
+    if kind == "baseline":
+        return ({f.name for f in dataclasses.fields(BaselineConfig)} - set(BASELINE_SET)) | {"final_episodes"}
+    config = {f.name for f in dataclasses.fields(CurriculumConfig if kind == "curriculum" else TrainConfig)}
+    return own | (config - set(SET_BY_REPRODUCE) - (set(STAGE_SET) if kind == "curriculum" else set()))
+
+
+def _nest(kind: str, entry: dict) -> dict:
+    """A cell's flat spec keys as its run's dataclass arguments."""
+    if kind == "zero-shot":
+        return entry
+    if kind == "baseline":
+        config = {k: v for k, v in entry.items() if k != "final_episodes"}
+        if "final_episodes" in entry:
+            config["eval_episodes"] = entry["final_episodes"]
+        return {"config": config}
+    own = {f.name for f in dataclasses.fields(RUNS[kind])}
+    config = {k: v for k, v in entry.items() if k not in own}
+    preset = config.get("preset", TrainConfig.preset)
+    if preset not in PRESETS:
+        raise SpecError(f"preset must be one of {tuple(PRESETS)}, got {preset!r}")
+    overrides = config.get("ppo", {})
+    if not isinstance(overrides, dict):
+        raise SpecError(f"ppo must be a table, got {overrides!r}")
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(PRESETS[preset])})
+    if unknown:
+        raise SpecError(f"ppo has unknown options {unknown}")
+    config["ppo"] = {**dataclasses.asdict(copy.deepcopy(PRESETS[preset])), **overrides}
+    return {**{k: v for k, v in entry.items() if k in own}, "config": {**config, **_set_by_reproduce(kind)}}
+
+
+def _set_by_reproduce(kind: str) -> dict:
+    """SET_BY_REPRODUCE's fields of a train or curriculum cell's config."""
+    names = {f.name for f in dataclasses.fields(CurriculumConfig if kind == "curriculum" else TrainConfig)}
+    return {k: v for k, v in SET_BY_REPRODUCE.items() if k in names}
 
 
 @dataclass(frozen=True)
@@ -245,7 +513,11 @@ def load_spec(name_or_path: str) -> Spec:
         raise SpecError(f"{path}: cells must be [[cells]] tables")
     if not entries:
         raise SpecError(f"{path}: no [[cells]]")
-    cells = tuple(_make_cell(path, i, {**defaults, **entry}) for i, entry in enumerate(entries))
+    every = set(CELL_KEYS).union(*map(_keys, KINDS))
+    unknown = sorted(set(defaults) - every)
+    if unknown:
+        raise SpecError(f"{path}: [defaults] has unknown keys {unknown}")
+    cells = tuple(_make_cell(path, i, defaults, entry, every) for i, entry in enumerate(entries))
     spec = Spec(
         name=raw.get("name", os.path.splitext(os.path.basename(path))[0]),
         description=raw.get("description", ""),
@@ -256,220 +528,35 @@ def load_spec(name_or_path: str) -> Spec:
     return spec
 
 
-_FIELDS = {f.name: f for f in dataclasses.fields(Cell)}
-_SIZE_LISTS = ("sizes", "transfer_offsets", "team_sizes")
-# each field's TOML type, from its default (id, table, kind and task have none)
-_TYPES = {"id": str, "table": int, "kind": str, "task": str}
-for _f in dataclasses.fields(Cell):
-    if _f.name not in _TYPES and _f.name not in _SIZE_LISTS:
-        _default = _f.default_factory() if _f.default is dataclasses.MISSING else _f.default
-        _TYPES[_f.name] = float if isinstance(_default, float) else type(_default)
-_TYPE_NAMES = {int: "an integer", float: "a number", str: "a string", bool: "true or false", dict: "a table"}
+REQUIRED = {
+    "train": ("task", "agents", "updates"), "curriculum": ("task", "sizes"), "zero-shot": ("task", "source", "sizes"),
+    "baseline": ("task", "algorithm", "agents", "frames"),
+}  # fmt: skip
 
 
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _has_type(value, want: type) -> bool:
-    if want is bool:
-        return isinstance(value, bool)
-    if want is float:
-        return _is_int(value) or isinstance(value, float)
-    return _is_int(value) if want is int else isinstance(value, want)
-
-
-def _make_cell(path: str, index: int, entry: dict) -> Cell:
+def _make_cell(path: str, index: int, defaults: dict, entry: dict, every: set[str]) -> Cell:
+    """A [[cells]] entry over the [defaults] (those its kind has no use for are left out)."""
     where = f"{path}: cell {entry.get('id', f'#{index + 1}')!r}"
-    unknown = sorted(set(entry) - set(_FIELDS))
-    if unknown:
-        raise SpecError(f"{where}: unknown keys {unknown}")
+    merged = {**defaults, **entry}
     for key in ("id", "table", "kind", "task"):
-        if key not in entry:
+        if key not in merged:
             raise SpecError(f"{where}: missing {key!r}")
-    entry = dict(entry)
-    for key, value in entry.items():
-        want = _TYPES.get(key)
-        if key in _SIZE_LISTS:
-            if not isinstance(value, list) or not all(_is_int(v) for v in value):
-                raise SpecError(f"{where}: {key} must be a list of integers, got {value!r}")
-            entry[key] = tuple(value)
-        elif not _has_type(value, want):
-            raise SpecError(f"{where}: {key} must be {_TYPE_NAMES[want]}, got {value!r}")
+    kind = merged["kind"]
+    if kind not in RUNS:
+        raise SpecError(f"{where}: kind must be one of {KINDS}, got {kind!r}")
+    for key in REQUIRED[kind]:
+        if key not in merged:
+            raise SpecError(f"{where}: a {kind} cell needs {key}")
+    known = _keys(kind)
+    unknown = sorted(set(entry) - known - set(CELL_KEYS))
+    if unknown:
+        raise SpecError(f"{where}: unknown keys {unknown}" + (f" for a {kind} cell" if set(unknown) <= every else ""))
     try:
-        cell = Cell(**entry)
-    except TypeError as exc:
+        run = convert(RUNS[kind], _nest(kind, {k: v for k, v in merged.items() if k in known}))
+        own = {k: merged[k] for k in CELL_KEYS if k in merged and k != "kind"}
+        return Cell(run=run, **_typed(Cell, own))
+    except (ValueError, TypeError) as exc:  # (SpecError too; TypeError: a ppo value of the wrong type)
         raise SpecError(f"{where}: {exc}") from None
-    _check_cell(where, cell)
-    return cell
-
-
-def _check_cell(where: str, c: Cell) -> None:
-    from trainer.config import MAX_TRANSFER_OFFSET, PRESETS, PPOConfig  # (torch: imported only to check a spec)
-
-    def bad(msg: str):
-        raise SpecError(f"{where}: {msg}")
-
-    if not c.id or any(ch in c.id for ch in "/\\ ") or c.id.startswith("."):
-        bad("id must be a plain name (no slashes or spaces)")
-    if c.kind not in KINDS:
-        bad(f"kind must be one of {KINDS}, got {c.kind!r}")
-    if c.task not in TASKS:
-        bad(f"task must be one of {TASKS}, got {c.task!r}")
-    if c.comm not in COMMS:
-        bad(f"comm must be one of {COMMS}, got {c.comm!r}")
-    if c.entity_mode not in ENTITY_MODES:
-        bad(f"entity_mode must be one of {ENTITY_MODES}, got {c.entity_mode!r}")
-    smallest = TASK_SPECS[c.task].min_agents
-    for name in ("agents", "sizes", "team_sizes", "source_agents", "init_agents"):
-        value = getattr(c, name)
-        if any(m > MAX_TEAM_SIZE for m in (value if isinstance(value, (list, tuple)) else [value])):
-            bad(f"{name} must be team sizes <= {MAX_TEAM_SIZE}, got {value}")
-    if c.kind in ("train", "baseline"):
-        if c.agents < smallest:
-            bad(f"agents must be >= {smallest} for {c.task}, got {c.agents}")
-    if c.kind == "train" and c.updates < 1:
-        bad(f"updates must be >= 1, got {c.updates}")
-    if c.kind == "baseline":
-        if not c.algorithm:
-            bad("a baseline cell needs algorithm (a BenchMARL algorithm name)")
-        if c.algorithm.lower() not in BASELINE_ALGORITHMS:
-            bad(f"algorithm must be one of {BASELINE_ALGORITHMS}, got {c.algorithm!r}")
-        if c.frames < 1:
-            bad(f"frames must be >= 1, got {c.frames}")
-        if c.frames > MAX_FRAMES:
-            bad(f"frames must be <= 10^12, got {c.frames}")
-        if c.obs_mode not in ("full", "local"):
-            bad(f"obs_mode must be full or local, got {c.obs_mode!r}")
-        if c.actions not in ("any", "discrete", "continuous"):
-            bad(f"actions must be any, discrete or continuous, got {c.actions!r}")
-        taken = {"algorithm", "task", "agents", "comm", "comm_radius", "obs_mode", "actions", "frames", "seed"}
-        clash = sorted(set(c.baseline_options) & (taken | {"eval_episodes", "eval_seed", "device", "out"}))
-        if clash:
-            bad(f"baseline_options {clash} are set by the cell itself")
-        envs = c.baseline_options.get("num_envs", 1)
-        if not _is_int(envs) or not 1 <= envs <= MAX_ENVS:
-            bad(f"baseline_options.num_envs must be an integer in [1, {MAX_ENVS}], got {envs!r}")
-    if c.kind in ("curriculum", "zero-shot"):
-        if not c.sizes or any(m < smallest for m in c.sizes):
-            bad(f"sizes must be team sizes >= {smallest}, got {list(c.sizes)}")
-        if len(set(c.sizes)) != len(c.sizes):
-            bad(f"sizes repeats a size: {list(c.sizes)}")
-    if c.team_sizes:
-        if c.kind != "train":
-            bad(f"only train cells have team_sizes (a {c.kind} cell sets its sizes otherwise)")
-        if any(m < smallest for m in c.team_sizes):
-            bad(f"team_sizes must be team sizes >= {smallest}, got {list(c.team_sizes)}")
-        if len(set(c.team_sizes)) != len(c.team_sizes):
-            bad(f"team_sizes repeats a size: {list(c.team_sizes)}")
-    if c.kind == "curriculum":
-        if not 0 < c.threshold <= 1:
-            bad(f"threshold must be in (0, 1], got {c.threshold}")
-        if c.max_updates_per_stage < 1:
-            bad(f"max_updates_per_stage must be >= 1, got {c.max_updates_per_stage}")
-        if not 0 <= c.min_updates_per_stage <= c.max_updates_per_stage:
-            bad(f"min_updates_per_stage must be in [0, max_updates_per_stage], got {c.min_updates_per_stage}")
-    offsets = c.transfer_offsets
-    if any(d == 0 or abs(d) > MAX_TRANSFER_OFFSET for d in offsets):
-        bad(f"transfer_offsets must be small non-zero team-size offsets, got {list(offsets)}")
-    if len(set(offsets)) != len(offsets):
-        bad(f"transfer_offsets has a repeated offset: {list(offsets)}")
-    if c.init_from and c.kind not in ("train", "curriculum"):
-        bad("only train and curriculum cells have init_from")
-    if c.init_agents and not c.init_from:
-        bad("init_agents names a stage of init_from: set init_from too")
-    if c.polish_updates < 0:
-        bad(f"polish_updates must be >= 0, got {c.polish_updates}")
-    if c.polish_updates and c.kind not in ("train", "curriculum"):
-        bad(f"only train and curriculum cells polish: a {c.kind} cell has no polish_updates")
-    if not 0 < c.polish_lr <= 1:  # (NaN and inf too)
-        bad(f"polish_lr must be in (0, 1], got {c.polish_lr}")
-    if c.kind == "zero-shot" and not c.source:
-        bad("a zero-shot cell needs source (the id of the cell whose policy it evaluates)")
-    if c.kind != "zero-shot" and c.source:
-        bad("only zero-shot cells have a source")
-    for name in ("eval_every", "eval_episodes", "final_episodes", "checkpoint_every"):
-        if getattr(c, name) < 1:
-            bad(f"{name} must be >= 1, got {getattr(c, name)}")
-    for name in ("eval_episodes", "final_episodes"):  # one environment per episode
-        if getattr(c, name) > MAX_ENVS:
-            bad(f"{name} must be <= {MAX_ENVS} (one environment each), got {getattr(c, name)}")
-    if not 0 <= c.eval_seed < 2**40:
-        bad(f"eval_seed must be in [0, 2**40): training draws its seeds above, got {c.eval_seed}")
-    if c.preset not in PRESETS:
-        bad(f"preset must be one of {tuple(PRESETS)}, got {c.preset!r}")
-    ppo_defaults = dataclasses.asdict(PPOConfig())
-    unknown_ppo = sorted(set(c.ppo) - set(ppo_defaults))
-    if unknown_ppo:
-        bad(f"ppo has unknown options {unknown_ppo}")
-    for key, value in c.ppo.items():
-        default = ppo_defaults[key]
-        want = float if default is None else type(default)  # (lr_end: None = lr)
-        if not _has_type(value, want):
-            bad(f"ppo.{key} must be {_TYPE_NAMES[want]}, got {value!r}")
-    if c.kind in ("train", "curriculum"):  # the trainer's own checks, now rather than hours into a run
-        agents = c.agents if c.kind == "train" else c.sizes[0]
-        updates = c.updates if c.kind == "train" else c.max_updates_per_stage
-        train_config(c, 0, "", agents, updates, init_from="(init_from)" if c.init_from else "", where=where)
-    if c.entity_mode == "concat" and c.task == "coverage" and c.kind in ("curriculum", "zero-shot"):
-        bad("entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size")
-    for size, row in c.paper.items():
-        if not str(size).isdigit() or not isinstance(row, dict):
-            bad(f"paper must map team sizes to tables of numbers, got {size!r} = {row!r}")
-
-
-def train_config(
-    cell: Cell,
-    seed: int,
-    run_dir: str,
-    agents: int,
-    updates: int,
-    arch: str = "cpu",
-    device: str = "cpu",
-    init_from: str = "",
-    where: str = "",
-):
-    """The TrainConfig of a cell's run (a curriculum changes agents/run_dir per stage),
-    checked by the trainer; ``init_from``: a policy whose weights the run starts from;
-    ``where``: how an error names the cell (default: its id)."""
-    from trainer.config import PRESETS, TrainConfig
-    from trainer.model import ModelConfig
-
-    where = where or f"cell {cell.id!r}"
-    try:
-        ppo = dataclasses.replace(copy.deepcopy(PRESETS[cell.preset]), **cell.ppo)
-    except KeyError:
-        raise SpecError(f"{where}: preset must be one of {tuple(PRESETS)}, got {cell.preset!r}") from None
-    except TypeError as exc:
-        raise SpecError(f"{where}: ppo has an unknown option ({exc})") from None
-    cfg = TrainConfig(
-        task=cell.task,
-        agents=agents,
-        team_sizes=cell.team_sizes,
-        comm=cell.comm,
-        comm_radius=cell.comm_radius,
-        preset=cell.preset,
-        updates=updates,
-        eval_every=cell.eval_every,
-        eval_episodes=cell.eval_episodes,
-        transfer_offsets=cell.transfer_offsets,
-        checkpoint_every=cell.checkpoint_every,
-        seed=seed,
-        run_dir=run_dir,
-        init_from=init_from,
-        init_carry="weights",
-        compile=cell.compile,
-        progress=False,
-        arch=arch,
-        device=device,
-        model=ModelConfig(entity_mode=cell.entity_mode),  # (concat: the trainer takes the task's L)
-        ppo=ppo,
-    )
-    try:
-        cfg.validate()
-    except (ValueError, TypeError) as exc:  # (TypeError: a ppo value of the wrong type)
-        raise SpecError(f"{where}: {exc}") from None
-    return cfg
 
 
 def _check_references(spec: Spec) -> None:
@@ -477,36 +564,8 @@ def _check_references(spec: Spec) -> None:
     for c in spec.cells:
         if c.id in seen:
             raise SpecError(f"{spec.path}: two cells named {c.id!r}")
-        if c.init_from:
-            _check_init_from(spec, c, seen.get(c.init_from))
-        if c.source:
-            src = seen.get(c.source)
-            if src is None:
-                raise SpecError(f"{spec.path}: cell {c.id!r}: source {c.source!r} must be a cell declared before it")
-            if src.kind in ("zero-shot", "baseline"):
-                raise SpecError(
-                    f"{spec.path}: cell {c.id!r}: source {c.source!r} is a {src.kind} cell (no policy of ours)"
-                )
-            if src.kind == "curriculum" and c.source_agents not in src.sizes:
-                raise SpecError(
-                    f"{spec.path}: cell {c.id!r}: source_agents must be one of {c.source!r}'s stage sizes "
-                    f"{list(src.sizes)}, got {c.source_agents}"
-                )
-            if src.kind == "train" and c.source_agents not in (0, src.agents):
-                raise SpecError(
-                    f"{spec.path}: cell {c.id!r}: source {c.source!r} is a train cell at M = {src.agents}: "
-                    f"leave source_agents out, got {c.source_agents}"
-                )
-            if src.entity_mode == "concat" and src.task == "coverage":
-                raise SpecError(
-                    f"{spec.path}: cell {c.id!r}: source {c.source!r} has entity_mode 'concat', a fixed number of "
-                    "landmarks: coverage's changes with the team size"
-                )
-            if (src.task, src.comm, src.comm_radius) != (c.task, c.comm, c.comm_radius):
-                raise SpecError(
-                    f"{spec.path}: cell {c.id!r}: task / comm / comm_radius {c.task, c.comm, c.comm_radius} differ "
-                    f"from its source's {src.task, src.comm, src.comm_radius}"
-                )
+        if c.needs:
+            _check_needs(spec, c, seen.get(c.needs))
         seen[c.id] = c
     layouts: dict[int, tuple[str, str]] = {}  # a table is rendered in one layout: its cells' kinds must share it
     for c in spec.cells:
@@ -519,18 +578,32 @@ def _check_references(spec: Spec) -> None:
             )
 
 
-def _check_init_from(spec: Spec, c: Cell, src: Cell | None) -> None:
-    where = f"{spec.path}: cell {c.id!r}: init_from {c.init_from!r}"
+def _check_needs(spec: Spec, c: Cell, src: Cell | None) -> None:
+    """A zero-shot row's source, a run's init_from: a cell declared before it with a policy of
+    ours that fits (a curriculum's at one of its stage sizes)."""
+    zero_shot = c.kind == "zero-shot"
+    role, agents_key = ("source", "source_agents") if zero_shot else ("init_from", "init_agents")
+    where = f"{spec.path}: cell {c.id!r}: {role} {c.needs!r}"
     if src is None:
         raise SpecError(f"{where} must be a cell declared before it")
     if src.kind not in ("train", "curriculum"):
-        raise SpecError(f"{where} is a {src.kind} cell (no policy of ours to start from)")
-    if src.kind == "curriculum" and c.init_agents not in src.sizes:
-        raise SpecError(f"{where}: init_agents must be one of its stage sizes {list(src.sizes)}, got {c.init_agents}")
-    if src.kind == "train" and c.init_agents not in (0, src.agents):
-        raise SpecError(f"{where} is a train cell at M = {src.agents}: leave init_agents out, got {c.init_agents}")
-    if (src.task, src.entity_mode) != (c.task, c.entity_mode):
+        raise SpecError(f"{where} is a {src.kind} cell (no policy of ours)")
+    agents = getattr(c.run, agents_key)
+    if src.kind == "curriculum" and agents not in src.run.sizes:
+        raise SpecError(f"{where}: {agents_key} must be one of its stage sizes {list(src.run.sizes)}, got {agents}")
+    if src.kind == "train" and agents not in (0, src.run.agents):
+        raise SpecError(f"{where} is a train cell at M = {src.run.agents}: leave {agents_key} out, got {agents}")
+    model = src.run.config.model.entity_mode
+    if zero_shot:
+        if model == "concat" and src.run.task == "coverage":
+            raise SpecError(
+                f"{where} has entity_mode 'concat', a fixed number of landmarks: coverage's changes with the team size"
+            )
+        ours, theirs = (c.run.task, c.run.comm, c.run.comm_radius), (src.run.task, src.run.comm, src.run.comm_radius)
+        if ours != theirs:
+            raise SpecError(f"{where}: task / comm / comm_radius {ours} differ from its source's {theirs}")
+    elif (src.run.task, model) != (c.run.task, c.run.config.model.entity_mode):
         raise SpecError(
-            f"{where}: task / entity_mode {c.task, c.entity_mode} differ from its {src.task, src.entity_mode} "
-            "(the weights would not fit)"
+            f"{where}: task / entity_mode {c.run.task, c.run.config.model.entity_mode} differ from its "
+            f"{src.run.task, model} (the weights would not fit)"
         )

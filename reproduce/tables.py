@@ -97,7 +97,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
     lines = [f"### {TITLES.get(table, f'Table {table}')}", ""]
     # a table with polished cells shows S% before the polish (and how many polish updates);
     # N / updates are the run's (stage's) own, env steps and minutes include the polish
-    polish = any(c.polish_updates for c in cells)
+    polish = any(getattr(c.run, "polish_updates", 0) for c in cells)
     pol_head, pol_rule = (" S% before polish (+updates) |", "---|") if polish else ("", "")
 
     def before(rows: list[dict]) -> str:
@@ -119,19 +119,19 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             f"|---|---|---|---|{pol_rule}---|---|---|---|---|---|---|",
         ]
         for c in cells:
-            res = _results_of(c)
+            res, M = _results_of(c), c.run.agents
             if not res:
                 lines.append(
-                    f"| {c.row_label()} | {c.agents} | not run | {_paper(c, c.agents, 'S')} |{' - |' if polish else ''}"
-                    f" - | {_paper(c, c.agents, 'T')} | - | {_paper(c, c.agents, 'DIST')} | - | - | - |"
+                    f"| {c.row_label()} | {M} | not run | {_paper(c, M, 'S')} |{' - |' if polish else ''}"
+                    f" - | {_paper(c, M, 'T')} | - | {_paper(c, M, 'DIST')} | - | - | - |"
                 )
                 continue
-            rows = _rows_by_size(res)[c.agents]
+            rows = _rows_by_size(res)[M]
             lines.append(
-                f"| {c.row_label()} | {c.agents} | {_stat([r['success_rate'] for r in rows], 100)} | "
-                f"{_paper(c, c.agents, 'S')} |{before(rows)} {_stat([r['mean_length'] for r in rows], digits=2)} | "
-                f"{_paper(c, c.agents, 'T')} | {_stat([r['dist'] for r in rows], digits=3)} | "
-                f"{_paper(c, c.agents, 'DIST')} | {own_updates(rows)} | "
+                f"| {c.row_label()} | {M} | {_stat([r['success_rate'] for r in rows], 100)} | "
+                f"{_paper(c, M, 'S')} |{before(rows)} {_stat([r['mean_length'] for r in rows], digits=2)} | "
+                f"{_paper(c, M, 'T')} | {_stat([r['dist'] for r in rows], digits=3)} | "
+                f"{_paper(c, M, 'DIST')} | {own_updates(rows)} | "
                 f"{_stat([r['env_steps'] for r in rows], 1e-6, 2)} | {_stat([r['wall_time'] for r in rows], 1 / 60)} |"
             )
     elif kind == "curriculum":
@@ -141,9 +141,9 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             f"|---|---|---|---|{pol_rule}---|---|---|---|---|",
         ]
         for c in cells:
-            start = by_id.get(c.init_from)
-            M0 = (c.init_agents or start.agents) if start else 0
-            if start and str(M0) in c.paper and M0 not in c.sizes:  # the paper's first stage is the chain's start
+            start = by_id.get(c.needs)
+            M0 = (c.run.init_agents or start.run.agents) if start else 0
+            if start and str(M0) in c.paper and M0 not in c.run.sizes:  # the paper's first stage is the chain's start
                 rows = _rows_by_size(_results_of(start)).get(M0, [])
                 ours = _stat([r["success_rate"] for r in rows], 100) if rows else "not run"
                 lines.append(
@@ -153,7 +153,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
                     f"{_stat([r['wall_time'] for r in rows], 1 / 60)} | - |"
                 )
             by_size = _rows_by_size(_results_of(c))
-            for M in c.sizes:
+            for M in c.run.sizes:
                 rows = by_size.get(M, [])
                 if not rows:
                     paper = f"{_paper(c, M, 'S')} |{' - |' if polish else ''} - | {_paper(c, M, 'N')}"
@@ -168,7 +168,7 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
                     f"{_stat([r['wall_time'] for r in rows], 1 / 60)} | {reached} of {len(rows)} |"
                 )
     else:
-        sizes = sorted({M for c in cells for M in c.sizes})
+        sizes = sorted({M for c in cells for M in c.run.sizes})
         lines += [
             "| cell | from | " + " | ".join(f"M={M} ours (paper)" for M in sizes) + " |",
             "|---|---|" + "---|" * len(sizes),
@@ -178,12 +178,12 @@ def render_table(table: int, cells: list[Cell], seeds: list[int], root: str) -> 
             cols = []
             for M in sizes:
                 rows = by_size.get(M, [])
-                if M not in c.sizes:  # another row of the table evaluates this size
+                if M not in c.run.sizes:  # another row of the table evaluates this size
                     ours = "-"
                 else:
                     ours = _stat([r["success_rate"] for r in rows], 100) if rows else "not run"
                 cols.append(f"{ours} ({_paper(c, M, 'S')})")
-            source = f"{c.source} M={c.source_agents}" if c.source_agents else c.source
+            source = f"{c.needs} M={c.run.source_agents}" if c.run.source_agents else c.needs
             lines.append(f"| {c.row_label()} | {source} | " + " | ".join(cols) + " |")
     if stale:
         lines += [
@@ -214,11 +214,11 @@ def render_all(
     ``figure_dir``/curves-table-N.png, default ROOT, linked relative to ``link_from``:
     where the Markdown goes)."""
     tables = sorted({c.table for c in cells})
-    n_eps = sorted({c.final_episodes for c in cells})
+    n_eps = sorted({c.run.final_episodes for c in cells})
     parts = [
         f"Generated by `{command or f'swarm reproduce --spec {spec_name}'}` from {root}, seeds {seeds}: "
         f"every S% / T / DIST from {', '.join(map(str, n_eps))} fresh greedy episodes at seed "
-        f"{', '.join(str(s) for s in sorted({c.eval_seed for c in cells}))} (never a training seed); "
+        f"{', '.join(str(s) for s in sorted({c.run.eval_seed for c in cells}))} (never a training seed); "
         "'minutes' is training wall-clock. With several seeds a number reads mean ± the half-width of "
         "its 95% Student-t interval (n of seeds).",
         "",

@@ -130,30 +130,33 @@ def reproduce_main(argv: list[str]) -> int:
 
 def _dry_run(cells, seeds, root, spec_name: str) -> str:
     from reproduce.cells import cell_state
-    from trainer.config import PRESETS
 
     lines = [f"spec {spec_name}, root {root}, seeds {seeds}", ""]
     head = f"{'cell':<24} {'kind':<10} {'task':<9} {'comm':<4} {'net':<7} {'sizes':<14} {'budget':>22}  state"
     lines += [head, "-" * len(head)]
     total_steps = 0
     for c in cells:
-        ppo = PRESETS[c.preset]
-        per_update = c.ppo.get("num_envs", ppo.num_envs) * c.ppo.get("num_steps", ppo.num_steps)
-        steps = c.frames if c.kind == "baseline" else c.budget_updates() * per_update
+        run = c.run
+        ppo = run.config.ppo if c.kind in ("train", "curriculum") else None
+        steps = (
+            run.config.frames
+            if c.kind == "baseline"
+            else c.budget_updates() * (ppo.num_envs * ppo.num_steps if ppo else 0)
+        )
         total_steps += steps * len(seeds)
-        sizes = str(c.agents) if c.kind in ("train", "baseline") else " ".join(map(str, c.sizes))
-        if c.team_sizes:
-            sizes += f" (on {' '.join(map(str, c.team_sizes))})"
+        sizes = str(run.agents) if c.kind in ("train", "baseline") else " ".join(map(str, run.sizes))
+        if c.kind == "train" and run.config.team_sizes:
+            sizes += f" (on {' '.join(map(str, run.config.team_sizes))})"
         if c.kind == "baseline":
-            budget = f"{c.algorithm} / {_steps(steps)} steps"
+            budget = f"{run.config.algorithm} / {_steps(steps)} steps"
         elif steps:
             budget = f"{c.budget_updates()} upd / {_steps(steps)} steps"
         else:
-            budget = f"{c.final_episodes} episodes"
+            budget = f"{run.final_episodes} episodes"
         states = ", ".join(f"s{s} {cell_state(root, c, s)}" for s in seeds)
         states += f"  (reads {c.needs})" if c.needs else ""  # a zero-shot row's source, a run's init_from
-        net = "-" if c.kind in ("zero-shot", "baseline") else c.entity_mode  # (a zero-shot row: its source's)
-        lines.append(f"{c.id:<24} {c.kind:<10} {c.task:<9} {c.comm:<4} {net:<7} {sizes:<14} {budget:>22}  {states}")
+        net = run.config.model.entity_mode if ppo else "-"  # (a zero-shot row: its source's)
+        lines.append(f"{c.id:<24} {c.kind:<10} {run.task:<9} {run.comm:<4} {net:<7} {sizes:<14} {budget:>22}  {states}")
     lines.append(f"\nat most {_steps(total_steps)} env steps in all (curricula at their full stage budgets)")
     return "\n".join(lines)
 

@@ -67,14 +67,14 @@ def candidates(spec, task: str, comm: str, agents: int) -> list[dict]:
         found.append(_entry(t1, 0, agents, row, policy_path(RECIPE_ROOT, t1, 0), zero_shot, (agents,)))
     chain_id = f"t2-coverage-emp-{comm}" if task == "coverage" else f"t3-{task}-{comm}"
     chain = cells.get(chain_id)
-    if chain is not None and agents in chain.sizes:
+    if chain is not None and agents in chain.run.sizes:
         rows = {r["agents"]: r for r in _result(RECIPE_ROOT, chain, 0)["rows"]}
         if agents in rows:
             zero_shot = {}
             for zs in spec.cells:  # a zero-shot row of this stage (Table 4)
-                if zs.kind == "zero-shot" and zs.source == chain.id and (zs.source_agents or 5) == agents:
+                if zs.kind == "zero-shot" and zs.needs == chain.id and (zs.run.source_agents or 5) == agents:
                     zero_shot = _zero_shot(_result(RECIPE_ROOT, zs, 0)["rows"])
-            trained_on = tuple(m for m in chain.sizes if m <= agents)
+            trained_on = tuple(m for m in chain.run.sizes if m <= agents)
             path = policy_path(RECIPE_ROOT, chain, 0, agents)
             found.append(_entry(chain, 0, agents, rows[agents], path, zero_shot, trained_on))
     return found
@@ -86,11 +86,11 @@ def _entry(cell, seed: int, agents: int, row: dict, weights: str, zero_shot: dic
     if not os.path.exists(os.path.join(ROOT, curves)):  # a polish's curves are its stage's
         curves = os.path.join(os.path.dirname(os.path.dirname(weights)), "curves.png")
     return {
-        "task": cell.task,
-        "comm": cell.comm,
+        "task": cell.run.task,
+        "comm": cell.run.comm,
         "agents": agents,
-        "comm_radius": cell.comm_radius,
-        "entity_mode": cell.entity_mode,
+        "comm_radius": cell.run.comm_radius,
+        "entity_mode": cell.run.config.model.entity_mode,
         "weights": weights,
         "sha256": file_sha256(os.path.join(ROOT, weights)),
         "spec": spec_name,
@@ -123,7 +123,7 @@ def build() -> list[dict]:
                     continue
                 best = max(found, key=lambda e: e["success"])  # max keeps the first (Table 1) on a tie
                 how = "trained from scratch" if best["cell"].startswith("t1-") else "the curriculum stage"
-                if best["cell"].startswith("t1-") and "init_from" in _definition(recipe, best["cell"]):
+                if best["cell"].startswith("t1-") and recipe.cell(best["cell"]).needs:
                     how = "fine-tuned from another cell's policy"
                 best["summary"] = f"{task} {comm.upper()} M = {agents}: {how} ({best['cell']})"
                 entries.append({"name": f"{task}-{comm}-m{agents}", **best})
@@ -133,14 +133,12 @@ def build() -> list[dict]:
     cell = cells[train_id]
     row = _result(BEYOND_ROOT, cell, seed)["rows"][0]
     zero_shot = _zero_shot(_result(BEYOND_ROOT, cells[zs_id], seed)["rows"])
-    entry = _entry(cell, seed, cell.agents, row, policy_path(BEYOND_ROOT, cell, seed), zero_shot, cell.team_sizes)
+    entry = _entry(
+        cell, seed, cell.run.agents, row, policy_path(BEYOND_ROOT, cell, seed), zero_shot, cell.run.config.team_sizes
+    )
     entry["summary"] = "coverage UC, trained on M = 3 and 4 together: the M = 3 policy that carries furthest to M = 5"
     entries.append({"name": "coverage-uc-m3-transfer", **entry})
     return entries
-
-
-def _definition(spec, cell_id: str) -> dict:
-    return next(c for c in spec.cells if c.id == cell_id).definition()
 
 
 def _toml_value(value) -> str:

@@ -61,18 +61,19 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
     return fresh
 
 
-def run_curriculum(
+def check_curriculum(
     base: TrainConfig,
-    sizes: list[int],
+    sizes,
     threshold: float,
     max_updates_per_stage: int,
-    run_dir: str,
     min_updates_per_stage: int = 0,
     fresh_eval_episodes: int = 0,
     fresh_eval_seed: int = 777,
     polish_updates: int = 0,
     polish_lr: float = 3e-5,
-) -> list[dict]:
+) -> None:
+    """run_curriculum's checks of its options and of every stage's config, before anything is
+    written (``swarm reproduce`` runs them when it loads a spec)."""
     if not sizes:
         raise ValueError("--sizes must name at least one team size")
     if len(set(sizes)) != len(sizes):  # a repeated stage would train the same size twice, from itself
@@ -106,6 +107,24 @@ def run_curriculum(
             min_updates=min_updates_per_stage,
             init_carry="weights",  # what a stage carries comes from the stage before it (checked as it starts)
         ).validate()
+
+
+def run_curriculum(
+    base: TrainConfig,
+    sizes: list[int],
+    threshold: float,
+    max_updates_per_stage: int,
+    run_dir: str,
+    min_updates_per_stage: int = 0,
+    fresh_eval_episodes: int = 0,
+    fresh_eval_seed: int = 777,
+    polish_updates: int = 0,
+    polish_lr: float = 3e-5,
+) -> list[dict]:
+    check_curriculum(
+        base, sizes, threshold, max_updates_per_stage, min_updates_per_stage, fresh_eval_episodes, fresh_eval_seed,
+        polish_updates, polish_lr,
+    )  # fmt: skip
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, "curriculum.json")
     stages: list[dict] = []

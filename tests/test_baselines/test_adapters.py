@@ -408,7 +408,7 @@ def test_run_baselines_rejects_bad_arguments(tmp_path, capsys):
         (["--task", "swarming"], "task"),
         (["--obs-mode", "global"], "obs_mode"),
         (["--actions", "box"], "action_space"),
-        (["--frames", "0"], "--frames"),
+        (["--frames", "0"], "frames must be >= 1"),
         (["--experiment", "nonsense=1"], "--experiment"),
         (["--experiment", "lr"], "--experiment"),
     ]:
@@ -468,7 +468,7 @@ def test_run_baselines_refuses_a_batch_that_is_not_a_multiple_of_the_envs(tmp_pa
 
     args = ["--out", str(tmp_path / "x"), *TINY, "--num-envs", "3"]  # 100 frames per batch
     assert main(args) == 2
-    assert "--frames-per-batch (100) must be a multiple of --num-envs (3)" in capsys.readouterr().err
+    assert "frames_per_batch (100) must be a multiple of num_envs (3)" in capsys.readouterr().err
 
 
 def test_a_run_whose_actions_become_nan_names_its_last_checkpoint(tmp_path, capsys, monkeypatch):

@@ -17,6 +17,7 @@ import pytest
 from reproduce import cells as cells_mod
 from reproduce.spec import SpecError, load_spec
 from reproduce.tables import DOC_BEGIN, DOC_END, doc_markers, render_all, update_doc
+from trainer.config import PRESETS
 
 TINY = """
 name = "tiny"
@@ -62,19 +63,19 @@ def test_shipped_paper_spec_has_every_table_and_the_papers_numbers():
     spec = load_spec("paper")
     assert spec.tables() == [1, 2, 3, 4]
     t1 = [c for c in spec.cells if c.table == 1 and c.kind == "train"]
-    assert len(t1) == 12 and {c.agents for c in t1} == {3, 6}
+    assert len(t1) == 12 and {c.run.agents for c in t1} == {3, 6}
     baselines = [c for c in spec.cells if c.kind == "baseline"]
-    assert {c.algorithm for c in baselines} == {"maddpg", "mappo", "ippo", "qmix", "vdn", "iql"}
-    assert all(c.table == 1 and c.obs_mode == "full" and c.frames <= 4_500_000 for c in baselines)
+    assert {c.run.config.algorithm for c in baselines} == {"maddpg", "mappo", "ippo", "qmix", "vdn", "iql"}
+    assert all(c.table == 1 and c.run.config.obs_mode == "full" and c.run.config.frames <= 4_500_000 for c in baselines)
     assert spec.cell("t1-coverage-maddpg-m3").paper["3"] == {"S": 95, "T": 17.89, "DIST": 0.065}
     assert spec.cell("t1-coverage-qmix-m6").paper["6"] == {"S": 0}
     assert spec.cell("t1-coverage-rc-m6").paper["6"] == {"S": 5, "T": 48.32, "DIST": 0.17}
     assert spec.cell("t2-coverage-emp-rc").paper["10"] == {"S": 85, "N": 3250}
-    assert spec.cell("t2-coverage-noemp-uc").entity_mode == "padded"
+    assert spec.cell("t2-coverage-noemp-uc").run.config.model.entity_mode == "padded"
     zs = spec.cell("t4-line-rc")
-    assert zs.source == "t3-line-rc" and zs.source_agents == 5 and zs.paper["3"]["S"] == 16
+    assert zs.needs == "t3-line-rc" and zs.run.source_agents == 5 and zs.paper["3"]["S"] == 16
     # every reported number comes from 500 fresh episodes at a seed training never uses
-    assert all(c.final_episodes >= 500 and c.eval_seed < 2**40 for c in spec.cells)
+    assert all(c.run.final_episodes >= 500 and c.run.eval_seed < 2**40 for c in spec.cells)
 
 
 def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
@@ -91,28 +92,34 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
     # with the never-reset return line UC M = 6 read 0-1% in 1550 updates
     reset = {"t1-line-uc-m6", "t1-line-rc-m6"}
-    assert all(c.preset == "fast" and c.ppo["reset_return"] is (c.id in reset) for c in trained)
+    fast = PRESETS["fast"]
+    assert all(c.run.config.preset == "fast" and c.run.config.ppo.reset_return is (c.id in reset) for c in trained)
     # the coverage and line curricula are fine-tunes throughout: a constant 1e-4 (at 7e-4 coverage RC
     # collapsed at M = 7; line stalled at UC M = 7 or 10 and RC M = 5 or 7, with either return)
     fine_tunes = {"t2-coverage-emp-uc", "t2-coverage-emp-rc", "t3-line-uc", "t3-line-rc"}
-    assert all(c.ppo == {"reset_return": False, "lr": 1e-4, "lr_end": 1e-4} for c in trained if c.id in fine_tunes)
-    assert all(len(c.ppo) == 1 for c in trained if c.id not in fine_tunes)
+    tune = dataclasses.replace(fast, reset_return=False, lr=1e-4, lr_end=1e-4)
+    assert all(c.run.config.ppo == tune for c in trained if c.id in fine_tunes)
+    assert all(
+        c.run.config.ppo == dataclasses.replace(fast, reset_return=c.id in reset)
+        for c in trained
+        if c.id not in fine_tunes
+    )
     assert all(c.transfer_offsets == (2,) for c in trained)  # the next stage's size, logged while training
-    assert all(c.polish_updates == 300 and c.polish_lr == 3e-5 for c in trained)
-    assert all(c.updates * 2048 >= 4_500_000 for c in trained if c.kind == "train")  # the paper's budget
+    assert all(c.run.polish_updates == 300 and c.run.polish_lr == 3e-5 for c in trained)
+    assert all(c.run.config.updates * 2048 >= 4_500_000 for c in trained if c.kind == "train")  # the paper's budget
     for cid in ("t2-coverage-emp-uc", "t2-coverage-emp-rc"):
-        assert recipe.cell(cid).init_from == "t1-coverage-uc-m3"
-    assert recipe.cell("t2-coverage-emp-rc").sizes == (3, 5, 7, 10)
+        assert recipe.cell(cid).needs == "t1-coverage-uc-m3"
+    assert recipe.cell("t2-coverage-emp-rc").run.sizes == (3, 5, 7, 10)
     for mode in ("uc", "rc"):  # line's M = 3 stage is Table 1's line M = 3 run of the same mode
         line = recipe.cell(f"t3-line-{mode}")
-        assert line.init_from == f"t1-line-{mode}-m3" and line.sizes == (5, 7, 10) and "3" in line.paper
+        assert line.needs == f"t1-line-{mode}-m3" and line.run.sizes == (5, 7, 10) and "3" in line.paper
     # formation's chains with the authors' network for formation: EMP's M = 5 policy did not carry
-    concat = {c.id for c in recipe.cells if c.entity_mode == "concat"}
+    concat = {c.id for c in recipe.cells if c.kind != "zero-shot" and c.run.config.model.entity_mode == "concat"}
     assert concat == {"t3-formation-uc", "t3-formation-rc"}
     assert [c.id for c in recipe.select(cell_ids=["t4-coverage-rc"])] == [
         "t1-coverage-uc-m3", "t2-coverage-emp-rc", "t4-coverage-rc"
     ]  # fmt: skip
-    assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in recipe.cells)
+    assert all(c.run.final_episodes >= 500 and c.run.eval_seed == 777 for c in recipe.cells)
 
 
 def test_shipped_beyond_spec_sets_one_team_size_against_two():
@@ -121,28 +128,33 @@ def test_shipped_beyond_spec_sets_one_team_size_against_two():
     each the start of the recipe spec's coverage UC curriculum."""
     beyond = load_spec("beyond")
     alone, mixed = beyond.cell("x-coverage-uc-m3"), beyond.cell("x-coverage-uc-m34")
-    assert (alone.team_sizes, mixed.team_sizes) == ((), (3, 4))
-    assert dataclasses.replace(mixed, id=alone.id, team_sizes=(), label=alone.label) == alone  # nothing else differs
-    assert alone.preset == "fast" and alone.ppo == {"reset_return": False}
-    assert alone.updates == 1100 and alone.polish_updates == 0 and alone.agents == 3
+    assert (alone.run.config.team_sizes, mixed.run.config.team_sizes) == ((), (3, 4))
+    assert {**mixed.definition()["config"], "team_sizes": []} == alone.definition()["config"]  # nothing else differs
+    assert alone.run.config.preset == "fast" and alone.run.config.ppo == dataclasses.replace(
+        PRESETS["fast"], reset_return=False
+    )
+    assert alone.run.config.updates == 1100 and alone.run.polish_updates == 0 and alone.run.agents == 3
     for cid, source in (("x-zs-coverage-uc-m3", alone), ("x-zs-coverage-uc-m34", mixed)):
-        assert beyond.cell(cid).source == source.id and beyond.cell(cid).sizes == (3, 4, 5, 6)
+        assert beyond.cell(cid).needs == source.id and beyond.cell(cid).run.sizes == (3, 4, 5, 6)
     # the curriculum from each: the recipe spec's coverage UC chain, only the start differs
     chain = load_spec("recipe").cell("t2-coverage-emp-uc")
     for cid, start in (("x-cur-coverage-uc-from-m3", alone), ("x-cur-coverage-uc-from-m34", mixed)):
         cur = beyond.cell(cid)
-        assert cur.init_from == start.id and cur.kind == "curriculum"
+        assert cur.needs == start.id and cur.kind == "curriculum"
         same = ("sizes", "ppo", "threshold", "max_updates_per_stage", "polish_updates", "polish_lr", "preset")
-        assert {k: getattr(cur, k) for k in same} == {k: getattr(chain, k) for k in same}
+        assert {k: getattr(cur.run.config, k) for k in same} == {k: getattr(chain.run.config, k) for k in same}
     # formation 3 -> 5 with EMP against concat: nothing else differs, the recipe's chain settings
     emp, concat = beyond.cell("x-cur-formation-uc-emp"), beyond.cell("x-cur-formation-uc-concat")
-    assert (emp.entity_mode, concat.entity_mode) == ("emp", "concat") and emp.sizes == (3, 5)
-    assert dataclasses.replace(concat, id=emp.id, entity_mode="emp", label=emp.label) == emp
+    assert (emp.run.config.model.entity_mode, concat.run.config.model.entity_mode) == ("emp", "concat")
+    assert emp.run.sizes == (3, 5)
+    concat_config = concat.definition()["config"]
+    assert {**concat_config, "model": {**concat_config["model"], "entity_mode": "emp"}} == emp.definition()["config"]
     formation = load_spec("recipe").cell("t3-formation-uc")
-    alike = (*same, "eval_every", "eval_episodes", "final_episodes", "eval_seed")
-    assert {k: getattr(emp, k) for k in alike} == {k: getattr(formation, k) for k in alike} | {"sizes": (3, 5)}
+    alike = ("ppo", "threshold", "max_updates_per_stage", "polish_updates", "polish_lr", "preset", "eval_every")
+    assert {k: getattr(emp.run.config, k) for k in alike} == {k: getattr(formation.run.config, k) for k in alike}
+    assert (emp.run.final_episodes, emp.run.eval_seed) == (formation.run.final_episodes, formation.run.eval_seed)
     assert beyond.tables() == [5, 6, 7, 8, 9]  # numbered after the paper's four
-    assert all(c.final_episodes >= 500 and c.eval_seed == 777 for c in beyond.cells)
+    assert all(c.run.final_episodes >= 500 and c.run.eval_seed == 777 for c in beyond.cells)
 
 
 def test_selection_pulls_in_the_source_of_a_zero_shot_row():
@@ -172,13 +184,19 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t.replace('preset = "fast"', 'preset = "papr"'), "preset must be one of"),
         (lambda t: t.replace("epochs = 1 }", "epochs = 1, epocs = 2 }"), r"ppo has unknown options \['epocs'\]"),
         (lambda t: t.replace('source = "train-cov"', 'source = "train-cov"\ncomm = "rc"'), "differ from its source"),
-        (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nalgorithm = "mappo"'), "frames must be >= 1"),
+        (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nalgorithm = "mappo"'), "needs frames"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = [0, 1]"), "small non-zero team-size"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = 1"), "transfer_offsets must be a list"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = [2, 2]"), "repeated offset"),
         (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = 3"), "sizes must be a list of integers"),
-        (lambda t: t.replace("sizes = [1, 2, 3]", "sizes = [1]\nteam_sizes = [1, 2]"), "only train cells have team_s"),
-        (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [0, 2]"), "team_sizes must be team sizes >= 1"),
+        (
+            lambda t: t.replace("sizes = [1, 2, 3]", "sizes = [1]\nteam_sizes = [1, 2]"),
+            r"unknown keys \['team_sizes'\] for a zero-shot",
+        ),
+        (
+            lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [0, 2]"),
+            r"team_sizes must be team sizes in \[1, ",
+        ),
         (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = [2, 2]"), "team_sizes repeats a size"),
         (lambda t: t.replace("agents = 2", "agents = 2\nteam_sizes = 2"), "team_sizes must be a list of integers"),
         (
@@ -248,8 +266,8 @@ def test_a_cell_trains_on_several_team_sizes_at_once(tmp_path, capsys):
     plain = load_spec(write_spec(tmp_path, text=text)).cell("train-cov")
     spec = load_spec(write_spec(tmp_path, text=text.replace("agents = 2", "agents = 2\nteam_sizes = [2, 3]")))
     cell = spec.cell("train-cov")
-    assert cell.team_sizes == (2, 3) and cell.definition()["team_sizes"] == [2, 3]
-    assert cell.digest() != plain.digest() and "team_sizes" not in plain.definition()  # old results stay valid
+    assert cell.run.config.team_sizes == (2, 3) and cell.definition()["config"]["team_sizes"] == [2, 3]
+    assert cell.digest() != plain.digest()
     root = str(tmp_path / "root")
     (row,) = cells_mod.run_cell(cell, 0, root)["rows"]
     assert row["agents"] == 2 and row["env_steps"] == 2 * 4 * 8  # reported at agents; 2 envs per size
@@ -487,12 +505,13 @@ agents = 2
 frames = 256
 actions = "discrete"
 final_episodes = 16
-baseline_options = { num_envs = 4, frames_per_batch = 128 }
+num_envs = 4
+frames_per_batch = 128
 paper = { "2" = { S = 42 } }
 """
     spec = load_spec(write_spec(tmp_path, text=text))
     (cell,) = spec.cells
-    assert cell.definition()["algorithm"] == "mappo"
+    assert cell.definition()["config"]["algorithm"] == "mappo"
     root = str(tmp_path / "root")
     result = cells_mod.run_cell(cell, 0, root)
     (row,) = result["rows"]
@@ -501,9 +520,8 @@ paper = { "2" = { S = 42 } }
     assert os.path.exists(os.path.join(cells_mod.cell_dir(root, cell, 0), "curves.png"))  # BenchMARL's csv drawn
     md = render_all(spec.cells, [0], root, "tiny")
     assert re.search(r"\| coverage MAPPO \(full obs\.\) \| 2 \| \d+\.\d \| 42 \|", md)
-    bad = load_spec(write_spec(tmp_path, text=text.replace("frames_per_batch = 128", "bogus = 1"))).cells[0]
-    with pytest.raises(SpecError, match="does not know"):
-        cells_mod.run_cell(bad, 0, str(tmp_path / "root2"))
+    with pytest.raises(SpecError, match=r"unknown keys \['bogus'\]"):
+        load_spec(write_spec(tmp_path, text=text.replace("frames_per_batch = 128", "bogus = 1")))
 
 
 def test_cuda_cells_need_a_gpu_share():
@@ -739,9 +757,9 @@ def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path, monkeypa
     os.unlink(os.path.join(d, cells_mod.RESULT))  # (a run stopped half-way resumes from the same upstream only)
     with pytest.raises(SpecError, match="upstream.json: cell 'curr-cov-rc' was trained from a policy"):
         cells_mod.run_cell(curr_cell, 0, root, source=train_cell)
-    # cells without the new keys keep their old definitions (their results stay valid)
-    assert {"init_from", "polish_updates"} & set(load_spec("paper").cells[0].definition()) == set()
-    assert {"init_from", "init_agents", "polish_updates", "polish_lr"} <= set(curr_cell.definition())
+    assert (
+        curr_cell.definition()["init_from"] == "train-cov" and curr_cell.definition()["config"]["polish_updates"] == 1
+    )
 
 
 @pytest.mark.parametrize(
@@ -751,19 +769,85 @@ def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path, monkeypa
         (lambda t: t.replace('init_from = "train-cov"', 'init_from = "zs-cov-rc"'), "must be a cell declared"),
         (
             lambda t: t.replace('source = "curr-cov-rc"', 'source = "curr-cov-rc"\ninit_from = "train-cov"'),
-            "only train and curriculum cells have init_from",
+            r"unknown keys \['init_from'\] for a zero-shot cell",
         ),
         (lambda t: t.replace("polish_updates = 1", "polish_updates = 1\ninit_agents = 5"), "leave init_agents out"),
         (
-            lambda t: t.replace("polish_updates = 1", 'polish_updates = 1\nentity_mode = "padded"'),
+            lambda t: t.replace("polish_updates = 1", 'polish_updates = 1\nmodel = { entity_mode = "padded" }'),
             "the weights would not fit",
         ),
-        (lambda t: t.replace("polish_updates = 1", "polish_updates = -1"), "polish_updates must be >= 0"),
+        (lambda t: t.replace("polish_updates = 1", "polish_updates = -1"), "polish.updates must be >= 0"),
         (lambda t: t.replace("polish_lr = 1e-5", "polish_lr = 0.0"), r"polish_lr must be in \(0, 1\]"),
-        (lambda t: t.replace("sizes = [3, 4]", "sizes = [3, 4]\npolish_updates = 3"), "only train and curriculum"),
+        (lambda t: t.replace("sizes = [3, 4]", "sizes = [3, 4]\npolish_updates = 3"), r"unknown keys \['polish_u"),
         (lambda t: t.replace('init_from = "train-cov"\n', "init_agents = 2\n"), "set init_from too"),
     ],
 )
 def test_bad_init_from_and_polish_name_the_cell_and_the_key(tmp_path, edit, message):
     with pytest.raises(SpecError, match=message):
         load_spec(write_spec(tmp_path, text=edit(CHAIN)))
+
+
+# --- a cell's identity: the schema, its one migration, and fields added later ---------------
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+COMMITTED = {"paper": "results/reproduce", "recipe": "results/reproduce-recipe", "beyond": "results/reproduce-beyond"}
+
+
+def test_every_committed_result_matches_its_cell():
+    """The results under results/ (schema 1 definitions) read as done by today's cells."""
+    import glob
+
+    from reproduce.spec import canonical
+
+    found = 0
+    for name, rel in COMMITTED.items():
+        spec, root = load_spec(name), os.path.join(ROOT, rel)
+        for path in sorted(glob.glob(os.path.join(root, "*", "s*", cells_mod.RESULT))):
+            cell = spec.cell(path.split(os.sep)[-3])
+            seed = int(path.split(os.sep)[-2][1:])
+            result = cells_mod.read_result(root, cell, seed, spec.cell(cell.needs) if cell.needs else None)
+            assert result is not None, path
+            assert canonical(result["definition"]) == cell.definition()
+            found += 1
+    assert found >= 50
+
+
+def test_a_field_added_with_a_default_leaves_stored_definitions_valid(tmp_path, monkeypatch):
+    """A stored definition lacks a field added since: it reads as the field's default (the
+    behaviour before it), with no list of such fields kept anywhere; a cell that sets the new
+    field to anything else is another experiment."""
+    from reproduce import spec as spec_mod
+
+    cell = load_spec(write_spec(tmp_path)).cell("train-cov")
+    stored = cell.definition()
+
+    @dataclasses.dataclass(frozen=True, kw_only=True)
+    class TrainPlus(spec_mod.Train):
+        new_option: int = 0
+
+    monkeypatch.setitem(spec_mod.RUNS, "train", TrainPlus)
+    fields = {f.name: getattr(cell.run, f.name) for f in dataclasses.fields(cell.run)}
+    now = dataclasses.replace(cell, run=TrainPlus(**fields))
+    assert now.definition()["new_option"] == 0 and "new_option" not in stored
+    cells_mod.check_same_definition("result.json", now, stored)  # still the same experiment
+    other = dataclasses.replace(cell, run=TrainPlus(**fields, new_option=1))
+    with pytest.raises(SpecError, match=r"differs in \['new_option'\]"):
+        cells_mod.check_same_definition("result.json", other, stored)
+
+
+def test_a_schema_1_definition_migrates_to_the_current_one(tmp_path):
+    from reproduce.spec import SCHEMA_VERSION, canonical, migrate
+
+    cell = load_spec(write_spec(tmp_path)).cell("train-cov")
+    old = {  # what a version-1 Cell.definition() wrote for this cell
+        "id": "train-cov", "kind": "train", "task": "coverage", "comm": "uc", "comm_radius": 1.0,
+        "entity_mode": "emp", "preset": "fast", "ppo": {"num_envs": 4, "num_steps": 8, "minibatches": 1, "epochs": 1},
+        "agents": 2, "updates": 3, "sizes": [], "threshold": 0.85, "max_updates_per_stage": 4000, "source": "",
+        "source_agents": 0, "eval_every": 2, "eval_episodes": 10, "final_episodes": 12, "eval_seed": 777,
+        "checkpoint_every": 1, "compile": False,
+    }  # fmt: skip
+    assert migrate(old, 1)["schema"] == SCHEMA_VERSION and canonical(old) == cell.definition()
+    with pytest.raises(SpecError, match=r"differs in \['ppo.epochs'\]"):
+        cells_mod.check_same_definition("result.json", cell, {**old, "ppo": {**old["ppo"], "epochs": 2}})
+    with pytest.raises(SpecError, match="schemas 1 to"):
+        canonical({**cell.definition(), "schema": SCHEMA_VERSION + 1})

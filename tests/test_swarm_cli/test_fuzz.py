@@ -313,7 +313,8 @@ def test_tyro_refusals_are_one_line(tiny_policy):
 
 
 def test_spec_bounds_are_checked_before_a_dry_run(tmp_path):
-    from reproduce.spec import BASELINE_ALGORITHMS, SpecError, load_spec
+    from baselines.config import ALGORITHMS
+    from reproduce.spec import SpecError, load_spec
 
     head = 'name = "x"\ndescription = "x"\n[[cells]]\nid = "c"\ntable = 1\ntask = "coverage"\ncomm = "uc"\n'
     train = head + 'kind = "train"\nupdates = 2\n'
@@ -324,7 +325,7 @@ def test_spec_bounds_are_checked_before_a_dry_run(tmp_path):
         (train + "agents = 3\npolish_updates = 2\npolish_lr = inf\n", "polish_lr"),
         (train + "agents = 3\nfinal_episodes = 1_000_000_000\n", "final_episodes"),
         (baseline + 'algorithm = "ppo2"\n', "algorithm"),
-        (baseline + 'algorithm = "mappo"\nbaseline_options = { num_envs = 1_000_000_000_000 }\n', "num_envs"),
+        (baseline + 'algorithm = "mappo"\nnum_envs = 1_000_000_000_000\n', "num_envs"),
     ):
         spec = tmp_path / "spec.toml"
         spec.write_text(body)
@@ -334,7 +335,7 @@ def test_spec_bounds_are_checked_before_a_dry_run(tmp_path):
         from benchmarl.algorithms import algorithm_config_registry
     except ImportError:
         return
-    assert tuple(sorted(algorithm_config_registry)) == BASELINE_ALGORITHMS
+    assert tuple(sorted(algorithm_config_registry)) == ALGORITHMS
 
 
 def test_sizes_and_hangs_are_refused_up_front(tiny_policy, tmp_path):
