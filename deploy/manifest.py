@@ -17,11 +17,11 @@ import json
 import jsonschema
 
 from taichi_swarm import COMMS, TASKS
+from taichi_swarm.layout import ENTITY_MODES
 
 MANIFEST = "manifest.json"
 FORMAT = "taichi-swarm-onnx"
 VERSION = 1
-ENTITY_MODES = ("emp", "concat", "padded")
 PIECES = ("encode", "round", "round_heads", "heads")
 
 _POSITIVE_INT = {"type": "integer", "minimum": 1}
