@@ -508,7 +508,8 @@ class BenchTrainOptions:
 
 @dataclass(kw_only=True)
 class BenchDeployOptions:
-    """Per-agent decentralised execution latency: onnxruntime against torch eager."""
+    """Per-agent decision latency (onnxruntime against torch eager) and the executor's shared
+    sessions against per-agent sessions."""
 
     checkpoint: Annotated[str | None, Default("a random-init policy")] = None
     """a checkpoint to time"""
@@ -518,9 +519,13 @@ class BenchDeployOptions:
     """L"""
     repeats: int = 3000
     """timed agent-steps per backend"""
+    envs: int = 20
+    """teams B of the executor comparison (B x M agents)"""
+    steps: int = 20
+    """timed executor decision steps per variant"""
     json: str | None = None
     """also write the result to this JSON file"""
 
     def __post_init__(self):
-        for name in ("agents", "landmarks", "repeats"):
+        for name in ("agents", "landmarks", "repeats", "envs", "steps"):
             at_least(getattr(self, name), 1, name)
