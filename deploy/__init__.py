@@ -1,9 +1,12 @@
 """deploy: decentralised execution of trained swarm policies.
 
     swarm export CKPT --out DIR      per-agent ONNX pieces + manifest.json   (deploy/export.py, uses torch)
-    swarm execute DIR --task ...     one onnxruntime agent object per agent, a message bus along the
-                                     communication graph, drops and delays  (deploy/executor.py, no torch)
-    swarm replay FILE.rrd            Rerun recordings of rollouts            (deploy/recording.py, deploy/replay.py)
+    swarm execute DIR --task ...     agent by agent through one onnxruntime session per piece, a message
+                                     bus along the communication graph, drops and delays
+                                     (deploy/executor.py, no torch)
+    --record FILE.npz / --video      a rollout recorded once as per-step state (deploy/trajectory.py);
+                                     Rerun .rrd and GIF/MP4 drawn from it     (deploy/recording.py, deploy/video.py)
+    swarm replay FILE.npz            reads that record: --stats, --video, --rrd, the viewer  (deploy/replay.py)
     swarm agent DIR --id I           one agent as its own process, and the simulator as the world of
     swarm world --export DIR         such processes, over Zenoh (deploy/net/, docs/DEPLOY.md)
 

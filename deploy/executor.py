@@ -1,8 +1,10 @@
 """Decentralised execution of exported policies (``swarm execute``); never imports torch.
 
-Every agent is its own ``Agent`` object with its own onnxruntime sessions (one
-thread each) and sees only its own observation: own state [4] and landmark
-offsets [L, 2]. Per simulator step (K rounds, manifest "schedule"):
+Every agent sees only its own observation: own state [4] and landmark offsets [L, 2],
+and the messages that reach it. The decentralisation is in that data flow, not in the
+number of sessions: the ONNX pieces hold only weights, so one onnxruntime session per
+piece (``Pieces``) runs every agent, each call on one agent's own arrays. Per simulator
+step (K rounds, manifest "schedule"):
 
     encode(own obs)               -> h, message            (message = key [H], value [H])
     rounds 1..K-1: send message along the graph, round(h, heard) -> h, next message
@@ -128,41 +130,39 @@ def session_options(threads: int = 1) -> ort.SessionOptions:
     return opts
 
 
-class Agent:
-    """One agent: its own sessions, its own hidden state, its own observation only."""
+class Pieces:
+    """The exported ONNX pieces, one onnxruntime session each. Sessions hold only weights, so
+    they are stateless functions of the arrays passed in: one ``Pieces`` serves every agent of
+    every environment (``Executor``), or the one agent of a process (``swarm agent``); an agent's
+    state (h, its message) lives in the caller's arrays, and what it computes from is its own."""
 
-    def __init__(self, agent_id: int, model: ExportedModel, threads: int = 1):
-        self.id = agent_id
+    def __init__(self, model: ExportedModel, threads: int = 1):
         self.rounds = model.rounds
         opts = session_options(threads)
-        providers = ["CPUExecutionProvider"]
-        self._encode = ort.InferenceSession(model.models["encode"], opts, providers=providers)
-        self._round = (
-            ort.InferenceSession(model.models["round"], opts, providers=providers) if self.rounds > 1 else None
-        )
-        final = "round_heads" if self.rounds >= 1 else "heads"
-        self._final = ort.InferenceSession(model.models[final], opts, providers=providers)
+
+        def session(name):
+            return ort.InferenceSession(model.models[name], opts, providers=["CPUExecutionProvider"])
+
+        self._encode = session("encode")
+        self._round = session("round") if self.rounds > 1 else None
+        self._final = session("round_heads" if self.rounds >= 1 else "heads")
         self._encode_out = ["h", "message"]
         self._round_out = ["h_out", "message"]  # fetch only what is used: each output costs a copy
-        self.h: np.ndarray | None = None  # [H]
-        self.message: np.ndarray | None = None  # [2, H]: key, value
 
-    def encode(self, self_obs: np.ndarray, entities: np.ndarray) -> np.ndarray:
-        """self_obs [4], entities [L, 2] -> the first message [2, H]."""
-        self.h, self.message = self._encode.run(self._encode_out, {"self_obs": self_obs, "entities": entities})
-        return self.message
+    def encode(self, self_obs: np.ndarray, entities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """self_obs [4], entities [L, 2] -> (h [H], the first message [2, H])."""
+        return self._encode.run(self._encode_out, {"self_obs": self_obs, "entities": entities})
 
-    def round(self, heard: np.ndarray) -> np.ndarray:
-        """A round that is not the last: heard [n, 2, H] (from others) -> the next message [2, H]."""
-        self.h, self.message = self._round.run(self._round_out, {"h": self.h, "heard": heard})
-        return self.message
+    def round(self, h: np.ndarray, heard: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A round that is not the last: h [H], heard [n, 2, H] (from others) -> (h, next message [2, H])."""
+        return self._round.run(self._round_out, {"h": h, "heard": heard})
 
-    def decide(self, heard: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def decide(self, h: np.ndarray, heard: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The last round and the heads -> (logits [5], attention weights [n + 1], own first)."""
         if self.rounds == 0:
-            logits, _ = self._final.run(None, {"h": self.h})
+            logits, _ = self._final.run(None, {"h": h})
             return logits, np.ones(1, np.float32)
-        logits, weights = self._final.run(["logits", "weights"], {"h": self.h, "heard": heard})
+        logits, weights = self._final.run(["logits", "weights"], {"h": h, "heard": heard})
         return logits, weights
 
 
@@ -218,7 +218,11 @@ class MessageBus:
 
 
 class Executor:
-    """B teams of M ``Agent`` objects and their message bus; ``decide`` is one decision step."""
+    """B teams of M agents and their message bus; ``decide`` is one decision step.
+
+    The agents share one ``Pieces`` (one session per ONNX piece) and keep their state in
+    per-agent rows of arrays: h [B, M, H], messages [B, M, 2, H]. Every call runs one agent's
+    piece on its own row: its own observation, the messages the bus delivered to it."""
 
     def __init__(
         self,
@@ -236,7 +240,7 @@ class Executor:
             raise DeployError(f"episodes must be >= 1, got {num_envs}")
         self.model = model
         self.B, self.M, self.K = num_envs, num_agents, model.rounds
-        self.teams = [[Agent(i, model, threads) for i in range(num_agents)] for _ in range(num_envs)]
+        self.pieces = Pieces(model, threads)
         self.bus = MessageBus(num_envs, num_agents, self.K, drop, delay, seed)
 
     def decide(
@@ -256,6 +260,7 @@ class Executor:
         if (adj is None) == (nbr is None) or (nbr is not None and nbr_mask is None):
             raise DeployError("decide takes the graph either dense (adj) or as lists (nbr with nbr_mask)")
         B, M, H = self.B, self.M, self.model.hidden
+        pieces = self.pieces
         self_obs = np.ascontiguousarray(self_obs, dtype=np.float32)
         entities = np.ascontiguousarray(entities, dtype=np.float32)
         lists = nbr is not None
@@ -266,19 +271,20 @@ class Executor:
         sensed = None if entity_mask is None else np.asarray(entity_mask, dtype=bool)
         if sensed is not None and self.model.entity_mode == "padded":  # an unsensed slot is a zero slot
             entities, sensed = entities * sensed[..., None], None
+        h = np.empty((B, M, H), np.float32)
         messages = np.empty((B, M, 2, H), np.float32)
-        for b, team in enumerate(self.teams):
-            for i, agent in enumerate(team):
+        for b in range(B):
+            for i in range(M):
                 own = entities[b, i] if sensed is None else np.ascontiguousarray(entities[b, i][sensed[b, i]])
-                messages[b, i] = agent.encode(self_obs[b, i], own)
+                h[b, i], messages[b, i] = pieces.encode(self_obs[b, i], own)
         logits = np.empty((B, M, 5), np.float32)
         K = nbr.shape[-1] if lists else 0
         # lists: slot 0 is the agent itself, slot 1 + k its k-th listed neighbour
         attention = np.zeros((B, M, 1 + K) if lists else (B, M, M), np.float32)
         if self.K == 0:
-            for b, team in enumerate(self.teams):
-                for i, agent in enumerate(team):
-                    logits[b, i], _ = agent.decide(None)
+            for b in range(B):
+                for i in range(M):
+                    logits[b, i], _ = pieces.decide(h[b, i], None)
                     attention[b, i, 0 if lists else i] = 1.0
         for r in range(self.K):
             if lists:
@@ -287,13 +293,13 @@ class Executor:
                 arrived, edges = self.bus.exchange(r, messages, adj)
             last = r == self.K - 1
             nxt = messages if last else np.empty_like(messages)
-            for b, team in enumerate(self.teams):
-                for i, agent in enumerate(team):
+            for b in range(B):
+                for i in range(M):
                     slots = np.flatnonzero(edges[b, i])
                     senders = listed[b, i, slots] if lists else slots
-                    heard = arrived[b, senders]  # [n, 2, H]
+                    heard = arrived[b, senders]  # [n, 2, H]: only what reached agent i
                     if last:
-                        logits[b, i], w = agent.decide(heard)
+                        logits[b, i], w = pieces.decide(h[b, i], heard)
                         if lists:
                             attention[b, i, 0] = w[0]
                             attention[b, i, 1 + slots] = w[1:]
@@ -301,7 +307,7 @@ class Executor:
                             attention[b, i, i] = w[0]
                             attention[b, i, senders] = w[1:]
                     else:
-                        nxt[b, i] = agent.round(heard)
+                        h[b, i], nxt[b, i] = pieces.round(h[b, i], heard)
             messages = nxt
         return logits, logits.argmax(-1).astype(np.int64), attention
 

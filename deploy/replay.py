@@ -1,4 +1,5 @@
-"""``swarm replay FILE.rrd``: summarise a recording, or open it in a Rerun viewer."""
+"""``swarm replay FILE``: summarise a trajectory record (.npz) or a Rerun recording (.rrd), or
+open it in a Rerun viewer (a trajectory record is drawn into a temporary .rrd first)."""
 
 from __future__ import annotations
 
@@ -24,6 +25,30 @@ def looks_like_rrd(path: str) -> bool:
     """True if the file starts with Rerun's RRD magic bytes."""
     with open(path, "rb") as f:
         return f.read(3) == b"RRF"
+
+
+def looks_like_npz(path: str) -> bool:
+    """True if the file starts like a zip archive, as .npz files (trajectory records) do."""
+    with open(path, "rb") as f:
+        return f.read(4) == b"PK\x03\x04"
+
+
+def format_trajectory(path: str, traj) -> str:
+    """A trajectory record in a few lines: setting, steps, and each drawn env's first episode."""
+    h, a = traj.header, traj.arrays
+    comm = f"rc {h['comm_radius']:g}" if h["comm"] == "rc" else h["comm"]
+    lines = [
+        f"{path}: trajectory record (schema {h['schema']}), {h['task']}, M={h['agents']}, {comm}, "
+        f"{h['drawn']} of {h['envs']} environments drawn, steps {int(a['step'][0])}..{int(a['step'][-1])}"
+        + (", with attention" if h["attention"] else "")
+    ]
+    outcomes = traj.outcomes()
+    for b in range(traj.drawn):
+        lines.append(f"  env {b}: {outcomes.get(b, 'episode not ended')}")
+    ended = a["end_step"] >= 0
+    if ended.any():
+        lines.append(f"  success rate over the {int(ended.sum())} ended episodes: {a['success'][ended].mean():.2f}")
+    return "\n".join(lines)
 
 
 def summarize(path: str) -> dict:

@@ -1,7 +1,9 @@
 """Offline videos of rollouts: GIF, MP4 or PNG frames, drawn with matplotlib (no display,
-no GPU). ``FrameRecorder`` has the recorder interface of ``deploy.recording``
-(``log_step`` / ``log_episode_ends`` / ``close``), so ``swarm eval`` and ``swarm
-execute`` fill it from the same rollout loop; ``close()`` renders the file.
+no GPU), rendered from the trajectory record (deploy/trajectory.py): ``frames`` turns a
+``Trajectory`` into the frames ``render`` draws. ``open_recorders`` is what ``swarm eval``,
+``swarm execute`` and ``swarm world`` call for ``--record`` / ``--video``: one
+``TrajectoryRecorder`` fed by the rollout loop, and on ``close()`` every asked-for output
+rendered from its one record.
 
 One panel per recorded environment in a grid (never overlaid): the arena, landmarks
 (grey), the current targets (black crosses) with the optimal assignment as thin
@@ -24,61 +26,31 @@ VIDEO_SUFFIXES = (".gif", ".mp4")
 TRAIL = 6  # steps of trail behind each agent
 
 
-class FrameRecorder:
-    """Collects the first ``num_drawn`` environments' states step by step; ``close()``
-    renders them to ``path`` (.gif, .mp4, or a directory for PNG frames)."""
+def frames(traj) -> list[dict]:
+    """The frames ``render`` draws, one per recorded step and one more with every finished
+    env marked (so the panels show their outcomes)."""
+    a = traj.arrays
+    out = [
+        {
+            "step": int(a["step"][t]),
+            "pos": a["pos"][t],
+            "landmarks": a["landmarks"][t],
+            "targets": a["targets"][t],
+            "adj": traj.adj(t),
+            "arena": float(a["arena"][t]),
+            "assignment": a["assignment"][t] if "assignment" in a else None,
+            "live": traj.live(t),
+        }
+        for t in range(traj.num_steps)
+    ]
+    out.append({**out[-1], "live": a["end_step"][: traj.drawn] < 0})
+    return out
 
-    def __init__(
-        self, path: str, task: str, num_envs: int, num_agents: int, num_drawn: int = 4, comm_radius=None, fps=10
-    ):
-        check_video_path(path)
-        self.path, self.task, self.fps = path, task, fps
-        self.num_agents = int(num_agents)
-        self.drawn = max(1, min(int(num_drawn), int(num_envs)))
-        self.comm_radius = comm_radius
-        self.frames: list[dict] = []
-        self._ended = np.zeros(int(num_envs), bool)
-        self._outcome: dict[int, str] = {}
 
-    def log_step(self, step: int, env, actions=None, attention=None) -> None:
-        from deploy.recording import comm_graph, to_numpy  # deploy.recording imports rerun: only when recording
-
-        D = self.drawn
-        state = env.get_state()
-        assignment = to_numpy(env.assignment)[:D] if hasattr(env, "assignment") else None
-        self.frames.append(
-            {
-                "step": int(step),
-                "pos": to_numpy(state["pos"])[:D].copy(),
-                "landmarks": to_numpy(state["landmarks"])[:D].copy(),
-                "targets": to_numpy(env.targets)[:D].copy(),
-                "adj": comm_graph(env.obs, D),
-                "arena": float(getattr(env, "arena", 1.0)),  # half side (scale="density" grows it)
-                "assignment": None if assignment is None else assignment.copy(),
-                "live": ~self._ended[:D].copy(),
-            }
-        )
-
-    def log_episode_ends(self, step: int, mask, episode_info: dict) -> None:
-        from deploy.recording import to_numpy
-
-        mask = to_numpy(mask).astype(bool)
-        success = to_numpy(episode_info["success"]).astype(bool)
-        length = to_numpy(episode_info["length"])
-        for b in np.flatnonzero(mask):
-            if not self._ended[b] and b < self.drawn:
-                self._outcome[int(b)] = f"{'success' if success[b] else 'failed'} at step {int(length[b])}"
-            self._ended[b] = True
-
-    def close(self, ok: bool = True) -> None:
-        """Render the video, if ``ok`` (a failed run renders nothing: its error is the news)."""
-        if not ok:
-            return
-        if self.frames:  # one more frame with every finished env marked, so panels show outcomes
-            last = dict(self.frames[-1])
-            last["live"] = ~self._ended[: self.drawn].copy()
-            self.frames.append(last)
-        render(self.frames, self.path, self.task, self.num_agents, self._outcome, self.comm_radius, self.fps)
+def render_trajectory(traj, path: str, fps: int = 10) -> str:
+    """``traj`` (a Trajectory) -> the video ``path``."""
+    h = traj.header
+    return render(frames(traj), path, h["task"], int(h["agents"]), traj.outcomes(), traj.comm_radius, fps)
 
 
 def check_video_path(path: str) -> None:
@@ -113,7 +85,7 @@ MAX_RADIUS_CIRCLES = 50  # RC's radius drawn round each agent up to this many
 
 
 def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=None, comm_radius=None, fps=10):
-    """Draw ``frames`` (as FrameRecorder collects them) into ``path``; returns ``path``."""
+    """Draw ``frames`` (as ``frames`` makes them from a trajectory record) into ``path``; returns ``path``."""
     if not frames:
         raise ValueError("nothing to render: no steps were recorded")
     import matplotlib
@@ -226,135 +198,47 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
 
 
 def open_recorders(args, task: str, episodes: int, agents: int, comm: str, comm_radius: float):
-    """The recorders ``args.record`` (Rerun) and ``args.video`` ask for (``args``: any object
-    with ``record``, ``video`` and ``record_envs``, e.g. swarm_cli.options.OutputOptions), or
+    """The recorder ``args.record`` and ``args.video`` ask for (``args``: any object with
+    ``record``, ``video`` and ``record_envs``, e.g. swarm_cli.options.OutputOptions), or
     None; the video path is checked before any episode runs."""
     if args.record_envs < 1:
         raise ValueError(f"--record-envs must be >= 1, got {args.record_envs}")
     if not (args.record or args.video):
         return None
-    from deploy.recording import RolloutRecorder
+    from deploy.trajectory import TrajectoryRecorder
 
-    radius = comm_radius if comm == "rc" else None
-    rrd = video = None
     if args.video:
-        video = FrameRecorder(args.video, task, episodes, agents, args.record_envs, radius)
-    if args.record:
-        rrd = RolloutRecorder(args.record, task, episodes, agents, max_envs_drawn=args.record_envs, comm_radius=radius)
-    recorders = Recorders(rrd, video)
-    recorders.outputs = [(k, out) for k, out in (("recording", args.record), ("video", args.video)) if out]
-    recorders.drawn, recorders.episodes = min(args.record_envs, episodes), episodes
-    return recorders
+        check_video_path(args.video)
+    outputs = [(k, out) for k, out in (("recording", args.record), ("video", args.video)) if out]
+    return Recording(TrajectoryRecorder(task, episodes, agents, args.record_envs, comm, comm_radius), outputs)
 
 
-class Recorders:
-    """Several recorders fed by one rollout loop (e.g. a Rerun file and a GIF)."""
+class Recording:
+    """One rollout's recorder (a TrajectoryRecorder) and the files to render from its record:
+    ("recording", FILE.npz: the record itself, else a Rerun .rrd), ("video", FILE)."""
 
-    def __init__(self, *recorders):
-        self.recorders = [r for r in recorders if r is not None]
-        self.outputs: list[tuple[str, str]] = []  # (kind, path) to report after close
-        self.drawn = self.episodes = 0
+    def __init__(self, recorder, outputs: list[tuple[str, str]]):
+        self.recorder = recorder
+        self.outputs = outputs
+        self.drawn, self.episodes = recorder.drawn, recorder.num_envs
+        self.log_step, self.log_episode_ends = recorder.log_step, recorder.log_episode_ends
 
     def report(self) -> None:
         """Say what was written and how many environments it draws."""
         for kind, out in self.outputs:
             print(f"{kind}: {out} ({self.drawn} of {self.episodes} environments drawn; --record-envs to change)")
 
-    def log_step(self, *args, **kwargs) -> None:
-        for r in self.recorders:
-            r.log_step(*args, **kwargs)
-
-    def log_episode_ends(self, *args, **kwargs) -> None:
-        for r in self.recorders:
-            r.log_episode_ends(*args, **kwargs)
-
     def close(self, ok: bool = True) -> None:
         """``ok``: the rollout ended normally (else nothing is written, nothing replaced)."""
-        for r in self.recorders:
-            r.close(ok)
+        if not ok:
+            return
+        traj = self.recorder.trajectory()
+        for kind, out in self.outputs:
+            if kind == "video":
+                render_trajectory(traj, out)
+            elif out.lower().endswith(".npz"):
+                traj.save(out)
+            else:
+                from deploy.recording import write_rrd
 
-
-def frames_from_recording(path: str) -> tuple[list[dict], str, int, dict]:
-    """Rebuild FrameRecorder's frames from a Rerun recording written by ``--record``
-    (agents, landmarks, targets and communication edges of every drawn environment).
-    Returns (frames, task, M, outcomes)."""
-    import re
-
-    from rerun.chunk import RrdReader
-
-    data: dict[tuple[int, str], dict[int, object]] = {}  # (env, kind) -> step -> value
-    task = "swarm"
-    try:
-        chunks = list(RrdReader(path).stream())
-    except Exception as exc:  # noqa: BLE001 - the reader raises RuntimeError and others on a bad file
-        raise ValueError(f"cannot read {path} as a Rerun recording ({exc})") from None
-    for chunk in chunks:
-        m = re.fullmatch(r"/env_(\d+)(?:/(.+))?", chunk.entity_path)
-        if not m:
-            continue
-        b, kind = int(m.group(1)), m.group(2) or ""
-        rb = chunk.to_record_batch()
-        names = rb.schema.names
-        if kind == "" and "TextDocument:text" in names:
-            text = rb.column("TextDocument:text").to_pylist()[0]
-            task = str(text[0] if isinstance(text, list) else text).split(",")[0]
-            continue
-        if "step" not in names:
-            continue
-        column = {
-            "agents": "Points2D:positions",
-            "landmarks": "Points2D:positions",
-            "targets": "Points2D:positions",
-            "comm": "LineStrips2D:strips",
-            "episode/success": "Scalars:scalars",
-            "episode/length": "Scalars:scalars",
-        }.get(kind)
-        if column is None or column not in names:
-            continue
-        for step, value in zip(rb.column("step").to_pylist(), rb.column(column).to_pylist(), strict=True):
-            if value is not None:
-                data.setdefault((b, kind), {})[int(step)] = value
-    envs = sorted({b for b, kind in data if kind == "agents"})
-    if not envs:
-        raise ValueError(f"{path} holds no drawn environments (was it written by --record?)")
-    steps = sorted({s for b in envs for s in data[(b, "agents")]})
-    M = len(next(iter(data[(envs[0], "agents")].values())))
-    outcomes = {}
-    for i, b in enumerate(envs):
-        if (b, "episode/success") in data:
-            (end, success), *_ = data[(b, "episode/success")].items()
-            length = int(next(iter(data.get((b, "episode/length"), {end: [end]}).values()))[0])
-            outcomes[i] = f"{'success' if success[0] > 0.5 else 'failed'} at step {length}"
-    frames, last = [], {}
-    for step in steps:
-        pos, lmk, tgt, adj, live = [], [], [], [], []
-        for b in envs:
-            here = step in data[(b, "agents")]
-            if here:
-                p = np.asarray(data[(b, "agents")][step], np.float32)
-                a = np.eye(M, dtype=bool)
-                for seg in data.get((b, "comm"), {}).get(step, []) or []:
-                    ij = [int(np.argmin(np.abs(p - np.asarray(pt, np.float32)).sum(-1))) for pt in seg]
-                    a[ij[0], ij[1]] = a[ij[1], ij[0]] = True
-                last[(b, "agents")], last[(b, "adj")] = p, a
-                for kind in ("landmarks", "targets"):  # logged every step; keep the last if absent
-                    value = data.get((b, kind), {}).get(step, last.get((b, kind), np.zeros((0, 2))))
-                    last[(b, kind)] = np.asarray(value, np.float32)
-            pos.append(last[(b, "agents")])
-            adj.append(last[(b, "adj")])
-            lmk.append(last[(b, "landmarks")])
-            tgt.append(last[(b, "targets")])
-            live.append(here)
-        frames.append(
-            {
-                "step": step,
-                "pos": np.stack(pos),
-                "landmarks": np.stack(lmk) if len({x.shape for x in lmk}) == 1 else np.stack([lmk[0]] * len(lmk)),
-                "targets": np.stack(tgt),
-                "adj": np.stack(adj),
-                "assignment": None,
-                "live": np.array(live),
-            }
-        )
-    frames.append({**frames[-1], "live": np.zeros(len(envs), bool)})
-    return frames, task, M, outcomes
+                write_rrd(traj, out)

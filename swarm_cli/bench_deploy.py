@@ -1,12 +1,18 @@
-"""``swarm bench deploy``: per-agent decision latency, onnxruntime vs torch eager.
+"""``swarm bench deploy``: per-agent decision latency, onnxruntime vs torch eager; and the
+executor's shared sessions vs one set of sessions per agent.
 
 One agent's decision at batch 1: encode (own state, L landmark offsets) + K
 communication rounds over n messages heard (its own included) + heads, i.e.
-exactly what each ``deploy.executor.Agent`` does per step (``calls_per_step``
+exactly what ``deploy.executor.Pieces`` runs per agent and step (``calls_per_step``
 onnxruntime calls: encode, K - 1 rounds, fused last round + heads). torch runs
 the same pieces of ``SwarmPolicy`` eagerly (``set_num_threads(1)``,
 ``no_grad``). Both get the same inputs; medians over many repetitions.
 Target: <= 0.3 ms per agent-step with onnxruntime; the speedup over torch eager is printed as measured.
+
+The executor comparison runs ``Executor.decide`` on B teams of M agents ("uc") twice: as
+it is (one session per ONNX piece, shared by all B x M agents) and with every agent
+given its own sessions (``_PerAgentSessions``, the reference kept only here). The code
+path and the arithmetic are the same, the actions equal; only the sessions differ.
 """
 
 from __future__ import annotations
@@ -47,6 +53,8 @@ def run(
     repeats: int = 3000,
     warmup: int = 300,
     seed: int = 0,
+    envs: int = 20,
+    steps: int = 20,
 ) -> dict:
     """Time one agent-step both ways; returns the numbers and the verdicts."""
     import logging
@@ -54,7 +62,7 @@ def run(
     import onnxruntime
     import torch
 
-    from deploy.executor import Agent, ExportedModel
+    from deploy.executor import ExportedModel, Pieces
     from deploy.export import export
     from trainer import checkpoint as ckpt
     from trainer.model import ModelConfig, SwarmPolicy
@@ -89,13 +97,13 @@ def run(
     entities = rng.normal(size=(L, 2)).astype(np.float32)  # [L, 2]
     heard = rng.normal(size=(n, 2, H)).astype(np.float32)  # [n, 2, H]: key, value of each neighbour
 
-    agent = Agent(0, model, threads=1)
+    pieces = Pieces(model, threads=1)
 
     def onnx_step():
-        agent.encode(self_obs, entities)
+        h, _ = pieces.encode(self_obs, entities)
         for _ in range(K - 1):
-            agent.round(heard)
-        return agent.decide(heard)[0]
+            h, _ = pieces.round(h, heard)
+        return pieces.decide(h, heard)[0]
 
     t_obs, t_ent = torch.from_numpy(self_obs), torch.from_numpy(entities)
     t_keys, t_values = torch.from_numpy(heard[:, 0].copy()), torch.from_numpy(heard[:, 1].copy())
@@ -114,6 +122,7 @@ def run(
     np.testing.assert_allclose(onnx_step(), torch_step().numpy(), atol=1e-4)  # same computation
     onnx_ms, torch_ms = _interleaved_median_ms([onnx_step, torch_step], repeats, warmup)
     speedup = torch_ms / onnx_ms
+    executor = executor_ab(model, envs, agents, L, steps, seed)
     return {
         "source": source,
         "agents": agents,
@@ -127,6 +136,7 @@ def run(
         "torch_ms": torch_ms,
         "speedup": speedup,
         "pass_latency": onnx_ms <= TARGET_MS,
+        "executor": executor,
         "versions": {
             "torch": torch.__version__,
             "onnxruntime": onnxruntime.__version__,
@@ -134,6 +144,75 @@ def run(
         },
         "machine": f"{platform.machine()}, {os.cpu_count()} cores",
     }
+
+
+class _PerAgentSessions:
+    """The reference: every agent of every team its own ``Pieces`` (own sessions). ``Executor``
+    calls its pieces agent by agent, b-major, B x M calls in every phase, so the k-th call of
+    a step is agent k mod (B x M)'s and goes to that agent's sessions."""
+
+    def __init__(self, model, agents: int):
+        from deploy.executor import Pieces
+
+        self.agents = [Pieces(model) for _ in range(agents)]
+        self.k = 0
+
+    def _next(self):
+        pieces = self.agents[self.k]
+        self.k = (self.k + 1) % len(self.agents)
+        return pieces
+
+    def encode(self, *args):
+        return self._next().encode(*args)
+
+    def round(self, *args):
+        return self._next().round(*args)
+
+    def decide(self, *args):
+        return self._next().decide(*args)
+
+
+def _rss_mb() -> float | None:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return None  # not Linux: memory is left out
+
+
+def executor_ab(model, envs: int, agents: int, landmarks: int, steps: int, seed: int = 0) -> dict:
+    """Setup time, resident memory and ms per decision step of ``Executor`` with shared vs
+    per-agent sessions, on the same observations (timed in alternating steps)."""
+    from deploy.executor import Executor
+
+    B, M = envs, agents
+    rng = np.random.default_rng(seed)
+    self_obs = rng.normal(size=(B, M, 4)).astype(np.float32)
+    entities = rng.normal(size=(B, M, landmarks, 2)).astype(np.float32)
+    adj = np.ones((B, M, M), bool)
+    built = {}
+    for name in ("shared", "per_agent"):
+        rss, t0 = _rss_mb(), time.perf_counter()
+        ex = Executor(model, B, M, seed=seed)
+        if name == "per_agent":
+            ex.pieces = _PerAgentSessions(model, B * M)
+        setup = time.perf_counter() - t0
+        memory = None if rss is None else _rss_mb() - rss
+        built[name] = (ex, setup, memory)
+    shared, per_agent = built["shared"][0], built["per_agent"][0]
+    a, b = shared.decide(self_obs, entities, adj), per_agent.decide(self_obs, entities, adj)
+    np.testing.assert_array_equal(a[1], b[1])  # the same actions: only the sessions differ
+    np.testing.assert_allclose(a[0], b[0], atol=1e-6)
+    ms = _interleaved_median_ms(
+        [lambda: shared.decide(self_obs, entities, adj), lambda: per_agent.decide(self_obs, entities, adj)],
+        repeats=steps, warmup=1, block=1,
+    )  # fmt: skip
+    out = {"envs": B, "agents": M, "steps": steps}
+    for (name, (_, setup, memory)), step_ms in zip(built.items(), ms, strict=True):
+        out[name] = {"setup_s": setup, "memory_mb": memory, "step_ms": step_ms}
+    pieces = 2 + (model.rounds > 1)  # encode, [round,] round_heads or heads
+    out["shared"]["sessions"], out["per_agent"]["sessions"] = pieces, B * M * pieces
+    return out
 
 
 def format_result(r: dict) -> str:
@@ -150,8 +229,33 @@ def format_result(r: dict) -> str:
             f"  {'torch eager ' + r['versions']['torch']:<26} {r['torch_ms']:>13.4f}",
             f"  speedup onnxruntime vs torch: {r['speedup']:.2f}x",
             f"  target <= {TARGET_MS} ms per agent-step: {verdict(r['pass_latency'])} ({r['onnxruntime_ms']:.3f} ms)",
+            *_format_executor(r["executor"]),
         ]
     )
+
+
+def _format_executor(e: dict) -> list[str]:
+    shared, ref = e["shared"], e["per_agent"]
+
+    def mb(v):
+        return "n/a" if v is None else f"{v:.0f}"
+
+    def ratio(key):
+        return f"{ref[key] / shared[key]:.2f}x" if ref[key] is not None and shared[key] else "n/a"
+
+    lines = [
+        f'executor ("uc"): B={e["envs"]} teams x M={e["agents"]} = {e["envs"] * e["agents"]} agents, '
+        f"median of {e['steps']} decision steps",
+        f"  {'sessions':<22} {'count':>7} {'setup s':>9} {'memory MB':>10} {'ms/step':>9}",
+    ]
+    for name, v in (("shared (executor)", shared), ("per agent (reference)", ref)):
+        lines.append(
+            f"  {name:<22} {v['sessions']:>7} {v['setup_s']:>9.3f} {mb(v['memory_mb']):>10} {v['step_ms']:>9.2f}"
+        )
+    lines.append(
+        f"  per agent / shared: setup {ratio('setup_s')}, memory {ratio('memory_mb')}, step {ratio('step_ms')}"
+    )
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -167,7 +271,10 @@ def main(argv: list[str] | None = None) -> int:
             from taichi_swarm.files import ensure_writable
 
             ensure_writable(args.json, "--json")  # before the benchmark, not after it
-        result = run(args.checkpoint, args.agents, args.landmarks, args.repeats, warmup=max(10, args.repeats // 10))
+        result = run(
+            args.checkpoint, args.agents, args.landmarks, args.repeats, warmup=max(10, args.repeats // 10),
+            envs=args.envs, steps=args.steps,
+        )  # fmt: skip
     except (CheckpointError, ValueError) as exc:
         return fail("swarm bench deploy", exc)
     print(format_result(result))

@@ -91,27 +91,26 @@ def execute_main(argv: list[str]) -> int:
 def replay_main(argv: list[str]) -> int:
     args = parse(ReplayOptions, argv, "swarm replay")
     if os.path.isdir(args.file):
-        return fail("swarm replay", f"{args.file} is a directory: pass the .rrd file written by --record")
+        return fail("swarm replay", f"{args.file} is a directory: pass the file written by --record")
     if not os.path.isfile(args.file):
         return fail("swarm replay", f"recording {args.file} does not exist")
     from deploy import replay
 
+    if replay.looks_like_npz(args.file):
+        return _replay_trajectory(args)
     if not replay.looks_like_rrd(args.file):
         return fail(
-            "swarm replay", f"{args.file} is not a Rerun recording (.rrd files start with 'RRF'; written by --record)"
+            "swarm replay",
+            f"{args.file} is neither a trajectory record (.npz) nor a Rerun recording (.rrd, starts with 'RRF'); "
+            "both are written by --record",
         )
-
-    if args.video:
-        from deploy.video import check_video_path, frames_from_recording, render
-
-        try:
-            check_video_path(args.video)
-            frames, task, M, outcomes = frames_from_recording(args.file)
-            render(frames, args.video, task, M, outcomes)
-        except (ValueError, OSError) as exc:
-            return fail("swarm replay", exc)
-        print(f"video: {args.video} ({frames[0]['pos'].shape[0]} environments, {len(frames) - 1} steps)")
-        return 0
+    if args.video or args.rrd:
+        # a Rerun file holds drawing primitives, not the state: nothing is parsed back from it
+        return fail(
+            "swarm replay",
+            f"{args.file} is a Rerun recording: --video and --rrd render a trajectory record; "
+            "record one with --record FILE.npz",
+        )
     if args.stats:
         try:
             summary = replay.summarize(args.file)
@@ -119,6 +118,56 @@ def replay_main(argv: list[str]) -> int:
             return fail("swarm replay", f"cannot read {args.file} as a Rerun recording ({exc})")
         print(replay.format_summary(summary))
         return 0
+    return _view(args, args.file)
+
+
+def _replay_trajectory(args) -> int:
+    """A trajectory record: --stats, --video, --rrd, or the viewer on a temporary .rrd of it."""
+    import tempfile
+
+    from deploy import replay
+    from deploy.trajectory import Trajectory
+
+    try:
+        if args.video:
+            from deploy.video import check_video_path
+
+            check_video_path(args.video)  # before the record is read
+        if args.rrd:
+            from taichi_swarm.files import ensure_writable
+
+            ensure_writable(args.rrd, "--rrd")
+        traj = Trajectory.load(args.file)
+        if args.stats:
+            print(replay.format_trajectory(args.file, traj))
+        if args.video:
+            from deploy.video import render_trajectory
+
+            render_trajectory(traj, args.video)
+            print(f"video: {args.video} ({traj.drawn} environments, {traj.num_steps} steps)")
+        if args.rrd:
+            from deploy.recording import write_rrd
+
+            write_rrd(traj, args.rrd)
+            print(f"recording: {args.rrd}")
+        if args.stats or args.video or args.rrd:
+            return 0
+        missing = _no_display(args)
+        if missing:
+            return missing
+        with tempfile.TemporaryDirectory(prefix="swarm-replay-") as tmp:
+            from deploy.recording import write_rrd
+
+            rrd = os.path.join(tmp, os.path.splitext(os.path.basename(args.file))[0] + ".rrd")
+            write_rrd(traj, rrd)
+            return _view(args, rrd)
+    except (ValueError, OSError) as exc:
+        return fail("swarm replay", exc)
+
+
+def _no_display(args) -> int:
+    from deploy import replay
+
     if not args.serve_web and not replay.has_display():
         return fail(
             "swarm replay",
@@ -126,4 +175,10 @@ def replay_main(argv: list[str]) -> int:
             "display and a GPU. Use `swarm replay FILE --serve-web` and open the printed URL, "
             "or `swarm replay FILE --stats` for a text summary",
         )
-    return replay.view(args.file, serve_web=args.serve_web, port=args.port)
+    return 0
+
+
+def _view(args, path: str) -> int:
+    from deploy import replay
+
+    return _no_display(args) or replay.view(path, serve_web=args.serve_web, port=args.port)

@@ -22,7 +22,7 @@ COMMANDS = {
     "reproduce": ("swarm_cli.reproduce:reproduce_main", "the paper's tables as one resumable run on Ray"),
     "import": ("swarm_cli.train:import_main", "convert a checkpoint of the paper authors' published format"),
     "export": ("swarm_cli.deploy:export_main", "export a checkpoint to per-agent ONNX models"),
-    "execute": ("swarm_cli.deploy:execute_main", "run exported models decentralised, one session per agent"),
+    "execute": ("swarm_cli.deploy:execute_main", "run exported models decentralised, agent by agent"),
     "replay": ("swarm_cli.deploy:replay_main", "play back or inspect a Rerun recording"),
     "agent": ("swarm_cli.net:agent_main", "run one agent of an export as its own process, over Zenoh"),
     "world": ("swarm_cli.net:world_main", "run the simulator as the world of agent processes (--spawn-agents)"),

@@ -179,7 +179,7 @@ class VideoOption:
 @dataclass(kw_only=True)
 class OutputOptions(VideoOption):
     record: str | None = None
-    """write a Rerun recording (.rrd) of the episodes"""
+    """record the episodes: FILE.npz the trajectory record (`swarm replay` reads it), else a Rerun .rrd"""
     record_envs: int = 4
     """environments drawn by --record / --video"""
 
@@ -365,12 +365,15 @@ class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
 
 @dataclass(kw_only=True)
 class ReplayOptions(VideoOption):
-    """Inspect a Rerun recording (--stats), render it (--video) or open it in a viewer."""
+    """Inspect a recording (--stats), render a trajectory record (--video, --rrd) or open either
+    in a Rerun viewer."""
 
     file: Annotated[str, Positional, tyro.conf.arg(metavar="FILE")]
-    """a .rrd file written by --record"""
+    """a trajectory record (.npz) or Rerun recording (.rrd) written by --record"""
     stats: bool = False
-    """print a summary (entity paths, rows, steps) and exit"""
+    """print a summary (the record's setting and outcomes; a .rrd's entity paths) and exit"""
+    rrd: str | None = None
+    """write the Rerun recording of a trajectory record to this .rrd file"""
     serve_web: bool = False
     """serve the web viewer on 127.0.0.1 (no GPU needed)"""
     port: int | None = None
@@ -508,7 +511,8 @@ class BenchTrainOptions:
 
 @dataclass(kw_only=True)
 class BenchDeployOptions:
-    """Per-agent decentralised execution latency: onnxruntime against torch eager."""
+    """Per-agent decision latency (onnxruntime against torch eager) and the executor's shared
+    sessions against per-agent sessions."""
 
     checkpoint: Annotated[str | None, Default("a random-init policy")] = None
     """a checkpoint to time"""
@@ -518,9 +522,13 @@ class BenchDeployOptions:
     """L"""
     repeats: int = 3000
     """timed agent-steps per backend"""
+    envs: int = 20
+    """teams B of the executor comparison (B x M agents)"""
+    steps: int = 20
+    """timed executor decision steps per variant"""
     json: str | None = None
     """also write the result to this JSON file"""
 
     def __post_init__(self):
-        for name in ("agents", "landmarks", "repeats"):
+        for name in ("agents", "landmarks", "repeats", "envs", "steps"):
             at_least(getattr(self, name), 1, name)

@@ -1,5 +1,5 @@
-"""One agent as a process (``swarm agent``): its own ONNX sessions, its own observation, its
-messages over Zenoh.
+"""One agent as a process (``swarm agent``): the ONNX pieces in its own sessions, its own
+observation, its messages over Zenoh.
 
 Per control step t (the world's OBS packet for this agent starts it), for each of the B
 worlds the packet covers (B = 1 on a robot):
@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from deploy.executor import Agent, DeployError, ExportedModel
+from deploy.executor import DeployError, ExportedModel, Pieces
 from deploy.net import protocol as P
 from deploy.net.faults import FaultSpec, LinkFaults
 from deploy.net.transport import Endpoint
@@ -55,7 +55,7 @@ class NetAgent:
             raise DeployError(f"--slow-ms must be >= 0, got {slow_ms}")
         self.id = agent_id
         self.model = model
-        self.agent = Agent(agent_id, model, threads)
+        self.pieces = Pieces(model, threads)
         self.H, self.K = model.hidden, model.rounds
         self.sha = model.manifest["manifest_sha256"]
         self.ep = endpoint
@@ -206,12 +206,11 @@ class NetAgent:
             return self._drop("foreign", f"an observation this export cannot take: {exc}")
         if self.slow_s:
             time.sleep(self.slow_s)
-        agent, H = self.agent, self.H
+        pieces, H = self.pieces, self.H
         messages = np.empty((B, 2, H), np.float32)
-        hs = np.empty((B, H), np.float32)
+        hs = np.empty((B, H), np.float32)  # this agent's state in each of the B worlds
         for b in range(B):
-            messages[b] = agent.encode(self_obs[b], entities[b])
-            hs[b] = agent.h
+            hs[b], messages[b] = pieces.encode(self_obs[b], entities[b])
         expected = hears.copy()
         expected[:, self.id] = False
         need = [set(np.flatnonzero(expected[b]).tolist()) for b in range(B)]
@@ -221,8 +220,7 @@ class NetAgent:
         attention = np.zeros((B, M), np.float32)
         if self.K == 0:
             for b in range(B):
-                agent.h = hs[b]
-                logits, _ = agent.decide(None)
+                logits, _ = pieces.decide(hs[b], None)
                 actions[b] = int(np.argmax(logits))
                 attention[b, self.id] = 1.0
         for r in range(self.K):
@@ -246,15 +244,13 @@ class NetAgent:
                 self.stats["msgs_heard"] += len(senders)
                 self.stats["missed"] += len(need[b]) - len(senders)
                 heard = np.stack([got[j] for j in senders]) if senders else np.zeros((0, 2, H), np.float32)
-                agent.h = hs[b]
                 if last:
-                    logits, w = agent.decide(heard)
+                    logits, w = pieces.decide(hs[b], heard)
                     actions[b] = int(np.argmax(logits))
                     attention[b, self.id] = w[0]
                     attention[b, senders] = w[1:]
                 else:
-                    nxt[b] = agent.round(heard)
-                    hs[b] = agent.h
+                    hs[b], nxt[b] = pieces.round(hs[b], heard)
             messages = nxt
         for key in [k for k in self.box if k[0] <= h.step]:
             del self.box[key]

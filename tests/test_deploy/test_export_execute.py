@@ -21,7 +21,7 @@ import pytest
 import torch
 
 import taichi_swarm
-from deploy.executor import Agent, DeployError, Executor, ExportedModel, MessageBus
+from deploy.executor import DeployError, Executor, ExportedModel, MessageBus, Pieces
 from deploy.export import export
 from swarm_cli.deploy import execute_main, export_main
 from trainer import checkpoint
@@ -135,6 +135,24 @@ def test_concat_mode_matches_torch(concat, M):
         _assert_parity(policy, executor, _uc(obs))
 
 
+def test_one_session_per_piece_for_every_agent(emp, monkeypatch):
+    """B x M agents share one session per ONNX piece (the sessions hold only weights); what
+    keeps them apart is that each call gets one agent's arrays (the parity tests above)."""
+    import onnxruntime
+
+    opened = []
+    real = onnxruntime.InferenceSession
+
+    def counting(*args, **kwargs):
+        opened.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(onnxruntime, "InferenceSession", counting)
+    _, directory = emp
+    Executor(ExportedModel(directory), num_envs=50, num_agents=10)
+    assert len(opened) == 3  # encode, round, round_heads (K = 3)
+
+
 def test_all_messages_dropped_equals_hearing_only_itself(emp):
     """drop = 1: every agent hears only itself, i.e. the torch policy with adj = identity."""
     policy, directory = emp
@@ -171,13 +189,12 @@ def test_zero_neighbour_round(emp):
     isolated agent (adj row = only itself) in the batched torch policy."""
     policy, directory = emp
     model = ExportedModel(directory)
-    agent = Agent(0, model)
+    pieces = Pieces(model)
     H = model.hidden
     rng = np.random.default_rng(0)
-    agent.encode(rng.normal(size=4).astype(np.float32), rng.normal(size=(3, 2)).astype(np.float32))
-    h = agent.h.copy()
+    h, _ = pieces.encode(rng.normal(size=4).astype(np.float32), rng.normal(size=(3, 2)).astype(np.float32))
     nothing = np.zeros((0, 2, H), np.float32)
-    h_out, message, weights = agent._round.run(None, {"h": h, "heard": nothing})
+    h_out, message, weights = pieces._round.run(None, {"h": h, "heard": nothing})
     assert weights.shape == (1,) and message.shape == (2, H)
     np.testing.assert_allclose(weights, [1.0], atol=1e-6)
     with torch.no_grad():
@@ -187,7 +204,7 @@ def test_zero_neighbour_round(emp):
         want_key, want_value = policy.message(want)
     np.testing.assert_allclose(h_out, want[0, 0].numpy(), atol=1e-5)
     np.testing.assert_allclose(message, np.stack([want_key[0, 0].numpy(), want_value[0, 0].numpy()]), atol=1e-5)
-    logits, _, w, _ = agent._final.run(None, {"h": h, "heard": nothing})
+    logits, _, w, _ = pieces._final.run(None, {"h": h, "heard": nothing})
     assert logits.shape == (5,) and w.shape == (1,) and np.isfinite(logits).all()
 
 

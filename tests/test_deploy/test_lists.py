@@ -182,7 +182,7 @@ def test_swarm_execute_on_lists(emp, capsys):
 def test_recordings_draw_the_graph_of_the_lists(emp, tmp_path):
     """comm_graph from the lists is the dense adj when everyone in range is listed; swarm
     eval --video / --record run on lists."""
-    from deploy.recording import comm_graph
+    from deploy.trajectory import comm_graph
     from swarm_cli.train import eval_main
 
     M = 6
@@ -207,24 +207,26 @@ def test_recordings_draw_the_graph_of_the_lists(emp, tmp_path):
 def test_a_swarm_video_draws_the_density_scaled_arena(tmp_path):
     """M = 300 on lists with scale="density": frames and the Rerun recording carry the
     arena's half side, and the swarm is drawn as points (no trails)."""
-    from deploy.recording import RolloutRecorder
-    from deploy.video import FrameRecorder
+    from deploy.recording import write_rrd
+    from deploy.trajectory import TrajectoryRecorder
+    from deploy.video import frames, render_trajectory
 
     M = 300
     env = taichi_swarm.make("coverage", 1, M, comm="rc", comm_radius=0.5, seed=0, neighbours=8, scale="density")
-    video = FrameRecorder(str(tmp_path / "frames"), "coverage", 1, M, num_drawn=1, comm_radius=0.5)
-    rrd = RolloutRecorder(str(tmp_path / "x.rrd"), "coverage", 1, M, comm_radius=0.5)
+    rec = TrajectoryRecorder("coverage", 1, M, 1, comm="rc", comm_radius=0.5)
     rng = np.random.default_rng(0)
     env.reset()
     for step in range(3):
         actions = torch.from_numpy(rng.integers(0, 5, size=(1, M)))
-        video.log_step(step, env)
-        rrd.log_step(step, env, actions)
+        rec.log_step(step, env, actions)
         env.step(actions)
-    rrd.close()
-    assert rrd._arena == pytest.approx((M / 10) ** 0.5) and os.path.getsize(tmp_path / "x.rrd") > 0
-    assert video.frames[0]["arena"] == pytest.approx((M / 10) ** 0.5) and video.frames[0]["adj"].shape == (1, M, M)
-    video.close()
+    traj = rec.trajectory()
+    write_rrd(traj, str(tmp_path / "x.rrd"))
+    assert traj.arrays["arena"][0] == pytest.approx((M / 10) ** 0.5) and os.path.getsize(tmp_path / "x.rrd") > 0
+    first = frames(traj)[0]
+    assert first["arena"] == pytest.approx((M / 10) ** 0.5) and first["adj"].shape == (1, M, M)
+    assert len(traj.arrays["graph_index"]) < 3 * M * 10  # the graph kept as its edges, not M^2 cells
+    render_trajectory(traj, str(tmp_path / "frames"))
     names = sorted(os.listdir(tmp_path / "frames"))
     assert len(names) >= 3 and names[0] == "frame_0000.png"
 

@@ -1,5 +1,6 @@
-"""Rerun recordings: RolloutRecorder on numpy and torch envs, read back with RrdReader,
-`rerun rrd verify`, and `swarm replay`."""
+"""The trajectory record (TrajectoryRecorder on numpy and torch envs, saved and loaded) and
+the Rerun recordings rendered from it, read back with RrdReader, `rerun rrd verify`, and
+`swarm replay`."""
 
 from __future__ import annotations
 
@@ -11,17 +12,19 @@ import pytest
 import torch
 
 import taichi_swarm
-from deploy.recording import RolloutRecorder
+from deploy.recording import write_rrd
 from deploy.replay import rerun_command, summarize
+from deploy.trajectory import Trajectory, TrajectoryError, TrajectoryRecorder
 from swarm_cli.deploy import replay_main
 from trainer import checkpoint
 from trainer.model import ModelConfig, SwarmPolicy
 
 
-def _record_numpy(path: str, B: int = 3, M: int = 3, steps: int = 5, drawn: int = 2) -> None:
+def _record_numpy(path: str, B: int = 3, M: int = 3, steps: int = 5, drawn: int = 2) -> Trajectory:
+    """A rollout recorded once; ``path`` (.npz: the record, .rrd: Rerun) rendered from it."""
     env = taichi_swarm.make("coverage", B, M, comm="rc", seed=0, array="numpy")
     env.reset()
-    rec = RolloutRecorder(path, "coverage", B, M, max_envs_drawn=drawn)
+    rec = TrajectoryRecorder("coverage", B, M, drawn, comm="rc", comm_radius=1.0)
     rng = np.random.default_rng(0)
     for t in range(steps):
         actions = rng.integers(0, 5, size=(B, M), dtype=np.int64)
@@ -34,7 +37,66 @@ def _record_numpy(path: str, B: int = 3, M: int = 3, steps: int = 5, drawn: int 
         ended,
         {"success": np.array([True, False, False]), "length": np.full(B, steps), "dist": np.full(B, 0.5, np.float32)},
     )
-    rec.close()
+    traj = rec.trajectory()
+    traj.save(path) if path.endswith(".npz") else write_rrd(traj, path)
+    return traj
+
+
+def test_trajectory_record_round_trips(tmp_path):
+    """Saved atomically (nothing but the record left), loaded to the same arrays; the graph and
+    attention come back dense as they were logged."""
+    path = str(tmp_path / "t.npz")
+    traj = _record_numpy(path, B=3, M=4, steps=4)
+    assert os.listdir(tmp_path) == ["t.npz"]
+    back = Trajectory.load(path)
+    assert back.header == traj.header and back.header["task"] == "coverage" and back.header["schema"] == 1
+    assert set(back.arrays) == set(traj.arrays)
+    for k, v in traj.arrays.items():
+        np.testing.assert_array_equal(back.arrays[k], v, err_msg=k)
+    assert back.arrays["pos"].shape == (4, 2, 4, 2) and back.arrays["reward"].shape == (4, 3)  # drawn 2 of B 3
+    np.testing.assert_allclose(back.attention(0), np.full((2, 4, 4), 0.25))
+    assert back.adj(0).dtype == bool and back.adj(0)[:, range(4), range(4)].all()
+    assert back.outcomes() == {0: "success at step 4"}  # env 1 did not end
+    assert back.live(3).tolist() == [True, True]
+
+
+def test_bad_trajectory_records_are_refused_in_one_line(tmp_path, capsys):
+    good = str(tmp_path / "t.npz")
+    _record_numpy(good, steps=2)
+    other = str(tmp_path / "other.npz")
+    np.savez(other, x=np.zeros(3))
+    with pytest.raises(TrajectoryError, match="not a taichi-swarm trajectory record"):
+        Trajectory.load(other)
+    z = dict(np.load(good))
+    header = str(z.pop("header")).replace('"schema": 1', '"schema": 99')
+    newer = str(tmp_path / "newer.npz")
+    np.savez(newer, header=np.array(header), **z)
+    with pytest.raises(TrajectoryError, match="schema 99"):
+        Trajectory.load(newer)
+    z = dict(np.load(good))
+    del z["pos"]
+    cut = str(tmp_path / "cut.npz")
+    np.savez(cut, **z)
+    with pytest.raises(TrajectoryError, match="lacks pos"):
+        Trajectory.load(cut)
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(open(good, "rb").read()[:200])  # starts like a zip, is cut short
+    for path in (other, newer, cut, str(broken)):
+        assert replay_main([path, "--stats"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "swarm replay: error:" in err and "Traceback" not in err, err
+
+
+def test_replay_renders_a_trajectory_record(tmp_path, capsys):
+    path = str(tmp_path / "t.npz")
+    _record_numpy(path, steps=3)
+    rrd = str(tmp_path / "t.rrd")
+    assert replay_main([path, "--stats", "--rrd", rrd]) == 0
+    out = capsys.readouterr().out
+    assert "trajectory record (schema 1), coverage, M=3" in out and "env 0: success at step 3" in out
+    assert summarize(rrd)["entities"]["/env_0/agents"]["steps"] == (0, 2)
+    assert replay_main([rrd, "--video", str(tmp_path / "x.gif")]) == 2  # nothing is parsed back from a .rrd
+    assert "record one with --record FILE.npz" in capsys.readouterr().err and not (tmp_path / "x.gif").exists()
 
 
 def test_recording_has_entities_and_steps(tmp_path):
@@ -115,9 +177,9 @@ def test_recordings_carry_a_grid_layout_one_view_per_environment(tmp_path):
     env = taichi_swarm.make("coverage", 3, 3, array="numpy", seed=0)
     env.reset()
     path = str(tmp_path / "r.rrd")
-    rec = RolloutRecorder(path, "coverage", 3, 3, max_envs_drawn=2)
+    rec = TrajectoryRecorder("coverage", 3, 3, 2)
     rec.log_step(0, env, np.zeros((3, 3), dtype=np.int64))
-    rec.close()
+    write_rrd(rec.trajectory(), path)
     printed = subprocess.run(rerun_command() + ["rrd", "print", path], capture_output=True, text=True).stdout
     assert printed.count("ViewBlueprint:space_origin") >= 3  # 2 environment views and the plot
 
@@ -128,8 +190,8 @@ def test_replay_names_directories_and_non_recordings(tmp_path, capsys):
     assert replay_main([str(tmp_path)]) == 2
     assert "is a directory" in capsys.readouterr().err
     assert replay_main([str(text)]) == 2
-    assert "not a Rerun recording" in capsys.readouterr().err
+    assert "neither a trajectory record (.npz) nor a Rerun recording" in capsys.readouterr().err
     garbage = tmp_path / "garbage.rrd"  # starts like a recording, is not one
     garbage.write_bytes(b"RRF2" + bytes(range(256)) * 4)
-    assert replay_main([str(garbage), "--video", str(tmp_path / "g.gif")]) == 2
-    assert "cannot read" in capsys.readouterr().err and not (tmp_path / "g.gif").exists()
+    assert replay_main([str(garbage), "--stats"]) == 2
+    assert "cannot read" in capsys.readouterr().err

@@ -44,36 +44,34 @@ def test_bad_video_paths_are_refused_before_the_work(tmp_path, capsys):
     assert swarm(["eval", str(tmp_path / "none.pt"), "--video", str(tmp_path / "x.avi")]) == 2
 
 
-def test_replay_video_rebuilds_the_recorded_rollout(tmp_path, capsys):
-    """--record and --video of one evaluation; the frames rebuilt from the .rrd equal the
-    live ones (this caught the recorder logging views of buffers the next step overwrote)."""
+def test_record_and_video_come_from_one_trajectory_record(tmp_path, capsys):
+    """--record FILE.npz and --video of one evaluation are rendered from the same record;
+    `swarm replay FILE.npz --video` renders the same frames again from the file (the record
+    copies the env's buffers: a view would be overwritten by the next step)."""
     import torch
 
-    from deploy.recording import RolloutRecorder
-    from deploy.video import FrameRecorder, Recorders, frames_from_recording
+    from deploy.trajectory import Trajectory, TrajectoryRecorder
+    from deploy.video import frames
     from trainer.evaluate import evaluate
     from trainer.model import ModelConfig, SwarmPolicy
 
     torch.manual_seed(0)
     policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1)).eval()
-    rrd, gif = str(tmp_path / "r.rrd"), str(tmp_path / "r.gif")
-    live = FrameRecorder(gif, "coverage", 5, 3, num_drawn=3)
-    live.close = lambda ok=True: None  # keep the frames, skip rendering
-    rec = Recorders(RolloutRecorder(rrd, "coverage", 5, 3, max_envs_drawn=3), live)
+    rec = TrajectoryRecorder("coverage", 5, 3, 3)
     evaluate(policy, "coverage", 3, episodes=5, seed=3, recorder=rec)
-    rec.close()
-    frames, task, M, _ = frames_from_recording(rrd)
-    assert task == "coverage" and M == 3
-    assert len(frames) == len(live.frames) + 1  # every step, and the last one with the outcomes
-    for got, want in zip(frames, live.frames, strict=False):
-        assert got["step"] == want["step"]
-        for b in range(3):
-            if want["live"][b]:
-                np.testing.assert_allclose(got["pos"][b], want["pos"][b], atol=1e-6)
-                np.testing.assert_allclose(got["targets"][b], want["targets"][b], atol=1e-6)
-                np.testing.assert_array_equal(got["adj"][b], want["adj"][b] | want["adj"][b].T)
-    assert swarm(["replay", rrd, "--video", gif]) == 0
-    assert Image.open(gif).n_frames == len(frames)
+    live = rec.trajectory()
+    path, gif = str(tmp_path / "r.npz"), str(tmp_path / "r.gif")
+    live.save(path)
+    back = Trajectory.load(path)
+    got, want = frames(back), frames(live)
+    assert len(got) == len(want) == live.num_steps + 1  # every step, and the last one with the outcomes
+    for g, w in zip(got, want, strict=True):
+        assert g["step"] == w["step"]
+        for key in ("pos", "targets", "adj", "live"):
+            np.testing.assert_array_equal(g[key], w[key])
+    assert not np.array_equal(got[0]["pos"], got[5]["pos"])  # the agents moved: no aliased buffers
+    assert swarm(["replay", path, "--video", gif]) == 0
+    assert Image.open(gif).n_frames == len(got)
 
 
 def test_mp4_when_an_ffmpeg_is_available(tmp_path):
