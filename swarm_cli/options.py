@@ -117,7 +117,7 @@ def positive(value, name: str) -> None:
 Comm = Literal["uc", "rc"]
 OWN = "the policy's own"
 MAX_SEEDS = 1000  # swarm reproduce --seeds
-MAX_EXECUTE_EPISODES = 10_000  # swarm execute: every episode's environment is stepped by onnxruntime agents
+MAX_EXECUTE_EPISODES = 10_000  # swarm execute: one environment per episode, all in one batch (its state arrays)
 EVAL_SEED_LIMIT = 2**40  # trainer.train.TRAIN_SEED_BASE: training's environment streams (not imported: no torch here)
 Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtime.ARCHES)
 
@@ -358,7 +358,7 @@ class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
             raise OptionError(f"--threads must be <= {cores}, this machine's cores, got {self.threads}")
         if self.episodes > MAX_EXECUTE_EPISODES:
             raise OptionError(
-                f"--episodes must be <= {MAX_EXECUTE_EPISODES} (one environment and M onnxruntime agents each), "
+                f"--episodes must be <= {MAX_EXECUTE_EPISODES} (they run as one batch of environments), "
                 f"got {self.episodes}"
             )
 

@@ -16,7 +16,6 @@ from trainer.model import ModelConfig, SwarmPolicy
 from trainer.train import NonFiniteTraining, build_state, ppo_update, save_checkpoint, train
 
 
-
 def tiny(tmp_path, **kw):
     base = dict(
         task="coverage",
