@@ -28,14 +28,14 @@ import time
 
 from reproduce.spec import Cell, SpecError, canonical
 from taichi_swarm.files import atomic_write_json
-from trainer.lock import RunDirLock, is_held
+from trainer.rundir import METRICS, POLICY, RunDirLock, is_held
 
 RESULT = "result.json"
 ATTEMPTS = "attempts.json"
 DEFINITION = "definition.json"  # written at the first start: a changed cell never mixes with old runs
 POLISH_DIR = "polish"  # a train cell's polish run, inside its run directory
 UPSTREAM = "upstream.json"  # an init_from cell: which result of its upstream it started from
-CELL_LOCK = ".cell.lock"  # held by the process bringing the cell to its result (trainer.lock)
+CELL_LOCK = ".cell.lock"  # held by the process bringing the cell to its result (trainer.rundir.RunDirLock)
 
 
 def cell_dir(root: str, cell: Cell, seed: int) -> str:
@@ -127,7 +127,7 @@ def policy_path(root: str, cell: Cell, seed: int, agents: int = 0, polished: boo
             d += "-polish"  # trainer.curriculum's layout
     elif cell.run.polish_updates and polished:
         d = os.path.join(d, POLISH_DIR)
-    return os.path.join(d, "policy.pt")
+    return os.path.join(d, POLICY)
 
 
 def run_dirs(root: str, cell: Cell, seed: int) -> list[str]:
@@ -367,7 +367,7 @@ def progress(root: str, cell: Cell, seed: int) -> dict:
     state = cell_state(root, cell, seed)
     updates, wall, stage, last_eval = 0, 0.0, None, None
     for run in run_dirs(root, cell, seed):
-        rows = _last_metrics(os.path.join(run, "metrics.jsonl"))
+        rows = _last_metrics(os.path.join(run, METRICS))
         if rows:
             updates += rows[-1]["update"]
             wall += rows[-1].get("wall_time", 0.0)

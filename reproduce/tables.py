@@ -13,6 +13,7 @@ import os
 
 from reproduce.cells import read_result, run_dirs
 from reproduce.spec import Cell, SpecError
+from trainer.rundir import METRICS
 
 DOC_BEGIN = "<!-- BEGIN swarm reproduce (generated: do not edit by hand) -->"
 DOC_END = "<!-- END swarm reproduce -->"
@@ -243,7 +244,7 @@ def plot_curves(table: int, cells: list[Cell], seeds: list[int], root: str, out_
         for seed in seeds:
             xs, ys, starts, offset = [], [], [], 0
             for run in run_dirs(root, c, seed):
-                if not os.path.exists(os.path.join(run, "metrics.jsonl")):
+                if not os.path.exists(os.path.join(run, METRICS)):
                     break
                 rows = read_metrics(run)
                 starts.append(offset / 1e6)

@@ -11,6 +11,7 @@ import sys
 
 from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ResumeOptions, ZeroShotOptions, cli, fail, parse
 from trainer.checkpoint import CheckpointError, atomic_write_json, ensure_writable
+from trainer.rundir import POLICY
 
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, CheckpointError)
 
@@ -71,7 +72,7 @@ def train_main(argv: list[str]) -> int:
     if ev:
         msg += f"; eval S% {100 * ev['success_rate']:.1f}, T {ev['mean_length']:.2f}"
     print(msg)
-    policy = os.path.join(summary["run_dir"], "policy.pt")
+    policy = os.path.join(summary["run_dir"], POLICY)
     print(f"policy: {policy}")
     print(f"next: swarm eval {policy} --episodes 500 --seed 777")
     return 0

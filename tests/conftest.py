@@ -22,7 +22,7 @@ def taichi_cpu():
 @pytest.fixture
 def lock_held_elsewhere():
     """``with lock_held_elsewhere(directory, name) as pid``: another process holds
-    trainer.lock's lock ``directory/name`` until the block ends, then dies like kill -9
+    trainer.rundir's lock ``directory/name`` until the block ends, then dies like kill -9
     (the kernel drops the lock)."""
     import contextlib
     import subprocess
@@ -37,7 +37,7 @@ def lock_held_elsewhere():
                 "-c",
                 textwrap.dedent(f"""
                 import time
-                from trainer.lock import RunDirLock
+                from trainer.rundir import RunDirLock
                 RunDirLock({directory!r}, {name!r}).acquire()
                 print("locked", flush=True)
                 time.sleep(120)

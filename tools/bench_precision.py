@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import torch
 
 from trainer.model import ModelConfig, SwarmPolicy
-from trainer.train import make_loss_fn
+from trainer.ppo import make_loss_fn
 
 
 def time_step(agents: int, teams: int, rounds: int, steps: int) -> tuple[float, float]:

@@ -14,6 +14,7 @@ import torch
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json, clean_leftovers, ensure_writable  # noqa: F401
 from trainer import zoo
 from trainer.model import ModelConfig, SwarmPolicy
+from trainer.rundir import CHECKPOINT, POLICY
 from trainer.zoo import file_sha256
 
 MAX_ROUNDS = 64  # message rounds (the export manifest's schema has the same bound)
@@ -21,8 +22,13 @@ MAX_HIDDEN = 4096  # hidden width: 4096 is ~170 M weights, 0.7 GB
 MAX_LANDMARKS = 1024  # of a "concat" network
 
 FORMAT = "taichi-swarm-checkpoint"
-VERSION = 2  # 2: one sha256 over the whole payload ("sha256"); 1: over the weights only ("model_sha256")
-READABLE_VERSIONS = (1, 2)
+# 3: one sha256 over the whole payload ("sha256"), one reward normaliser per team size
+#    ("reward_scalers"), the counters and RNG states always present;
+# 2: the same sha256, beside the weights-only "model_sha256" and a copy of the first
+#    normaliser ("reward_scaler"); 1: "model_sha256" only, or no digest at all.
+# ``load`` checks a file as it was written, then ``migrate`` brings it to version 3.
+VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 
 
 class CheckpointError(ValueError):
@@ -87,7 +93,7 @@ def save(path: str, payload: dict) -> None:
     """Save ``payload`` (must hold "model_config" and "model") atomically, signed with one
     sha256 over the whole of it (checked by ``load``)."""
     payload = {k: v for k, v in payload.items() if k not in ("format", "version", "sha256", "model_sha256")}
-    payload = {"format": FORMAT, "version": VERSION, **payload, "model_sha256": weights_digest(payload["model"])}
+    payload = {"format": FORMAT, "version": VERSION, **payload}
     payload["sha256"] = payload_digest(payload)
     data = io.BytesIO()
     torch.save(payload, data)  # in memory first: a full disk then fails as OSError(ENOSPC), not inside torch
@@ -97,9 +103,9 @@ def save(path: str, payload: dict) -> None:
 def resolve_path(path: str) -> str:
     """A checkpoint file, or a run directory's checkpoint.pt, else its policy.pt."""
     if os.path.isdir(path):  # a run directory: its full checkpoint, else its final weights
-        found = [p for p in (os.path.join(path, n) for n in ("checkpoint.pt", "policy.pt")) if os.path.exists(p)]
+        found = [p for p in (os.path.join(path, n) for n in (CHECKPOINT, POLICY)) if os.path.exists(p)]
         if not found:
-            raise CheckpointError(f"{path} is a directory without checkpoint.pt or policy.pt")
+            raise CheckpointError(f"{path} is a directory without {CHECKPOINT} or {POLICY}")
         path = found[0]
     if not os.path.exists(path):
         raise CheckpointError(f"checkpoint {path} does not exist")
@@ -125,6 +131,8 @@ def _check_records(path: str) -> None:
 
 def load(path: str, map_location="cpu", *, trust_unsigned: bool = False, expected_sha256: str | None = None) -> dict:
     """Load and check a checkpoint file or run directory; raises CheckpointError with the reason.
+    The payload comes back in the current layout (``migrate``); its "version" says what the
+    file was written as.
 
     A file must be signed: its stored sha256 over the whole payload (written by ``save``),
     or for files from before it existed, over the weights (``model_sha256``), must match.
@@ -171,10 +179,31 @@ def load(path: str, map_location="cpu", *, trust_unsigned: bool = False, expecte
     digest = payload.get("model_sha256")
     if digest is not None and digest != weights_digest(payload["model"]):
         raise CheckpointError(f"{path}: the weights do not match their stored sha256 (the file was corrupted)")
-    if digest is None and expected_sha256 is None and not trust_unsigned:
+    signed = version >= 2 or digest is not None  # (version 1: the weights' digest, if any)
+    if not signed and expected_sha256 is None and not trust_unsigned:
         raise UnsignedCheckpoint(
             f"{path} carries no sha256, so corruption in it cannot be detected; pass --trust-unsigned to load it anyway"
         )
+    return migrate(payload)
+
+
+def migrate(payload: dict) -> dict:
+    """The one migration: a version 1 or 2 payload (its digests already checked) in version
+    3's layout, so that no reader needs to know older keys. The committed zoo weights are
+    version 1 policy files; checkpoints of runs started before version 3 resume through it."""
+    if payload["version"] >= 3:
+        return payload
+    payload = dict(payload)
+    payload.pop("model_sha256", None)  # checked by load; version 3's sha256 covers the weights
+    first = payload.pop("reward_scaler", None)  # before several team sizes: the one normaliser
+    if first is not None and "reward_scalers" not in payload:
+        payload["reward_scalers"] = [first]
+    payload.setdefault("swarm", {})  # before neighbour lists: the dense graph
+    payload.setdefault("evals", [])
+    if isinstance(payload.get("counters"), dict):
+        payload["counters"] = {"skipped_minibatches": 0, **payload["counters"]}
+    if "optimizer" in payload:  # a training checkpoint: from before GPU training, no CUDA generators
+        payload.setdefault("cuda_rng", [])
     return payload
 
 
@@ -330,8 +359,7 @@ def check_counters(where: str, counters) -> dict:
     for key in ("update", "env_steps"):
         check_number(f"{where} counters.{key}", counters.get(key), integer=True)
     check_number(f"{where} counters.wall_time", counters.get("wall_time"))
-    if "skipped_minibatches" in counters:
-        check_number(f"{where} counters.skipped_minibatches", counters["skipped_minibatches"], integer=True)
+    check_number(f"{where} counters.skipped_minibatches", counters.get("skipped_minibatches"), integer=True)
     return counters
 
 

@@ -19,7 +19,7 @@ from trainer.model import ENTITY_MODES, ModelConfig
 
 INIT_CARRY = ("weights", "normaliser", "optimiser")  # what --init-from carries, cumulative
 MAX_TRANSFER_OFFSET = 1000  # |d| of a --transfer-offsets entry
-MAX_SEED = 2**31 - 1  # training seeds: environment streams are drawn from 2**40 + seed * 1_000_003 + ...
+MAX_SEED = 2**31 - 1  # training seeds (the environments' seeds: trainer.train.train_seed)
 MAX_NUM_ENVS = 2**20
 MAX_NUM_STEPS = 2**16
 

@@ -24,12 +24,11 @@ import os
 from trainer import checkpoint
 from trainer.config import TrainConfig
 from trainer.evaluate import evaluate
+from trainer.rundir import CHECKPOINT, FRESH_EVAL, POLICY, POLISH_OF, STARTED_FROM
 from trainer.train import resolve_device, train_or_resume
 
 MIN_STAGE_EVAL_EPISODES = 200
-FRESH_EVAL_FILE = "fresh-eval.json"
-POLISH_OF = "polish-of.json"  # in a polish run: the stage (and its last update) it polished
-STARTED_FROM = "started-from.json"  # in a stage after the first: the run (and its last update) it started from
+CURRICULUM = "curriculum.json"  # in the curriculum's directory: every stage's record
 
 
 def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: int, seed: int) -> dict:
@@ -39,11 +38,11 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
     ``stage_dir/fresh-eval.json`` and reused while policy, setting, episodes and seed match."""
     from taichi_swarm import TaskSetting
 
-    policy, payload = checkpoint.load_policy(os.path.join(stage_dir, "policy.pt"))
-    setting = TaskSetting.from_dict(payload.get("task"), f"{stage_dir}/policy.pt")
+    policy, payload = checkpoint.load_policy(os.path.join(stage_dir, POLICY))
+    setting = TaskSetting.from_dict(payload.get("task"), f"{stage_dir}/{POLICY}")
     swarm = cfg.swarm_options()  # the neighbour lists / density scaling the run trained on
     key = {"update": update, "episodes": episodes, "seed": seed, "arch": cfg.arch, **setting.to_dict(), **swarm}
-    path = os.path.join(stage_dir, FRESH_EVAL_FILE)
+    path = os.path.join(stage_dir, FRESH_EVAL)
     if os.path.exists(path):
         with open(path) as f:
             saved = json.load(f)
@@ -51,7 +50,7 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
             return saved
     device = resolve_device(cfg.device)
     policy.to(device)
-    agents = setting.team_size(f"{stage_dir}/policy.pt")
+    agents = setting.team_size(f"{stage_dir}/{POLICY}")
     result = evaluate(
         policy, setting.task, agents, setting.comm, setting.comm_radius, episodes, seed, arch=cfg.arch, device=device,
         swarm=swarm,
@@ -126,7 +125,7 @@ def run_curriculum(
         polish_updates, polish_lr,
     )  # fmt: skip
     os.makedirs(run_dir, exist_ok=True)
-    results_path = os.path.join(run_dir, "curriculum.json")
+    results_path = os.path.join(run_dir, CURRICULUM)
     stages: list[dict] = []
     previous_ckpt, previous_update = base.init_from, None
     for stage_index, M in enumerate(sizes):
@@ -174,7 +173,7 @@ def run_curriculum(
         checkpoint.atomic_write_json(
             results_path, {"task": base.task, "comm": base.comm, "threshold": threshold, "stages": stages}
         )
-        previous_ckpt = os.path.join(final_dir, "checkpoint.pt")
+        previous_ckpt = os.path.join(final_dir, CHECKPOINT)
         previous_update = stage["polish"]["updates"] if polish_updates else summary["update"]
         if not summary["reached_target"]:
             print(
@@ -239,7 +238,7 @@ def polish_stage(
     polish_cfg = dataclasses.replace(
         stage_cfg,
         run_dir=polish_dir,
-        init_from=os.path.join(stage_cfg.run_dir, "checkpoint.pt"),
+        init_from=os.path.join(stage_cfg.run_dir, CHECKPOINT),
         init_carry="weights",
         updates=updates,
         target_success=0.0,

@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 import os
 
+from trainer.rundir import CURVES, METRICS
+
 
 def read_metrics(run_dir: str) -> list[dict]:
-    path = os.path.join(run_dir, "metrics.jsonl")
+    path = os.path.join(run_dir, METRICS)
     if not os.path.exists(path):
-        raise FileNotFoundError(f"{run_dir} has no metrics.jsonl (is it a run directory?)")
+        raise FileNotFoundError(f"{run_dir} has no {METRICS} (is it a run directory?)")
     with open(path) as f:
         try:
             rows = [json.loads(line) for line in f if line.strip()]
@@ -29,7 +31,7 @@ def plot_run(run_dir: str, out: str | None = None) -> str:
     import matplotlib.pyplot as plt
 
     rows = read_metrics(run_dir)
-    out = out or os.path.join(run_dir, "curves.png")
+    out = out or os.path.join(run_dir, CURVES)
     steps = [r["env_steps"] / 1e6 for r in rows]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     axes[0].plot(steps, [r["reward"] for r in rows])

@@ -404,7 +404,7 @@ def test_a_killed_cell_resumes_and_a_finished_one_is_skipped(tmp_path, monkeypat
 
 def test_one_process_per_cell_and_the_status_says_which_is_running(tmp_path, lock_held_elsewhere):
     from reproduce.runner import format_progress
-    from trainer.lock import RunDirLocked
+    from trainer.rundir import RunDirLocked
 
     spec = load_spec(write_spec(tmp_path, updates=2))
     train_cell, zs_cell = spec.cells

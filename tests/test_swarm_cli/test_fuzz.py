@@ -296,11 +296,23 @@ def test_unsigned_crafted_and_special_policy_files_are_one_line(tiny_policy, tmp
     save(str(crafted), payload | {"model_config": payload["model_config"] | {"rounds": 10**9}})
     refused(["eval", str(crafted), "--episodes", "1"], "rounds", "64")
     flipped = bytearray(open(path, "rb").read())
-    flipped[len(flipped) // 2] ^= 0xFF
+    flipped[_middle_of_largest_record(path)] ^= 0xFF  # (not a zip trailer byte, which holds no content)
     (tmp_path / "flipped.pt").write_bytes(bytes(flipped))
     refused(["eval", str(tmp_path / "flipped.pt"), "--episodes", "1"], "corrupted")
     os.mkfifo(tmp_path / "fifo.pt")
     refused(["eval", str(tmp_path / "fifo.pt"), "--episodes", "1"], "not a regular file")
+
+
+def _middle_of_largest_record(path: str) -> int:
+    """The offset of the middle byte of the largest record's data in a torch zip file."""
+    import struct
+    import zipfile
+
+    with open(path, "rb") as f, zipfile.ZipFile(path) as z:
+        info = max(z.infolist(), key=lambda i: i.compress_size)
+        f.seek(info.header_offset)
+        name_len, extra_len = struct.unpack("<HH", f.read(30)[26:30])
+    return info.header_offset + 30 + name_len + extra_len + info.compress_size // 2
 
 
 def test_tyro_refusals_are_one_line(tiny_policy):

@@ -259,8 +259,7 @@ def test_transfer_sizes_are_evaluated_and_logged(tmp_path):
 
 def test_non_finite_loss_never_reaches_the_weights(tmp_path):
     from trainer.model import SwarmPolicy
-    from trainer.ppo import Rollout
-    from trainer.train import ppo_update
+    from trainer.ppo import Rollout, ppo_update
 
     torch.manual_seed(0)
     policy = SwarmPolicy(TINY_MODEL)
@@ -307,7 +306,7 @@ def test_compiled_update_trains(tmp_path):
 
 
 def test_second_process_on_a_run_dir_is_refused_and_a_dead_holder_is_taken_over(tmp_path, lock_held_elsewhere):
-    from trainer.lock import RunDirLock, RunDirLocked, is_held
+    from trainer.rundir import RunDirLock, RunDirLocked, is_held
 
     run = str(tmp_path / "run")
     assert not is_held(run)  # (no lock file: nothing is created by asking)
@@ -582,12 +581,12 @@ def test_probing_a_lock_never_makes_acquire_refuse(tmp_path):
     """`swarm reproduce --status` probes cells' locks (is_held) from another process while
     their runs may be starting: a probe holds the file for microseconds, and acquire waits
     that out (without its retries about 1 acquire in 10 is refused beside this prober)."""
-    from trainer.lock import RunDirLock
+    from trainer.rundir import RunDirLock
 
     run = str(tmp_path / "run")
     RunDirLock(run).acquire().release()  # (the file exists: the probes really lock it)
     prober = subprocess.Popen(
-        [sys.executable, "-c", f"from trainer.lock import is_held\nprint(flush=True)\nwhile True: is_held({run!r})"],
+        [sys.executable, "-c", f"from trainer.rundir import is_held\nprint(flush=True)\nwhile True: is_held({run!r})"],
         stdout=subprocess.PIPE,
         text=True,
         cwd=os.path.join(os.path.dirname(__file__), "..", ".."),

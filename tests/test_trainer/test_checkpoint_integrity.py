@@ -13,8 +13,9 @@ import torch
 from trainer import checkpoint
 from trainer.config import PPOConfig, TrainConfig
 from trainer.model import ModelConfig, SwarmPolicy
-from trainer.train import NonFiniteTraining, build_state, ppo_update, save_checkpoint, train
-
+from trainer.ppo import NonFiniteTraining, ppo_update
+from trainer.rundir import save_checkpoint
+from trainer.train import build_state, train
 
 def tiny(tmp_path, **kw):
     base = dict(
@@ -159,16 +160,16 @@ def test_nan_in_adam_moments_never_reaches_the_written_weights(run_dir, tmp_path
     state = build_state(cfg, checkpoint.load(run_dir), "cpu")
     for entry in state.optimizer.state.values():
         entry["exp_avg"].fill_(float("nan"))
-    from trainer.train import collect_rollout, make_loss_fn
+    from trainer.ppo import collect_rollout, make_loss_fn
 
     g = state.groups[0]
     r = collect_rollout(state.policy, g.env, g.obs, g.buf, g.scaler, cfg.ppo, "cpu")
     loss_fn = make_loss_fn(state.policy, cfg.ppo)
     with pytest.raises(NonFiniteTraining, match="Adam"):
         ppo_update(state.policy, state.optimizer, [(g.buf, r.advantages, r.returns)], cfg.ppo, loss_fn)
-    from trainer.train import Run
+    from trainer.rundir import RunDir
 
-    guard = Run(str(tmp_path / "guard-out"))
+    guard = RunDir(str(tmp_path / "guard-out"))
     os.makedirs(guard.path)
     with pytest.raises(NonFiniteTraining, match="not written"):
         save_checkpoint(guard, state, cfg)
@@ -227,7 +228,7 @@ def test_version_1_files_unsigned_refused_legacy_signed_loaded(run_dir, tmp_path
     policy, loaded = checkpoint.load_policy(unsigned, trust_unsigned=True)
     assert loaded["version"] == 1 and isinstance(policy, SwarmPolicy)
     _, loaded = checkpoint.load_policy(legacy)
-    assert loaded["version"] == 1 and "model_sha256" in loaded
+    assert loaded["version"] == 1 and "model_sha256" not in loaded  # checked, then migrated away
     name = next(iter(v1["model"]))
     changed = dict(v1["model"], **{name: v1["model"][name] + 1})
     torch.save(v1 | {"model": changed, "model_sha256": checkpoint.weights_digest(v1["model"])}, tampered)
@@ -257,3 +258,36 @@ def test_init_from_an_unsigned_file_needs_trust_unsigned(run_dir, tmp_path):
     assert not (tmp_path / "a").exists()
     summary = train(tiny(tmp_path, run_dir=str(tmp_path / "b"), init_from=unsigned, trust_unsigned=True))
     assert summary["update"] == 1
+
+
+def as_version_2(payload: dict) -> dict:
+    """A version 3 payload in the layout version 2 wrote: beside the whole-payload sha256,
+    the weights' "model_sha256" and the first normaliser again as "reward_scaler"."""
+    v2 = {k: v for k, v in payload.items() if k != "sha256"} | {"version": 2}
+    v2["model_sha256"] = checkpoint.weights_digest(v2["model"])
+    if "reward_scalers" in v2:
+        v2["reward_scaler"] = v2["reward_scalers"][0]
+    v2["sha256"] = checkpoint.payload_digest(v2)
+    return v2
+
+
+def test_a_version_2_checkpoint_resumes_as_its_version_3_twin(run_dir, tmp_path):
+    """The one migration: a run checkpointed by version 2 resumes exactly as the same run
+    checkpointed by version 3 (the resumed weights are equal to the bit)."""
+    import shutil
+
+    payload = checkpoint.load(os.path.join(run_dir, "checkpoint.pt"))
+    assert payload["version"] == checkpoint.VERSION and "model_sha256" not in payload
+    assert "reward_scaler" not in payload
+    old, new = str(tmp_path / "v2"), str(tmp_path / "v3")
+    shutil.copytree(run_dir, old)
+    shutil.copytree(run_dir, new)
+    torch.save(as_version_2(payload), os.path.join(old, "checkpoint.pt"))
+    migrated = checkpoint.load(os.path.join(old, "checkpoint.pt"))
+    assert migrated["version"] == 2 and set(migrated) == set(payload)
+    train(resume=old, updates=2)
+    train(resume=new, updates=2)
+    a, b = (checkpoint.load(os.path.join(d, "checkpoint.pt")) for d in (old, new))
+    assert a["version"] == b["version"] == checkpoint.VERSION  # rewritten by this version
+    for name, tensor in b["model"].items():
+        assert torch.equal(a["model"][name], tensor), name

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from trainer.config import PRESETS, TrainConfig
-from trainer.train import drop_messages
+from trainer.ppo import drop_messages
 
 
 def test_dense_graph_loses_messages_at_the_rate_and_keeps_the_diagonal():
@@ -39,8 +39,7 @@ def test_neighbour_lists_lose_entries_at_the_rate():
 def test_the_rollout_stores_the_graph_the_agents_heard():
     from taichi_swarm import make, runtime
     from trainer.model import ModelConfig, SwarmPolicy
-    from trainer.ppo import RewardScaler, Rollout
-    from trainer.train import collect_rollout
+    from trainer.ppo import RewardScaler, Rollout, collect_rollout
 
     runtime.init("cpu")
     torch.manual_seed(0)

@@ -10,7 +10,7 @@ from trainer.ppo import RewardScaler, gae, normalize_per_agent, ppo_loss, sample
 
 def test_gae_by_hand():
     # one env, one agent, T = 3, gamma = 0.5, lambda = 0.5; the episode ends at t = 1
-    r = torch.tensor([[1.0], [2.0], [3.0]])
+    r = torch.tensor([[[1.0]], [[2.0]], [[3.0]]])
     v = torch.tensor([[[0.5]], [[1.0]], [[2.0]]])
     d = torch.tensor([[False], [True], [False]])
     nv = torch.tensor([[4.0]])
@@ -22,11 +22,51 @@ def test_gae_by_hand():
     torch.testing.assert_close(ret[:, 0, 0], torch.tensor([1.75, 2.0, 5.0]))
 
 
-def test_gae_team_reward_is_shared_and_values_are_per_agent():
-    r = torch.tensor([[1.0]])
+def test_gae_rewards_and_values_are_per_agent():
+    r = torch.tensor([[[1.0, 1.0]]])  # the team reward, stored for each agent
     v = torch.tensor([[[0.0, 1.0]]])
     adv, _ = gae(r, v, torch.tensor([[True]]), torch.zeros(1, 2), 0.9, 0.9)
     torch.testing.assert_close(adv[0, 0], torch.tensor([1.0, 0.0]))
+    # a time-limit end: each agent's reward holds gamma * its own value of the final state
+    r = torch.tensor([[[1.0 + 0.9 * 2.0, 1.0 + 0.9 * 4.0]]])
+    adv, ret = gae(r, v, torch.tensor([[True]]), torch.zeros(1, 2), 0.9, 0.9)
+    torch.testing.assert_close(ret[0, 0], torch.tensor([2.8, 4.6]))
+
+
+def test_each_agent_bootstraps_on_its_own_value_at_a_time_limit_end():
+    """The rollout's stored reward at a time-limit end is the team reward plus gamma *
+    V_i(final state) for each agent i, not the team's mean value."""
+    import taichi_swarm
+    from trainer.config import PPOConfig
+    from trainer.model import ModelConfig, SwarmPolicy, policy_inputs
+    from trainer.ppo import Rollout, collect_rollout
+
+    torch.manual_seed(0)
+    T = 6
+    env = taichi_swarm.make("coverage", 4, 3, seed=0, max_steps=T)  # every episode is cut in the last step
+    obs = env.reset(seed=0)
+    policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1))
+    p = PPOConfig(num_envs=4, num_steps=T, reward_scale=False, bootstrap_time_limit=True)
+    last = {}
+    real_step = env.step
+
+    def step(action):
+        out = real_step(action)
+        _, reward, done, info = out
+        last.update(raw=reward.clone(), cut=done & info["episode"]["truncated"])
+        last["terminal"] = {k: v.clone() for k, v in info["terminal_obs"].items()}
+        return out
+
+    env.step = step
+    buf = Rollout.for_env(T, env)
+    collect_rollout(policy, env, obs, buf, RewardScaler(4, p.gamma, p.reward_clip, enabled=False), p, "cpu")
+    cut = last["cut"]
+    assert bool(cut.any())
+    with torch.no_grad():
+        _, v_term = policy(**policy_inputs(last["terminal"], "cpu"))
+    expected = last["raw"][cut].unsqueeze(-1) + p.gamma * v_term[cut]
+    torch.testing.assert_close(buf.rewards[T - 1][cut], expected)
+    assert not torch.allclose(expected[:, 0], expected[:, 1])  # the agents' own values, not one shared
 
 
 def test_ppo_loss_by_hand():
@@ -119,7 +159,7 @@ def test_bf16_update_is_the_fp32_update_to_bf16_tolerance():
     from types import SimpleNamespace
 
     from trainer.model import ModelConfig, SwarmPolicy
-    from trainer.train import make_loss_fn
+    from trainer.ppo import make_loss_fn
 
     torch.manual_seed(0)
     N, M = 64, 4

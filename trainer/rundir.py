@@ -1,0 +1,455 @@
+"""The run directory: the one owner of every file a training run keeps, and of the run's
+lifecycle around PPO (the lock, metrics, checkpoints, resume, signals).
+
+    RUN_DIR/.lock          held (flock) by the process training there; the kernel drops it
+                           when that process exits, however it exits
+    RUN_DIR/config.json    the run's TrainConfig, rewritten at every start and resume
+    RUN_DIR/metrics.jsonl  one JSON line per update (eval_* keys on evaluation updates);
+                           a resume first drops the lines after its checkpoint
+    RUN_DIR/checkpoint.pt  everything to resume bit-identically, written atomically every
+                           checkpoint_every updates, at the end and on Ctrl-C / SIGTERM
+    RUN_DIR/policy.pt      the same weights without optimiser state (~1 MB: commit it,
+                           `swarm eval` / `export` it)
+    RUN_DIR/summary.json   written last, atomically: the run is done
+    RUN_DIR/curves.png     metrics.jsonl drawn at the end (trainer.plot)
+    RUN_DIR/tensorboard/   with --tensorboard, metrics.jsonl's scalars as events
+
+A kill at any moment leaves a directory that resumes: writes go to a temporary file that
+is renamed into place, a torn last metrics line is dropped, and a policy.pt one update
+behind its checkpoint.pt is rewritten from it.
+
+Light at import, the standard library only (reproduce's status, the CLI and a lock-holding
+helper process read the names and the lock here, without torch or Taichi); the functions
+that write files or checkpoints import what they need when called.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fcntl
+import json
+import os
+import signal
+import socket
+import threading
+import time
+
+# ----------------------------------------------------------------------------- file names
+
+LOCK = ".lock"
+CONFIG = "config.json"
+METRICS = "metrics.jsonl"
+CHECKPOINT = "checkpoint.pt"
+POLICY = "policy.pt"
+SUMMARY = "summary.json"
+CURVES = "curves.png"
+TENSORBOARD = "tensorboard"
+# what trainer.curriculum keeps in a stage's run directory
+FRESH_EVAL = "fresh-eval.json"  # the stage's final policy on fresh episodes
+POLISH_OF = "polish-of.json"  # in a polish run: the stage (and its last update) it polished
+STARTED_FROM = "started-from.json"  # in a stage after the first: the run (and its last update) it started from
+
+# what a checkpoint needs beyond a policy file's keys to resume a run
+RESUME_KEYS = ("counters", "optimizer", "reward_scalers", "torch_rng", "cuda_rng", "env_states")
+
+# ----------------------------------------------------------------------------- the lock
+
+PROBE_RETRIES = 25  # acquire's retries, 10 ms apart, before it refuses
+
+
+class RunDirLocked(ValueError):
+    """Another live process holds the run directory."""
+
+
+class RunDirLock:
+    """One process per directory: an advisory lock (``flock``) on ``directory/name``. The
+    same lock under another name guards other per-directory work (``swarm reproduce``
+    holds ``CELL_DIR/.cell.lock`` while it brings a cell to its result). A stale lock left
+    by a killed process is simply taken over; the file's content (pid, host, start time)
+    only names the holder in the error."""
+
+    def __init__(
+        self,
+        run_dir: str,
+        name: str = LOCK,
+        holder: str = "another training process",
+        advice: str = "wait for it to finish or pick another --run-dir",
+    ):
+        self.path = os.path.join(run_dir, name)
+        self.holder, self.advice = holder, advice  # what a refused caller is told
+        self.fd: int | None = None
+
+    def acquire(self) -> RunDirLock:
+        os.makedirs(os.path.dirname(self.path), exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            for attempt in range(PROBE_RETRIES + 1):
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if attempt < PROBE_RETRIES:  # (an is_held probe holds it for microseconds)
+                        time.sleep(0.01)
+            else:
+                try:
+                    holder = json.loads(os.read(fd, 4096) or b"{}")
+                except ValueError:
+                    holder = {}
+                who = f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} since {holder.get('since', '?')}"
+                raise RunDirLocked(
+                    f"{os.path.dirname(self.path)} is in use by {self.holder} ({who}); {self.advice}"
+                ) from None
+            info = json.dumps(
+                {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+            ).encode()
+            os.pwrite(fd, info, 0)  # written, then cut to length: a reader never sees it empty
+            os.ftruncate(fd, len(info))
+        except BaseException:
+            os.close(fd)  # (closing drops the lock if it was taken: a failed acquire holds nothing)
+            raise
+        self.fd = fd
+        return self
+
+    def release(self) -> None:
+        if self.fd is not None:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+    def __enter__(self) -> RunDirLock:
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def is_held(directory: str, name: str = LOCK) -> bool:
+    """Whether a live process holds ``directory/name`` now (False where the file cannot be
+    read: no lock there). Ask from another process than the holder: on NFS, where flock is
+    emulated with POSIX locks, a probe by the holder itself would release its lock."""
+    try:
+        fd = os.open(os.path.join(directory, name), os.O_RDONLY)
+    except OSError:  # missing, a path through a file, another user's file
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:  # a file system without locks: nobody can hold one there
+        return False
+    finally:
+        os.close(fd)  # (closing drops the probe's own shared lock)
+    return False
+
+
+# ----------------------------------------------------------------------------- the files
+
+
+class RunDir:
+    """The files of one run directory."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self.config = os.path.join(path, CONFIG)
+        self.metrics = os.path.join(path, METRICS)
+        self.checkpoint = os.path.join(path, CHECKPOINT)
+        self.policy = os.path.join(path, POLICY)
+        self.summary = os.path.join(path, SUMMARY)
+
+    def lock(self) -> RunDirLock:
+        return RunDirLock(self.path)
+
+    def log(self, record: dict) -> None:
+        with open(self.metrics, "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def truncate_metrics(self, last_update: int) -> None:
+        """Drop metric lines written after the checkpoint we resume from."""
+        if not os.path.exists(self.metrics):
+            return
+        with open(self.metrics) as f:
+            lines = [line for line in f if line.strip()]
+        keep = []
+        for number, line in enumerate(lines, 1):
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                if number == len(lines):  # the last line, torn by a kill or a full disk mid-write
+                    break
+                raise ValueError(f"{self.metrics}: line {number} is not JSON; fix or remove it to resume") from None
+            if record["update"] <= last_update:
+                keep.append(line if line.endswith("\n") else line + "\n")
+        from taichi_swarm.files import atomic_write_bytes
+
+        atomic_write_bytes(self.metrics, lambda f: f.write("".join(keep).encode()))
+
+    def write_config(self, cfg) -> None:
+        from taichi_swarm.files import atomic_write_json
+        from trainer.config import to_dict
+
+        atomic_write_json(self.config, to_dict(cfg))
+
+    def budget(self) -> int:
+        """The update budget config.json holds."""
+        with open(self.config) as f:
+            return json.load(f)["updates"]
+
+    def read_summary(self) -> dict | None:
+        """summary.json, or None where the run has not finished."""
+        if not os.path.exists(self.summary):
+            return None
+        with open(self.summary) as f:
+            return json.load(f)
+
+    def write_summary(self, summary: dict) -> None:
+        from taichi_swarm.files import atomic_write_json
+
+        atomic_write_json(self.summary, summary)
+
+
+def open_run(cfg, resume: str | None, overrides: dict | None = None):
+    """The run directory of a new run, or of one to resume (its checkpoint checked, its
+    config read back, leftovers of a killed write repaired; ``overrides``: the config fields a
+    resume changes, e.g. updates, progress). Returns (run, cfg, payload: None for a new run)."""
+    from taichi_swarm.files import clean_leftovers
+    from trainer import checkpoint
+    from trainer.config import train_config_from_dict
+
+    if resume is None:
+        if cfg is None:
+            raise ValueError("train() needs a config or a run directory to resume")
+        run = RunDir(cfg.default_run_dir())
+        if os.path.exists(run.checkpoint):
+            raise FileExistsError(
+                f"{run.path} already holds a run; continue it with --resume {run.path} or pick another --run-dir"
+            )
+        os.makedirs(run.path, exist_ok=True)
+        cfg.validate()
+        run.truncate_metrics(0)  # lines a run killed before its first checkpoint left behind
+        run.write_config(cfg)
+        return run, cfg, None
+    run = RunDir(resume)
+    clean_leftovers(run.path)  # a kill during a write leaves a .tmp-* file
+    payload = checkpoint.load(run.checkpoint)
+    if "train_config" not in payload:
+        raise checkpoint.CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
+    lacking = [k for k in RESUME_KEYS if k not in payload]
+    if lacking:
+        raise checkpoint.CheckpointError(f"{run.checkpoint} cannot resume a run: it lacks {lacking}")
+    checkpoint.check_counters(run.checkpoint, payload["counters"])  # (before policy.pt is repaired from them)
+    try:
+        cfg = train_config_from_dict(payload["train_config"])
+    except (TypeError, ValueError) as exc:
+        raise checkpoint.CheckpointError(
+            f"{run.checkpoint} holds a training config this version cannot read: {exc}"
+        ) from None
+    if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
+        if checkpoint.load(run.policy)["counters"] != payload["counters"]:
+            checkpoint.save_policy_only(payload, run.policy)
+    cfg = dataclasses.replace(cfg, **(overrides or {}))
+    run.truncate_metrics(payload["counters"]["update"])
+    cfg.validate()
+    run.write_config(cfg)
+    return run, cfg, payload
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def env_state(env) -> dict:
+    """``env.snapshot()`` as torch tensors (checkpoints load with weights_only=True)."""
+    import torch
+
+    snap = env.snapshot()
+    return {"shape": list(snap["shape"]), "buffers": {k: torch.from_numpy(v) for k, v in snap["buffers"].items()}}
+
+
+def save_checkpoint(run: RunDir, state, cfg) -> None:
+    """checkpoint.pt (everything to resume bit-identically), then policy.pt (weights only).
+    A state holding NaN/inf is never written: the last good checkpoint stays."""
+    import torch
+
+    import taichi_swarm
+    from trainer import checkpoint
+    from trainer.config import to_dict
+    from trainer.ppo import NonFiniteTraining, all_finite
+
+    moments = [t for entry in state.optimizer.state.values() for t in entry.values() if isinstance(t, torch.Tensor)]
+    if not all_finite(list(state.policy.parameters()) + moments):
+        raise NonFiniteTraining(
+            f"the weights or Adam's moments hold NaN/inf: not written (last good checkpoint: {run.checkpoint})"
+        )
+    payload = {
+        "model_config": state.policy.config.to_dict(),
+        "model": state.policy.state_dict(),
+        "task": taichi_swarm.TaskSetting(cfg.task, cfg.agents, cfg.comm, cfg.comm_radius).to_dict(),
+        "swarm": cfg.swarm_options(),  # the neighbour lists / density scaling it trained on ({}: dense)
+        "counters": dict(state.counters),
+        "evals": list(state.evals),
+        "optimizer": state.optimizer.state_dict(),
+        "env_states": [env_state(g.env) for g in state.groups],
+        "reward_scalers": [g.scaler.state_dict() for g in state.groups],
+        "torch_rng": torch.get_rng_state(),
+        # on a GPU, sampling and minibatch shuffles draw from CUDA's generators
+        "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else [],
+        "train_config": to_dict(cfg),
+    }
+    checkpoint.save(run.checkpoint, payload)
+    checkpoint.save_policy_only(payload, run.policy)
+
+
+def restore_env(env, saved, where: str) -> dict:
+    """``env.restore`` from a checkpoint's entry (its buffers checked by ``restore``)."""
+    from trainer import checkpoint
+
+    if not isinstance(saved, dict) or not isinstance(saved.get("buffers"), dict):
+        raise checkpoint.CheckpointError(f"checkpoint {where} is not an environment state")
+    buffers = {}
+    for name, t in saved["buffers"].items():
+        buffers[name] = checkpoint.check_tensor(f"{where}.buffers.{name}", t, finite=False).numpy()
+    try:
+        return env.restore({"shape": tuple(saved.get("shape", ())), "buffers": buffers})
+    except ValueError as exc:
+        raise checkpoint.CheckpointError(f"checkpoint {where}: {exc}") from None
+
+
+def restore(state, payload: dict, device: str) -> None:
+    """Put a training state (trainer.ppo.TrainingState, freshly built for the run's config)
+    back as the checkpoint ``payload`` holds it: weights, Adam, reward normalisers, RNG
+    states, counters, evaluations and every environment's buffers. Every piece is checked
+    (shape, dtype, finite) before it is used."""
+    import torch
+
+    from trainer import checkpoint
+
+    groups = state.groups
+    sizes = [g.agents for g in groups]
+    checkpoint.load_weights(state.policy, payload["model"])
+    checkpoint.check_optimizer_state("checkpoint", payload["optimizer"], state.policy)
+    state.optimizer.load_state_dict(payload["optimizer"])
+    scaler_states = payload["reward_scalers"]
+    if not isinstance(scaler_states, list) or len(scaler_states) != len(groups):
+        raise checkpoint.CheckpointError(f"the checkpoint does not hold one reward scaler per team size {sizes}")
+    for g, scaler_state in zip(groups, scaler_states, strict=True):
+        checkpoint.check_scaler_state("checkpoint", scaler_state, g.env.num_envs)
+        g.scaler.load_state_dict(scaler_state)
+    torch.set_rng_state(checkpoint.check_rng_state("checkpoint torch_rng", payload["torch_rng"]))
+    cuda_rng = payload["cuda_rng"]
+    for i, t in enumerate(cuda_rng):
+        checkpoint.check_tensor(f"checkpoint cuda_rng[{i}]", t, dtype=torch.uint8)
+    if device.startswith("cuda") and len(cuda_rng) == torch.cuda.device_count():  # (not: another machine)
+        torch.cuda.set_rng_state_all(cuda_rng)
+    state.counters = dict(checkpoint.check_counters("checkpoint", payload["counters"]))
+    state.evals = list(payload["evals"])
+    env_states = payload["env_states"]
+    if not isinstance(env_states, list) or len(env_states) != len(groups):
+        raise checkpoint.CheckpointError(f"the checkpoint's env_states do not hold one state per team size {sizes}")
+    for k, g in enumerate(groups):  # resume bit-identically: the environments' buffers as they were
+        g.obs = restore_env(g.env, env_states[k], f"env_states[{k}]")
+
+
+def carry_training_state(init_payload: dict, cfg, state) -> None:
+    """--init-carry normaliser|optimiser: the reward normalisers' running statistics (not
+    the per-environment running returns, which start at 0) and, for optimiser, Adam's moments
+    (at this run's learning rate) from the --init-from checkpoint."""
+    from trainer import checkpoint
+
+    scaler_states = init_payload.get("reward_scalers", [])  # (a policy file holds none)
+    if not scaler_states:
+        raise checkpoint.CheckpointError(
+            f"--init-carry {cfg.init_carry} needs a training checkpoint ({CHECKPOINT}): "
+            f"{cfg.init_from} holds weights only"
+        )
+    if len(scaler_states) not in (1, len(state.groups)):
+        raise checkpoint.CheckpointError(
+            f"--init-from {cfg.init_from} holds {len(scaler_states)} reward normalisers; "
+            f"this run has {len(state.groups)} team sizes (carry needs 1 or as many)"
+        )
+    for k, g in enumerate(state.groups):
+        scaler_state = scaler_states[k if len(scaler_states) > 1 else 0]
+        checkpoint.check_scaler_state(f"--init-from {cfg.init_from}", scaler_state, None)
+        g.scaler.rms.load_state_dict(scaler_state["rms"])
+    if cfg.init_carry == "optimiser":
+        checkpoint.check_optimizer_state(f"--init-from {cfg.init_from}", init_payload["optimizer"], state.policy)
+        state.optimizer.load_state_dict(init_payload["optimizer"])
+        for group in state.optimizer.param_groups:
+            group["lr"] = cfg.ppo.lr
+
+
+# ----------------------------------------------------------------------------- metrics sinks
+
+
+class TensorBoardLog:
+    """metrics.jsonl's scalars as TensorBoard events (RUN_DIR/tensorboard), step = update."""
+
+    def __init__(self, run_dir: str):
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+        except ImportError:
+            raise ValueError('--tensorboard needs the tensorboard package: pip install -e ".[tensorboard]"') from None
+        self.writer = SummaryWriter(os.path.join(run_dir, TENSORBOARD))
+
+    def log(self, record: dict) -> None:
+        step = record["update"]
+        for key, value in record.items():
+            if isinstance(value, dict):
+                for sub, v in value.items():
+                    self.writer.add_scalar(f"{key}/M{sub}", v, step)
+            elif isinstance(value, (int, float)) and key != "update":
+                self.writer.add_scalar(key, value, step)
+        self.writer.flush()
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+# ----------------------------------------------------------------------------- signals
+
+
+class StopAtUpdateEnd:
+    """While inside: Ctrl-C (SIGINT) or SIGTERM during an update lets the update, its
+    evaluation and its checkpoint finish, then takes the signal's own path (its previous
+    handler, else a KeyboardInterrupt), so a stopped run resumes from a whole update. A
+    second signal takes that path at once. Signals the process ignores stay ignored; off
+    the main thread (where no signal arrives) it does nothing.
+
+    The previous handler is kept so that `swarm`'s own SIGTERM handler (swarm_cli.main,
+    which gives every command Ctrl-C's path and the exit code 143) still runs."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.pending: int | None = None
+        self.previous: dict = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in self.SIGNALS:
+                if signal.getsignal(s) is not signal.SIG_IGN:
+                    self.previous[s] = signal.signal(s, self._note)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._restore()
+
+    def _restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+        self.previous = {}
+
+    def _note(self, signum, frame) -> None:
+        if self.pending is not None:
+            self.take(signum)
+        self.pending = signum
+
+    def check(self) -> None:
+        """At an update's end: stop now if a signal came."""
+        if self.pending is not None:
+            self.take(self.pending)
+
+    def take(self, signum: int) -> None:
+        handler = self.previous.get(signum)
+        self._restore()
+        if callable(handler):
+            handler(signum, None)  # e.g. Python's SIGINT handler, `swarm`'s SIGTERM one: raise KeyboardInterrupt
+        raise KeyboardInterrupt(f"stopped by {signal.Signals(signum).name}")
