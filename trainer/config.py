@@ -171,6 +171,11 @@ class TrainConfig:
     from [0, message_drop], and every step drops each message (an edge of the communication
     graph, never an agent's own) with that rate, in the rollout and in the PPO update alike, so a
     policy learns to act on what it hears (0: no faults; evaluations are always fault-free)."""
+    reward: Literal["team", "agent"] = "team"
+    """team: every agent is trained on the team reward (the paper); agent: each on its own
+    terms (the simulator's info["agent_reward"], whose mean the team reward is), each with its
+    own running return in the reward normaliser: the signal a team reward gives one agent is
+    diluted M times, which matters for large teams (docs/SWARM.md)."""
     preset: str = "paper"
     """PPO preset the ``ppo`` options and ``updates`` start from: fast (the recipe behind the model
     zoo) | paper (the paper's schedule) | gpu (4096 environments, for one GPU)."""
@@ -246,6 +251,8 @@ class TrainConfig:
             raise ValueError(f"comm must be one of {COMMS}, got {self.comm!r}")
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
+        if self.reward not in ("team", "agent"):
+            raise ValueError(f"reward must be 'team' or 'agent', got {self.reward!r}")
         if self.model.entity_mode not in ENTITY_MODES:
             raise ValueError(f"model.entity_mode must be one of {ENTITY_MODES}")
         for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):

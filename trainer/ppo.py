@@ -219,12 +219,21 @@ class RolloutResult:
 
 @torch.no_grad()
 def collect_rollout(
-    policy, env, obs: dict, buf: Rollout, scaler: RewardScaler, p, device, message_drop: float = 0.0
+    policy,
+    env,
+    obs: dict,
+    buf: Rollout,
+    scaler: RewardScaler,
+    p,
+    device,
+    message_drop: float = 0.0,
+    per_agent: bool = False,
 ) -> RolloutResult:
     """T steps of every environment with sampled actions into ``buf`` [T, E, M, ...];
     then per-agent GAE and advantage normalisation (``p``: a PPOConfig). ``message_drop``
     > 0: each environment drops messages at a rate drawn from [0, message_drop] for the
-    rollout (TrainConfig.message_drop)."""
+    rollout (TrainConfig.message_drop). ``per_agent``: each agent's own reward terms
+    (info["agent_reward"]) instead of the team's, normalised per agent slot (TrainConfig.reward)."""
     T = buf.actions.shape[0]
     # drawn from torch's generator, which the checkpoint carries: a resumed run draws the same
     rate = torch.rand(buf.actions.shape[1], device=device) * message_drop if message_drop > 0 else None
@@ -250,7 +259,12 @@ def collect_rollout(
         t_policy += tb - ta
         reward, done = reward.to(device), done.to(device)
         raw_reward += reward.mean()
-        buf.rewards[t] = scaler(reward, done).unsqueeze(-1)  # the team's reward, for each of its agents
+        if per_agent:
+            own = info["agent_reward"].to(device)  # [E, M]
+            E, M = own.shape
+            buf.rewards[t] = scaler(own.reshape(E * M), done.repeat_interleave(M)).view(E, M)
+        else:
+            buf.rewards[t] = scaler(reward, done).unsqueeze(-1)  # the team's reward, for each of its agents
         buf.dones[t] = done
         if bool(done.any()):
             ep = info["episode"]
@@ -518,7 +532,11 @@ def one_update(state: TrainingState, cfg, loss_fn, device: str) -> dict:
         state.optimizer.param_groups[0]["lr"] = p.lr + (p.lr_end - p.lr) * min(frac, 1.0)
     rollouts = []
     for g in state.groups:
-        rollouts.append(collect_rollout(state.policy, g.env, g.obs, g.buf, g.scaler, p, device, cfg.message_drop))
+        rollouts.append(
+            collect_rollout(
+                state.policy, g.env, g.obs, g.buf, g.scaler, p, device, cfg.message_drop, cfg.reward == "agent"
+            )
+        )
         g.obs = rollouts[-1].next_obs
     tc = time.perf_counter()
     torch.set_num_threads(cfg.torch_threads)

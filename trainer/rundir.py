@@ -331,7 +331,7 @@ def restore(state, payload: dict, device: str) -> None:
     if not isinstance(scaler_states, list) or len(scaler_states) != len(groups):
         raise checkpoint.CheckpointError(f"the checkpoint does not hold one reward scaler per team size {sizes}")
     for g, scaler_state in zip(groups, scaler_states, strict=True):
-        checkpoint.check_scaler_state("checkpoint", scaler_state, g.env.num_envs)
+        checkpoint.check_scaler_state("checkpoint", scaler_state, g.scaler.ret.shape[0])
         g.scaler.load_state_dict(scaler_state)
     torch.set_rng_state(checkpoint.check_rng_state("checkpoint torch_rng", payload["torch_rng"]))
     cuda_rng = payload["cuda_rng"]

@@ -104,6 +104,12 @@ def evaluate_during_training(policy, cfg: TrainConfig, update: int, device) -> d
     return out
 
 
+def scaler_slots(cfg: TrainConfig, num_envs: int, size: int) -> int:
+    """How many running returns a team size's reward normaliser keeps: one per env, or one
+    per agent of every env with ``reward="agent"``."""
+    return num_envs * size if cfg.reward == "agent" else num_envs
+
+
 def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> TrainingState:
     """The policy (fresh, from --init-from, or from the checkpoint ``payload``), Adam, and one
     group of environments per team size, started fresh or restored exactly as checkpointed."""
@@ -129,7 +135,8 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
         env = taichi_swarm.make(
             cfg.task, E, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch, **cfg.swarm_options()
         )
-        scaler = RewardScaler(E, p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
+        # one running return per agent slot when each agent is rewarded on its own terms
+        scaler = RewardScaler(scaler_slots(cfg, E, size), p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
         groups.append(TeamGroup(size, env, {}, Rollout.for_env(p.num_steps, env, device), scaler))
     state = TrainingState(policy, optimizer, groups, fresh_counters(), [])
     if init_payload is not None and cfg.init_carry != "weights":
