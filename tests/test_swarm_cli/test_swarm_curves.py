@@ -1,0 +1,43 @@
+"""tools/swarm_curves.py: the zero-shot files become the table docs/SWARM.md shows and a
+plot; a file that is not a zero-shot result is refused in one line."""
+
+import importlib.util
+import json
+import os
+
+import pytest
+
+ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
+spec = importlib.util.spec_from_file_location("swarm_curves", os.path.join(ROOT, "tools", "swarm_curves.py"))
+swarm_curves = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(swarm_curves)
+
+
+def zero_shot(path, name, rows):
+    results = [dict(agents=m, success_rate=s, covered=c) for m, s, c in rows]
+    path.write_text(json.dumps({"checkpoint": name, "results": results}))
+    return str(path)
+
+
+def test_table_and_plot(tmp_path, capsys):
+    a = zero_shot(tmp_path / "a.json", "a", [(100, 0.0, 0.22), (10, 0.9, 0.98)])
+    b = zero_shot(tmp_path / "b.json", "b", [(10, 0.5, None)])
+    out = tmp_path / "c.png"
+    assert swarm_curves.main([a, b, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| policy | | M = 10 | M = 100 |" in text
+    assert "| `a` | S% | 90.0 | 0.0 |" in text and "| `a` | covered | 0.98 | 0.22 |" in text
+    assert "| `b` | covered | - | - |" in text  # a size not run and a metric not reported
+    assert out.stat().st_size > 1000 and not list(tmp_path.glob("*.tmp.png"))
+
+
+def test_the_committed_curves_read(capsys):
+    assert swarm_curves.main(["--no-plot"]) == 0
+    assert "`coverage-rc-m10`" in capsys.readouterr().out
+
+
+def test_a_file_that_is_not_a_zero_shot_result_is_refused(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"results": [{"agents": 3}]}))
+    with pytest.raises(SystemExit, match="is not a `swarm zero-shot --json` file"):
+        swarm_curves.main([str(bad), "--no-plot"])
