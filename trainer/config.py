@@ -171,6 +171,10 @@ class TrainConfig:
     from [0, message_drop], and every step drops each message (an edge of the communication
     graph, never an agent's own) with that rate, in the rollout and in the PPO update alike, so a
     policy learns to act on what it hears (0: no faults; evaluations are always fault-free)."""
+    message_burst: float = 0.0
+    """With message_drop: the losses come in bursts, as on a real radio (Gilbert-Elliott, per
+    sender: a sender in a burst reaches nobody), of this mean length in control steps, at the
+    environment's drawn rate on average (0: each message dropped independently)."""
     reward: Literal["team", "agent"] = "team"
     """team: every agent is trained on the team reward (the paper); agent: each on its own
     terms (the simulator's info["agent_reward"], whose mean the team reward is), each with its
@@ -296,6 +300,8 @@ class TrainConfig:
             raise ValueError(f"min_updates must be in [0, updates={self.updates}], got {self.min_updates}")
         if not 0 <= self.message_drop < 1:
             raise ValueError(f"message_drop must be in [0, 1), got {self.message_drop}")
+        if self.message_burst and not (1 <= self.message_burst < float("inf") and self.message_drop > 0):
+            raise ValueError(f"message_burst must be 0 or >= 1 step, with message_drop > 0, got {self.message_burst}")
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
         if self.comm_radius < 0:

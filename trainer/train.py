@@ -136,7 +136,9 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
             cfg.task, E, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch, **cfg.swarm_options()
         )
         # one running return per agent slot when each agent is rewarded on its own terms
-        scaler = RewardScaler(scaler_slots(cfg, E, size), p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device)
+        scaler = RewardScaler(
+            scaler_slots(cfg, E, size), p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device
+        )
         groups.append(TeamGroup(size, env, {}, Rollout.for_env(p.num_steps, env, device), scaler))
     state = TrainingState(policy, optimizer, groups, fresh_counters(), [])
     if init_payload is not None and cfg.init_carry != "weights":
