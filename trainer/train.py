@@ -11,6 +11,7 @@ every ``eval_every`` updates a greedy evaluation on fresh seeds, every
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import time
