@@ -276,10 +276,13 @@ def collect_rollout(
     ep_success, ep_length = [], []
     raw_reward = torch.zeros((), device=device)  # summed on device: no host sync per step
     t_sim = t_policy = 0.0
+    # each sender's burst state, drawn afresh per rollout from the chain's stationary law
+    bad = burst_start(rate, buf.actions.shape[2]) if rate is not None and message_burst else None
     for t in range(T):
         inputs = buf.store(t, obs)  # dense adj or neighbour lists, as the simulator observes
-        if rate is not None and message_burst:
-            bad = burst_start(rate, buf.actions.shape[2]) if t == 0 else burst_step(bad, rate, message_burst)
+        if bad is not None:
+            if t > 0:
+                bad = burst_step(bad, rate, message_burst)
             drop_senders(inputs, bad)
         elif rate is not None:
             drop_messages(inputs, rate)

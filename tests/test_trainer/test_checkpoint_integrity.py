@@ -17,6 +17,7 @@ from trainer.ppo import NonFiniteTraining, ppo_update
 from trainer.rundir import save_checkpoint
 from trainer.train import build_state, train
 
+
 def tiny(tmp_path, **kw):
     base = dict(
         task="coverage",
