@@ -25,6 +25,7 @@ import taichi as ti
 from .. import rng
 from ..layout import H_DENSITY, O_LMK, O_POS, O_TGT, P_TASK_PARAM, agent_at, team_size
 from .base import Task, get2, set2
+from .base import clipped_matched_distance as matched_distance  # the reward term line and formation share
 
 TURN = 5.0 * math.pi / 180.0  # turn the heading by 5 degrees until l1 fits
 
@@ -125,12 +126,6 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
 @ti.func
 def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
     return -mean_clipped_d
-
-
-@ti.func
-def matched_distance(d: ti.f32) -> ti.f32:
-    """-clip(d*_i, 0, 2): the agent's share of the team reward, whose mean it is."""
-    return -ti.math.clamp(d, 0.0, 2.0)
 
 
 @ti.func
