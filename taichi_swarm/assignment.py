@@ -24,17 +24,7 @@ import taichi as ti
 
 from .layout import (
     H_M,
-    O_ASSIGN,
-    O_COST,
-    O_LAP_COLS,
-    O_LAP_DIST,
-    O_LAP_PRED,
-    O_LAP_X,
-    O_LAP_Y,
-    O_MATCHED,
-    O_POS,
-    O_PRICES,
-    O_TGT,
+    blocks,
 )
 
 INF = 1e30
@@ -66,11 +56,11 @@ def solve(cap: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.templa
 @ti.func
 def _enumerate(n: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """M = n (compile-time, <= SMALL_M): the best of all n! permutations."""
-    P0, T0 = ib[O_POS] + b * n * 2, ib[O_TGT] + b * n * 2
+    P0, T0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b)
     c = ti.Matrix.zero(ti.f32, n, n)  # registers: every index below is static
     for i in ti.static(range(n)):
         for j in ti.static(range(n)):
-            dx, dy = f[P0 + 2 * i] - f[T0 + 2 * j], f[P0 + 2 * i + 1] - f[T0 + 2 * j + 1]
+            dx, dy = blocks.pos.get2(f, ib, P0, i) - blocks.targets.get2(f, ib, T0, j)
             c[i, j] = ti.sqrt(dx * dx + dy * dy)
     perms = ti.static(PERMUTATIONS[n])
     best = INF
@@ -84,7 +74,7 @@ def _enumerate(n: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32)
         best = ti.select(better, total, best)
         chosen = ti.select(better, ti.Vector(perms[k], dt=ti.i32), chosen)
         chosen_d = ti.select(better, d, chosen_d)
-    A, D = ib[O_ASSIGN] + b * n, ib[O_MATCHED] + b * n
+    A, D = blocks.assignment.env(ib, b), blocks.matched_dist.env(ib, b)
     for i in ti.static(range(n)):
         ib[A + i] = chosen[i]
         f[D + i] = chosen_d[i]
@@ -109,20 +99,21 @@ def _solve_large(f: ti.template(), ib: ti.template(), b: ti.i32):
     kernels compile to the same code for every M.
     """
     M = ib[H_M]
-    C = ib[O_COST] + b * M * M  # cost[i, j] = |p_i - t_j|, row-major, 0-based
-    P0, T0, V = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M  # f[V + j]: price of column j
-    D = ib[O_LAP_DIST] + b * M  # f[D + j]: path length to column j
-    X, Y = ib[O_LAP_X] + b * M, ib[O_LAP_Y] + b * M  # ib[X + i]: column of row i, ib[Y + j]: its row (-1: free)
-    COLS = ib[O_LAP_COLS] + b * M  # columns: [0, lo) settled, [lo, hi) to scan, [hi, M) to do
-    PRED = ib[O_LAP_PRED] + b * M  # the row before column j on the path
+    C = blocks.assign_cost.env(ib, b)  # cost[i, j] = |p_i - t_j|, row-major, 0-based
+    P0, T0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b)
+    V = blocks.prices.env(ib, b)  # f[V + j]: price of column j
+    D = blocks.lap_dist.env(ib, b)  # f[D + j]: path length to column j
+    X, Y = blocks.lap_x.env(ib, b), blocks.lap_y.env(ib, b)  # ib[X + i]: column of row i, ib[Y + j]: its row (-1: free)
+    COLS = blocks.lap_cols.env(ib, b)  # columns: [0, lo) settled, [lo, hi) to scan, [hi, M) to do
+    PRED = blocks.lap_pred.env(ib, b)  # the row before column j on the path
     for j in range(M):
         ib[Y + j] = -1
     num_free = 0
     for i in range(M):
-        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+        p = blocks.pos.get2(f, ib, P0, i)
         best, arg = INF, 0
         for j in range(M):
-            dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
+            dx, dy = p - blocks.targets.get2(f, ib, T0, j)
             c = ti.sqrt(dx * dx + dy * dy)
             f[C + i * M + j] = c
             reduced = c - f[V + j]
@@ -199,7 +190,7 @@ def _solve_large(f: ti.template(), ib: ti.template(), b: ti.i32):
             top = ti.max(top, f[V + j])
         for j in range(M):
             f[V + j] = f[V + j] - top
-    A, MD = ib[O_ASSIGN] + b * M, ib[O_MATCHED] + b * M
+    A, MD = blocks.assignment.env(ib, b), blocks.matched_dist.env(ib, b)
     for i in range(M):
         ib[A + i] = ib[X + i]
         f[MD + i] = f[C + i * M + ib[X + i]]
@@ -212,8 +203,8 @@ def _solve_stack(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
     ``cap`` is a compile of its own, and large ones compile for minutes.
     """
     M = ib[H_M]
-    C = ib[O_COST] + b * M * M  # cost[i, j] = |p_i - t_j|, row-major, 0-based
-    P0, T0, V0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
+    C = blocks.assign_cost.env(ib, b)  # cost[i, j] = |p_i - t_j|, row-major, 0-based
+    P0, T0, V0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b), blocks.prices.env(ib, b)
     v = ti.Vector.zero(ti.f32, cap)  # column prices
     d = ti.Vector.zero(ti.f32, cap)  # path lengths to each column
     x = ti.Vector.zero(ti.i32, cap)  # x[i]: column of row i (-1: free)
@@ -225,10 +216,10 @@ def _solve_stack(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
         y[j] = -1
     num_free = 0
     for i in range(M):
-        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+        p = blocks.pos.get2(f, ib, P0, i)
         best, arg = INF, 0
         for j in range(M):
-            dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
+            dx, dy = p - blocks.targets.get2(f, ib, T0, j)
             c = ti.sqrt(dx * dx + dy * dy)
             f[C + i * M + j] = c
             reduced = c - v[j]
@@ -302,7 +293,7 @@ def _solve_stack(f: ti.template(), ib: ti.template(), cap: ti.template(), b: ti.
             top = ti.max(top, v[j])
         for j in range(M):
             f[V0 + j] = v[j] - top
-    A, D = ib[O_ASSIGN] + b * M, ib[O_MATCHED] + b * M
+    A, D = blocks.assignment.env(ib, b), blocks.matched_dist.env(ib, b)
     for i in range(M):
         ib[A + i] = x[i]
         f[D + i] = f[C + i * M + x[i]]

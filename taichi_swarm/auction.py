@@ -28,21 +28,9 @@ import taichi as ti
 from .layout import (
     H_GT,
     H_M,
-    O_ASSIGN,
-    O_LAP_COLS,
-    O_LAP_X,
-    O_LAP_Y,
-    O_MATCHED,
-    O_POS,
-    O_PRICES,
-    O_STEP,
-    O_TGRID_CELL,
-    O_TGRID_ITEMS,
-    O_TGRID_START,
-    O_TGT,
     P_EPS,
     P_TCELL,
-    env_at,
+    blocks,
 )
 from .neighbours import bucket, build, cell_of
 
@@ -78,11 +66,11 @@ def _consider(d: ti.f32, j: ti.i32, best: ti.math.vec3) -> ti.math.vec3:
 def best_two(f: ti.template(), ib: ti.template(), i: ti.i32, b: ti.i32, M: ti.i32) -> ti.math.vec3:
     """(w1, w2, j1): the smallest and second smallest c_ij + p_j over every target j of env
     b, and the target of the smallest (as a float: exact below 2^24 targets)."""
-    P0, T0, V = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
+    P0, T0, V = blocks.pos.env(ib, b), blocks.targets.env(ib, b), blocks.prices.env(ib, b)
     G, h = ib[H_GT], f[P_TCELL]
-    GS, GI, GC = ib[O_TGRID_START] + b * (G + 1), ib[O_TGRID_ITEMS] + b * M, ib[O_TGRID_CELL] + b * M * 2
-    px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
-    c = cell_of(px, py, h)
+    GS, GI, GC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
+    p = blocks.pos.get2(f, ib, P0, i)
+    c = cell_of(p[0], p[1], h)
     best = ti.math.vec3(INF, INF, -1.0)
     finished = False
     for rho in range(RING_LIMIT + 1 if M >= RINGS_FROM else 0):
@@ -106,12 +94,12 @@ def best_two(f: ti.template(), ib: ti.template(), i: ti.i32, b: ti.i32, M: ti.i3
             for k in range(ib[GS + g], ib[GS + g + 1]):
                 j = ib[GI + k]
                 if ib[GC + 2 * j] == qx and ib[GC + 2 * j + 1] == qy:
-                    dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
+                    dx, dy = p - blocks.targets.get2(f, ib, T0, j)
                     best = _consider(ti.sqrt(dx * dx + dy * dy) + f[V + j], j, best)
     if not finished:  # past RING_LIMIT rings (or fewer than two targets): look at them all
         best = ti.math.vec3(INF, INF, -1.0)
         for j in range(M):
-            dx, dy = px - f[T0 + 2 * j], py - f[T0 + 2 * j + 1]
+            dx, dy = p - blocks.targets.get2(f, ib, T0, j)
             best = _consider(ti.sqrt(dx * dx + dy * dy) + f[V + j], j, best)
     return best
 
@@ -119,7 +107,8 @@ def best_two(f: ti.template(), ib: ti.template(), i: ti.i32, b: ti.i32, M: ti.i3
 @ti.func
 def _bid_until_assigned(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, eps: ti.f32, num_free: ti.i32):
     """Auction rounds until the stack of free agents (lap_cols) is empty."""
-    V, X, Y, FREE = ib[O_PRICES] + b * M, ib[O_LAP_X] + b * M, ib[O_LAP_Y] + b * M, ib[O_LAP_COLS] + b * M
+    V, X, Y = blocks.prices.env(ib, b), blocks.lap_x.env(ib, b), blocks.lap_y.env(ib, b)
+    FREE = blocks.lap_cols.env(ib, b)
     top = num_free
     while top > 0:
         top -= 1
@@ -144,13 +133,14 @@ def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
     """Writes assignment[b, i] and matched_dist[b, i] = |p_i - t_assignment[i]|, the total
     within M * eps of the optimum."""
     M = ib[H_M]
-    P0, T0, V = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2, ib[O_PRICES] + b * M
-    X, Y, FREE = ib[O_LAP_X] + b * M, ib[O_LAP_Y] + b * M, ib[O_LAP_COLS] + b * M
+    P0, T0, V = blocks.pos.env(ib, b), blocks.targets.env(ib, b), blocks.prices.env(ib, b)
+    X, Y, FREE = blocks.lap_x.env(ib, b), blocks.lap_y.env(ib, b), blocks.lap_cols.env(ib, b)
     G = ib[H_GT]
     h = f[P_TCELL]
-    build(f, ib, M, T0, h, G, ib[O_TGRID_START] + b * (G + 1), ib[O_TGRID_ITEMS] + b * M, ib[O_TGRID_CELL] + b * M * 2)
+    GS, GI, GC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
+    build(f, ib, M, T0, h, G, GS, GI, GC)
     eps_final = f[P_EPS]
-    if ib[env_at(ib, O_STEP, b)] == 0:  # a fresh episode: cold start, eps scaling
+    if ib[blocks.step.env(ib, b)] == 0:  # a fresh episode: cold start, eps scaling
         for j in range(M):
             f[V + j] = 0.0
         eps = ti.max(h, eps_final)
@@ -181,7 +171,7 @@ def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
             j = ib[X + i]
             keep = False
             if j >= 0:
-                dx, dy = f[P0 + 2 * i] - f[T0 + 2 * j], f[P0 + 2 * i + 1] - f[T0 + 2 * j + 1]
+                dx, dy = blocks.pos.get2(f, ib, P0, i) - blocks.targets.get2(f, ib, T0, j)
                 keep = ti.sqrt(dx * dx + dy * dy) + f[V + j] <= best_two(f, ib, i, b, M)[0] + eps_final
             if not keep:
                 if j >= 0:
@@ -200,9 +190,9 @@ def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
         low = ti.min(low, f[V + j])
     for j in range(M):
         f[V + j] = f[V + j] - low
-    A, MD = ib[O_ASSIGN] + b * M, ib[O_MATCHED] + b * M
+    A, MD = blocks.assignment.env(ib, b), blocks.matched_dist.env(ib, b)
     for i in range(M):
         j = ib[X + i]
         ib[A + i] = j
-        dx, dy = f[P0 + 2 * i] - f[T0 + 2 * j], f[P0 + 2 * i + 1] - f[T0 + 2 * j + 1]
+        dx, dy = blocks.pos.get2(f, ib, P0, i) - blocks.targets.get2(f, ib, T0, j)
         f[MD + i] = ti.sqrt(dx * dx + dy * dy)

@@ -31,55 +31,13 @@ from .layout import (
     H_K,
     H_KL,
     H_MAX_STEPS,
-    O_ACTIONS,
-    O_ADJ,
-    O_AGENT_REWARD,
-    O_DONE,
-    O_DROPPED,
-    O_ENT_D2,
-    O_ENT_IDX,
-    O_ENT_MASK,
-    O_EP_COVERED,
-    O_EP_DIST,
-    O_EP_LEN,
-    O_EP_MATCHED,
-    O_EP_RETURN,
-    O_EP_SUCCESS,
-    O_EP_TRUNC,
-    O_GRID_CELL,
-    O_GRID_ITEMS,
-    O_GRID_START,
-    O_IN_RANGE,
-    O_LGRID_CELL,
-    O_LGRID_ITEMS,
-    O_LGRID_START,
-    O_LMK,
-    O_MATCHED,
-    O_NBR,
-    O_NBR_D2,
-    O_NBR_MASK,
-    O_OBS_ENT,
-    O_OBS_SELF,
-    O_POS,
-    O_RET_ACC,
-    O_REWARD,
-    O_STEP,
-    O_TERM_ADJ,
-    O_TERM_ENT,
-    O_TERM_ENT_MASK,
-    O_TERM_NBR,
-    O_TERM_NBR_MASK,
-    O_TERM_SELF,
-    O_TGT,
-    O_VEL,
     P_AGENT_RADIUS,
     P_CELL,
     P_COMM_RADIUS,
     P_LCELL,
     P_SENSE,
     P_SUCCESS,
-    agent_at,
-    env_at,
+    blocks,
     team_size,
 )
 
@@ -126,38 +84,40 @@ def write_team_obs(
     - pos; and who agent i hears: the adjacency [M, M] (dense: itself always; "rc": those
     within comm radius) or, with neighbour lists, its K nearest heard agents."""
     M, L = team_size(sm, ib), tasks.landmark_count(task, sm, ib)
-    P0, V0, LM = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_LMK] + b * L * 2
-    S = ib[O_TERM_SELF if ti.static(term) else O_OBS_SELF] + b * M * 4
-    for i in range(M):
-        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
-        f[S + 4 * i + 0] = f[V0 + 2 * i]
-        f[S + 4 * i + 1] = f[V0 + 2 * i + 1]
-        f[S + 4 * i + 2] = px
-        f[S + 4 * i + 3] = py
+    pos, vel, lmk = blocks.pos, blocks.vel, blocks.landmarks
+    obs_self = blocks.term_self if ti.static(term) else blocks.obs_self
+    P0, V0, LM, S = pos.env(ib, b), vel.env(ib, b), lmk.env(ib, b), obs_self.env(ib, b)
+    for i in range(M):  # (vx, vy, px, py): SELF_DIM
+        s = obs_self.row(ib, S, i)
+        v, p = vel.get2(f, ib, V0, i), pos.get2(f, ib, P0, i)
+        f[s + 0], f[s + 1], f[s + 2], f[s + 3] = v[0], v[1], p[0], p[1]
     if ti.static(lists & LANDMARK_LISTS):
         landmark_lists(sm, f, ib, u8, b, M, L, term)
     else:
-        E = ib[O_TERM_ENT if ti.static(term) else O_OBS_ENT] + b * M * L * 2
+        ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
+        E = ent.env(ib, b)
         for i in range(M):
-            px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+            p, e = pos.get2(f, ib, P0, i), ent.row(ib, E, i)  # agent i's [L, 2] offsets
             for l in range(L):
-                f[E + (i * L + l) * 2] = f[LM + 2 * l] - px
-                f[E + (i * L + l) * 2 + 1] = f[LM + 2 * l + 1] - py
+                d = lmk.get2(f, ib, LM, l) - p
+                f[e + 2 * l], f[e + 2 * l + 1] = d[0], d[1]
     if ti.static(lists & AGENT_LISTS):
         agent_lists(sm, f, ib, u8, b, M, term)
     else:
-        A = ib[O_TERM_ADJ if ti.static(term) else O_ADJ] + b * M * M
+        adj = blocks.term_adj if ti.static(term) else blocks.adj
+        A = adj.env(ib, b)
         restricted = ib[H_COMM_RC] != 0
         radius = f[P_COMM_RADIUS]
         r2 = radius * radius
+        width = adj.row_width(ib)  # M: adjacency row i is u8[A + i * M : A + (i + 1) * M]
         for i in range(M):  # the graph is symmetric: each pair once
-            u8[A + i * M + i] = ti.u8(1)
-            px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+            u8[A + i * width + i] = ti.u8(1)
+            p = pos.get2(f, ib, P0, i)
             for j in range(i + 1, M):
-                dx, dy = f[P0 + 2 * j] - px, f[P0 + 2 * j + 1] - py
-                hears = ti.cast((not restricted) or dx * dx + dy * dy <= r2, ti.u8)
-                u8[A + i * M + j] = hears
-                u8[A + j * M + i] = hears
+                d = pos.get2(f, ib, P0, j) - p
+                hears = ti.cast((not restricted) or d[0] * d[0] + d[1] * d[1] <= r2, ti.u8)
+                u8[A + i * width + j] = hears
+                u8[A + j * width + i] = hears
 
 
 @ti.func
@@ -169,36 +129,37 @@ def agent_lists(
     with the agent's own index), nbr_mask [M, K], in_range [M] and dropped (the env's
     heard-but-not-listed count)."""
     K, G = ib[H_K], ib[H_G]
-    P0 = ib[O_POS] + b * M * 2
-    GS, GI, GC = ib[O_GRID_START] + b * (G + 1), ib[O_GRID_ITEMS] + b * M, ib[O_GRID_CELL] + b * M * 2
+    nbr = blocks.term_nbr if ti.static(term) else blocks.nbr
+    mask = blocks.term_nbr_mask if ti.static(term) else blocks.nbr_mask
+    P0 = blocks.pos.env(ib, b)
+    GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
     h = f[P_CELL]
     neighbours.build(f, ib, M, P0, h, G, GS, GI, GC)
-    NB = ib[O_TERM_NBR if ti.static(term) else O_NBR] + b * M * K
-    MK = ib[O_TERM_NBR_MASK if ti.static(term) else O_NBR_MASK] + b * M * K
-    D2, IR = ib[O_NBR_D2] + b * M * K, ib[O_IN_RANGE] + b * M
+    NB, MK, D2, IR = nbr.env(ib, b), mask.env(ib, b), blocks.nbr_d2.env(ib, b), blocks.in_range.env(ib, b)
     restricted = ib[H_COMM_RC] != 0
     r2 = f[P_COMM_RADIUS] * f[P_COMM_RADIUS]
     dropped = 0
     for i in range(M):
-        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
+        p = blocks.pos.get2(f, ib, P0, i)
+        row, row_d2, row_mask = nbr.row(ib, NB, i), blocks.nbr_d2.row(ib, D2, i), mask.row(ib, MK, i)
         found = ti.math.ivec2(0, 0)  # (listed, in range)
         if restricted:
-            found = neighbours.nearest_in_grid(f, ib, px, py, i, P0, r2, h, G, GS, GI, GC, D2 + i * K, NB + i * K, K)
+            found = neighbours.nearest_in_grid(f, ib, p[0], p[1], i, P0, r2, h, G, GS, GI, GC, row_d2, row, K)
         else:  # "uc": everyone is heard; the K nearest of all
             kept = 0
             for j in range(M):
                 if j != i:
-                    dx, dy = f[P0 + 2 * j] - px, f[P0 + 2 * j + 1] - py
-                    kept = neighbours.insert(f, ib, D2 + i * K, NB + i * K, kept, K, dx * dx + dy * dy, j)
+                    d = blocks.pos.get2(f, ib, P0, j) - p
+                    kept = neighbours.insert(f, ib, row_d2, row, kept, K, d[0] * d[0] + d[1] * d[1], j)
             found = ti.math.ivec2(kept, M - 1)
         for k in range(K):
             listed = k < found[0]
-            u8[MK + i * K + k] = ti.cast(listed, ti.u8)
+            u8[row_mask + k] = ti.cast(listed, ti.u8)
             if not listed:
-                ib[NB + i * K + k] = i
+                ib[row + k] = i
         ib[IR + i] = found[1]
         dropped += found[1] - found[0]
-    ib[env_at(ib, O_DROPPED, b)] = dropped
+    ib[blocks.dropped.env(ib, b)] = dropped
 
 
 @ti.func
@@ -216,40 +177,38 @@ def landmark_lists(
     landmarks' cell grid: entities [M, KL, 2] (landmark - pos, zeros where none) and
     entity_mask [M, KL]."""
     KL, G = ib[H_KL], ib[H_GL]
-    P0, LM = ib[O_POS] + b * M * 2, ib[O_LMK] + b * L * 2
-    GS, GI, GC = ib[O_LGRID_START] + b * (G + 1), ib[O_LGRID_ITEMS] + b * L, ib[O_LGRID_CELL] + b * L * 2
+    ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
+    mask = blocks.term_entity_mask if ti.static(term) else blocks.entity_mask
+    P0, LM = blocks.pos.env(ib, b), blocks.landmarks.env(ib, b)
+    GS, GI, GC = blocks.lgrid_start.env(ib, b), blocks.lgrid_items.env(ib, b), blocks.lgrid_cell.env(ib, b)
     h = f[P_LCELL]
     neighbours.build(f, ib, L, LM, h, G, GS, GI, GC)
-    E = ib[O_TERM_ENT if ti.static(term) else O_OBS_ENT] + b * M * KL * 2
-    MK = ib[O_TERM_ENT_MASK if ti.static(term) else O_ENT_MASK] + b * M * KL
-    D2 = ib[O_ENT_D2] + b * M * KL
-    IDX = ib[O_ENT_IDX] + b * KL
+    E, MK, D2, IDX = ent.env(ib, b), mask.env(ib, b), blocks.ent_d2.env(ib, b), blocks.ent_idx.env(ib, b)
     s2 = f[P_SENSE] * f[P_SENSE]
     for i in range(M):
-        px, py = f[P0 + 2 * i], f[P0 + 2 * i + 1]
-        found = neighbours.nearest_in_grid(f, ib, px, py, -1, LM, s2, h, G, GS, GI, GC, D2 + i * KL, IDX, KL)
+        p = blocks.pos.get2(f, ib, P0, i)
+        row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
+        found = neighbours.nearest_in_grid(f, ib, p[0], p[1], -1, LM, s2, h, G, GS, GI, GC, row_d2, IDX, KL)
         for k in range(KL):
             listed = k < found[0]
-            u8[MK + i * KL + k] = ti.cast(listed, ti.u8)
-            dx, dy = 0.0, 0.0
+            u8[row_mask + k] = ti.cast(listed, ti.u8)
+            d = ti.math.vec2(0.0, 0.0)
             if listed:
-                l = ib[IDX + k]
-                dx, dy = f[LM + 2 * l] - px, f[LM + 2 * l + 1] - py
-            f[E + (i * KL + k) * 2] = dx
-            f[E + (i * KL + k) * 2 + 1] = dy
+                d = blocks.landmarks.get2(f, ib, LM, ib[IDX + k]) - p
+            f[row + 2 * k], f[row + 2 * k + 1] = d[0], d[1]
 
 
 @ti.func
 def target_dist(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32) -> ti.f32:
     """DIST: mean over targets of the distance to the closest agent."""
     M = team_size(sm, ib)
-    P0, T0 = ib[O_POS] + b * M * 2, ib[O_TGT] + b * M * 2
+    P0, T0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b)
     total = 0.0
     for t in range(M):
-        tp = ti.math.vec2(f[T0 + 2 * t], f[T0 + 2 * t + 1])
+        tp = blocks.targets.get2(f, ib, T0, t)
         best = 1e30
         for i in range(M):
-            best = ti.min(best, (ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1]) - tp).norm())
+            best = ti.min(best, (blocks.pos.get2(f, ib, P0, i) - tp).norm())
         total += best
     return total / M
 
@@ -259,7 +218,7 @@ def clear_agent_rewards(sm: ti.template(), f: ti.template(), ib: ti.template(), 
     """A reset's rewards are 0, the team's and each agent's."""
     M = team_size(sm, ib)
     for i in range(M):
-        f[agent_at(ib, O_AGENT_REWARD, b, M, i, 1)] = 0.0
+        f[blocks.agent_reward.at(ib, b, i)] = 0.0
 
 
 @ti.func
@@ -273,8 +232,8 @@ def start_episode(
     b: ti.i32,
 ):
     tasks.spawn(task, sm, f, ib, b)
-    ib[env_at(ib, O_STEP, b)] = 0
-    f[env_at(ib, O_RET_ACC, b)] = 0.0
+    ib[blocks.step.env(ib, b)] = 0
+    f[blocks.return_acc.env(ib, b)] = 0.0
     match(task, cap, sm, lists, f, ib, b)
 
 
@@ -292,9 +251,9 @@ def reset_kernel(
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
         start_episode(task, cap, sm, lists, f, ib, b)
-        f[env_at(ib, O_REWARD, b)] = 0.0
+        f[blocks.reward.env(ib, b)] = 0.0
         clear_agent_rewards(sm, f, ib, b)
-        u8[env_at(ib, O_DONE, b)] = ti.u8(0)
+        u8[blocks.done.env(ib, b)] = ti.u8(0)
         write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
@@ -328,11 +287,12 @@ def physics_step(
 ):
     """Action and contact forces -> velocities, then positions, for env b.
 
-    Discrete (``continuous`` False): the actions are ib[O_ACTIONS] and ``u`` is not read.
+    Discrete (``continuous`` False): the actions are the actions block and ``u`` is not read.
     Continuous: u is the float32 [B * M * 2] array of force commands (clipped to [-1, 1])."""
     M = team_size(sm, ib)
     dist_min = 2.0 * f[P_AGENT_RADIUS]
-    P0, V0, A0 = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_ACTIONS] + b * M
+    pos, vel = blocks.pos, blocks.vel
+    P0, V0, A0 = pos.env(ib, b), vel.env(ib, b), blocks.actions.env(ib, b)
     force = ti.Vector.zero(ti.f32, 2 * cap)  # [M, 2], on the thread's stack
     for i in range(M):
         if ti.static(continuous):
@@ -340,28 +300,24 @@ def physics_step(
             force[2 * i] = c[0]
             force[2 * i + 1] = c[1]
         else:
-            a = physics.action_force(ib[A0 + i])
+            a = physics.action_force(ib[blocks.actions.row(ib, A0, i)])
             force[2 * i] = a[0]
             force[2 * i + 1] = a[1]
     for i in range(M):  # contact forces from the old positions, each pair once (equal and
         # opposite; every agent still sums its contacts in increasing j, as MPE does)
-        p = ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1])
+        p = pos.get2(f, ib, P0, i)
         for j in range(i + 1, M):
-            fc = physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
+            fc = physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
             force[2 * i] += fc[0]
             force[2 * i + 1] += fc[1]
             force[2 * j] -= fc[0]
             force[2 * j + 1] -= fc[1]
     for i in range(M):
-        v = physics.integrate_velocity(
-            ti.math.vec2(f[V0 + 2 * i], f[V0 + 2 * i + 1]), ti.math.vec2(force[2 * i], force[2 * i + 1])
-        )
-        f[V0 + 2 * i] = v[0]
-        f[V0 + 2 * i + 1] = v[1]
-        # plain read-modify-write: ``+=`` on an ndarray element compiles to an atomic add
+        v = physics.integrate_velocity(vel.get2(f, ib, V0, i), ti.math.vec2(force[2 * i], force[2 * i + 1]))
+        vel.set2(f, ib, V0, i, v)
+        # a plain read-modify-write: ``+=`` on an ndarray element compiles to an atomic add
         # (a lock cmpxchg loop), needless here as each env belongs to one thread
-        f[P0 + 2 * i] = f[P0 + 2 * i] + v[0] * physics.DT
-        f[P0 + 2 * i + 1] = f[P0 + 2 * i + 1] + v[1] * physics.DT
+        pos.set2(f, ib, P0, i, pos.get2(f, ib, P0, i) + v * physics.DT)
 
 
 @ti.func
@@ -374,8 +330,9 @@ def physics_step_grid(
     forces; velocities first (forces read positions only), then positions."""
     M = team_size(sm, ib)
     G = ib[H_G]
-    P0, V0, A0 = ib[O_POS] + b * M * 2, ib[O_VEL] + b * M * 2, ib[O_ACTIONS] + b * M
-    GS, GI, GC = ib[O_GRID_START] + b * (G + 1), ib[O_GRID_ITEMS] + b * M, ib[O_GRID_CELL] + b * M * 2
+    pos, vel = blocks.pos, blocks.vel
+    P0, V0, A0 = pos.env(ib, b), vel.env(ib, b), blocks.actions.env(ib, b)
+    GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
     dist_min = 2.0 * f[P_AGENT_RADIUS]
     reach = (dist_min + physics.CUTOFF_MARGINS * physics.CONTACT_MARGIN) * 1.001  # a superset of the force's
     h = f[P_CELL]
@@ -384,21 +341,21 @@ def physics_step_grid(
         if ti.static(continuous):
             force = physics.continuous_force(ti.math.vec2(u[(b * M + i) * 2], u[(b * M + i) * 2 + 1]))
         else:
-            force = physics.action_force(ib[A0 + i])
-        p = ti.math.vec2(f[P0 + 2 * i], f[P0 + 2 * i + 1])
+            force = physics.action_force(ib[blocks.actions.row(ib, A0, i)])
+        p = pos.get2(f, ib, P0, i)
         # one pass over the 3 x 3 cells keeps the CONTACT_SLOTS smallest touching indices,
         # sorted; past that many (a pile-up) the rest are walked in increasing index
         touching = ti.Vector([M] * CONTACT_SLOTS, dt=ti.i32)
         count = 0
-        cell = ti.math.ivec2(ib[GC + 2 * i], ib[GC + 2 * i + 1])
+        cell = blocks.grid_cell.get2(ib, ib, GC, i)
         for q in range(9):
             qx, qy = cell[0] + q % 3 - 1, cell[1] + q // 3 - 1
             g = neighbours.bucket(qx, qy, G)
             for s in range(ib[GS + g], ib[GS + g + 1]):
                 j = ib[GI + s]
                 if j != i and ib[GC + 2 * j] == qx and ib[GC + 2 * j + 1] == qy:
-                    dx, dy = f[P0 + 2 * j] - p[0], f[P0 + 2 * j + 1] - p[1]
-                    d2 = dx * dx + dy * dy
+                    d = pos.get2(f, ib, P0, j) - p
+                    d2 = d[0] * d[0] + d[1] * d[1]
                     if d2 > 0.0 and d2 < reach * reach:
                         count += 1
                         if j < touching[CONTACT_SLOTS - 1]:
@@ -409,18 +366,15 @@ def physics_step_grid(
                             touching[k] = j
         for k in range(ti.min(count, CONTACT_SLOTS)):
             j = touching[k]
-            force += physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
+            force += physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
         if count > CONTACT_SLOTS:
             j = neighbours.next_contact(f, ib, i, touching[CONTACT_SLOTS - 1], P0, reach * reach, h, G, GS, GI, GC, M)
             while j < M:
-                force += physics.contact_force(p, ti.math.vec2(f[P0 + 2 * j], f[P0 + 2 * j + 1]), dist_min)
+                force += physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
                 j = neighbours.next_contact(f, ib, i, j, P0, reach * reach, h, G, GS, GI, GC, M)
-        v = physics.integrate_velocity(ti.math.vec2(f[V0 + 2 * i], f[V0 + 2 * i + 1]), force)
-        f[V0 + 2 * i] = v[0]
-        f[V0 + 2 * i + 1] = v[1]
+        vel.set2(f, ib, V0, i, physics.integrate_velocity(vel.get2(f, ib, V0, i), force))
     for i in range(M):
-        f[P0 + 2 * i] = f[P0 + 2 * i] + f[V0 + 2 * i] * physics.DT
-        f[P0 + 2 * i + 1] = f[P0 + 2 * i + 1] + f[V0 + 2 * i + 1] * physics.DT
+        pos.set2(f, ib, P0, i, pos.get2(f, ib, P0, i) + vel.get2(f, ib, V0, i) * physics.DT)
 
 
 @ti.func
@@ -442,33 +396,33 @@ def step_env(
         physics_step_grid(sm, f, ib, b, u, continuous)
     else:
         physics_step(cap, sm, f, ib, b, u, continuous)
-    t = ib[env_at(ib, O_STEP, b)] + 1
-    ib[env_at(ib, O_STEP, b)] = t
+    t = ib[blocks.step.env(ib, b)] + 1
+    ib[blocks.step.env(ib, b)] = t
     match(task, cap, sm, lists, f, ib, b)
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
     for i in range(M):
-        d = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
-        f[agent_at(ib, O_AGENT_REWARD, b, M, i, 1)] = tasks.agent_reward(task, d)
+        d = f[blocks.matched_dist.at(ib, b, i)]
+        f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, d)
         sum_d += d
         sum_clipped += ti.math.clamp(d, 0.0, 2.0)
         within = d < f[P_SUCCESS]
         success = success and within
         covered += ti.cast(within, ti.i32)
     r = tasks.reward(task, sum_d / M, sum_clipped / M)
-    f[env_at(ib, O_REWARD, b)] = r
-    ret = f[env_at(ib, O_RET_ACC, b)] + r
-    f[env_at(ib, O_RET_ACC, b)] = ret
+    f[blocks.reward.env(ib, b)] = r
+    ret = f[blocks.return_acc.env(ib, b)] + r
+    f[blocks.return_acc.env(ib, b)] = ret
     done = success or t >= ib[H_MAX_STEPS]
-    u8[env_at(ib, O_DONE, b)] = ti.cast(done, ti.u8)
+    u8[blocks.done.env(ib, b)] = ti.cast(done, ti.u8)
     if done:
-        u8[env_at(ib, O_EP_SUCCESS, b)] = ti.cast(success, ti.u8)
-        u8[env_at(ib, O_EP_TRUNC, b)] = ti.cast(not success, ti.u8)
-        ib[env_at(ib, O_EP_LEN, b)] = t
-        f[env_at(ib, O_EP_RETURN, b)] = ret
-        f[env_at(ib, O_EP_DIST, b)] = target_dist(sm, f, ib, b)
-        f[env_at(ib, O_EP_COVERED, b)] = covered / M
+        u8[blocks.ep_success.env(ib, b)] = ti.cast(success, ti.u8)
+        u8[blocks.ep_truncated.env(ib, b)] = ti.cast(not success, ti.u8)
+        ib[blocks.ep_length.env(ib, b)] = t
+        f[blocks.ep_return.env(ib, b)] = ret
+        f[blocks.ep_dist.env(ib, b)] = target_dist(sm, f, ib, b)
+        f[blocks.ep_covered.env(ib, b)] = covered / M
         for i in range(M):
-            f[agent_at(ib, O_EP_MATCHED, b, M, i, 1)] = f[agent_at(ib, O_MATCHED, b, M, i, 1)]
+            f[blocks.ep_matched_dist.at(ib, b, i)] = f[blocks.matched_dist.at(ib, b, i)]
         write_team_obs(task, sm, lists, f, ib, u8, b, True)
         start_episode(task, cap, sm, lists, f, ib, b)
     write_team_obs(task, sm, lists, f, ib, u8, b, False)
@@ -485,7 +439,7 @@ def step_kernel(
     lists: ti.template(),
     parallel: ti.template(),
 ):
-    """One step of every environment, with the discrete actions already in ib[O_ACTIONS]."""
+    """One step of every environment, with the discrete actions already in the actions block."""
     ti.loop_config(serialize=ti.static(not parallel))
     for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
         step_env(task, cap, sm, lists, f, ib, u8, b, f, False)  # ``u`` unused (discrete): any array will do
@@ -528,7 +482,7 @@ def reset_masked_kernel(
     for b in range(ib[H_B]):
         if mask[b] != 0:
             start_episode(task, cap, sm, lists, f, ib, b)
-            f[env_at(ib, O_REWARD, b)] = 0.0
+            f[blocks.reward.env(ib, b)] = 0.0
             clear_agent_rewards(sm, f, ib, b)
-            u8[env_at(ib, O_DONE, b)] = ti.u8(0)
+            u8[blocks.done.env(ib, b)] = ti.u8(0)
             write_team_obs(task, sm, lists, f, ib, u8, b, False)

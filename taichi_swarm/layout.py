@@ -6,9 +6,10 @@ buffers (float32, int32, uint8) plus the actions. Each named array is a
 contiguous block ``[B, ...]`` inside its buffer; the public arrays
 (``obs["self"]``, ``reward``, ...) are zero-copy views of those blocks.
 
-The block offsets are written into a small header at the start of the int32
-buffer (and the float parameters at the start of the float32 buffer), so the
-kernels read ``ib[O_POS]`` instead of being recompiled for each (B, M, L).
+The block offsets and strides are written into a small header at the start of the
+int32 buffer (and the float parameters at the start of the float32 buffer), and the
+kernels reach every block through its named accessor (``blocks.pos.env(ib, b)``,
+generated from ``BLOCKS``) instead of being recompiled for each (B, M, L).
 
 Block shapes are written in named dimensions (``DIMS``): the dense layout has
 ``MA = M`` (the adjacency) and no neighbour blocks; with neighbour lists
@@ -124,27 +125,84 @@ BLOCKS = (
     BlockSpec("entity_mask", "u8", ("M", "KL")),
     BlockSpec("term_entity_mask", "u8", ("M", "KL")),
 )
-SLOT = {spec.name: SIZE_SLOTS + i for i, spec in enumerate(BLOCKS)}
-INT_HEADER = SIZE_SLOTS + len(BLOCKS)
+SLOT = {spec.name: SIZE_SLOTS + i for i, spec in enumerate(BLOCKS)}  # header slot of each block's offset
+# the header holds three entries per block: its offset, its entries per env and per row
+# (per index of its first dimension), so that one compiled kernel serves every (B, M, L, K)
+ENV_STRIDE, ROW_STRIDE = len(BLOCKS), 2 * len(BLOCKS)  # added to a block's SLOT
+INT_HEADER = SIZE_SLOTS + 3 * len(BLOCKS)
 
-# The kernels' names for the slots (compile-time constants): ib[O_POS] is where pos starts.
-O_POS, O_VEL, O_LMK, O_TGT = SLOT["pos"], SLOT["vel"], SLOT["landmarks"], SLOT["targets"]
-O_OBS_SELF, O_OBS_ENT, O_ADJ = SLOT["obs_self"], SLOT["obs_entities"], SLOT["adj"]
-O_REWARD, O_DONE, O_STEP, O_RNG = SLOT["reward"], SLOT["done"], SLOT["step"], SLOT["rng"]
-O_MATCHED, O_RET_ACC = SLOT["matched_dist"], SLOT["return_acc"]
-O_AGENT_REWARD = SLOT["agent_reward"]
-O_EP_MATCHED, O_EP_DIST, O_EP_RETURN = SLOT["ep_matched_dist"], SLOT["ep_dist"], SLOT["ep_return"]
-O_EP_LEN, O_EP_SUCCESS, O_EP_TRUNC = SLOT["ep_length"], SLOT["ep_success"], SLOT["ep_truncated"]
-O_TERM_SELF, O_TERM_ENT, O_TERM_ADJ = SLOT["term_self"], SLOT["term_entities"], SLOT["term_adj"]
-O_COST, O_PRICES, O_ASSIGN, O_ACTIONS = SLOT["assign_cost"], SLOT["prices"], SLOT["assignment"], SLOT["actions"]
-O_LAP_DIST, O_LAP_X, O_LAP_Y = SLOT["lap_dist"], SLOT["lap_x"], SLOT["lap_y"]
-O_LAP_COLS, O_LAP_PRED, O_EP_COVERED = SLOT["lap_cols"], SLOT["lap_pred"], SLOT["ep_covered"]
-O_NBR, O_TERM_NBR, O_NBR_MASK, O_TERM_NBR_MASK = SLOT["nbr"], SLOT["term_nbr"], SLOT["nbr_mask"], SLOT["term_nbr_mask"]
-O_NBR_D2, O_ENT_D2, O_IN_RANGE, O_DROPPED = SLOT["nbr_d2"], SLOT["ent_d2"], SLOT["in_range"], SLOT["dropped"]
-O_ENT_MASK, O_TERM_ENT_MASK, O_ENT_IDX = SLOT["entity_mask"], SLOT["term_entity_mask"], SLOT["ent_idx"]
-O_GRID_START, O_GRID_ITEMS, O_GRID_CELL = SLOT["grid_start"], SLOT["grid_items"], SLOT["grid_cell"]
-O_LGRID_START, O_LGRID_ITEMS, O_LGRID_CELL = SLOT["lgrid_start"], SLOT["lgrid_items"], SLOT["lgrid_cell"]
-O_TGRID_START, O_TGRID_ITEMS, O_TGRID_CELL = SLOT["tgrid_start"], SLOT["tgrid_items"], SLOT["tgrid_cell"]
+
+@ti.data_oriented
+class BlockRef:
+    """The kernels' accessor of one block of ``BLOCKS``: ``blocks.pos.env(ib, b)`` is the
+    index of env b's first entry of pos, ``blocks.pos.row(ib, base, i)`` that of agent i's
+    row (its entries follow it), ``get2`` / ``set2`` read and write a row of two.
+
+    A row's width is a compile-time constant when the block's trailing dimensions are
+    numbers (pos: 2, obs_self: SELF_DIM), so the specialised small-M kernels keep constant
+    strides; otherwise (nbr: K) it is read from the header."""
+
+    def __init__(self, spec: BlockSpec):
+        self.name, self.buffer = spec.name, spec.buffer
+        self.slot = SLOT[spec.name]
+        trailing = spec.per_env[1:]
+        self.width = math.prod(trailing) if all(isinstance(d, int) for d in trailing) else 0
+
+    @ti.func
+    def env(self, ib: ti.template(), b: ti.i32) -> ti.i32:
+        return ib[self.slot] + b * ib[self.slot + ENV_STRIDE]
+
+    @ti.func
+    def row_width(self, ib: ti.template()) -> ti.i32:
+        """Entries per row (hoist it out of an inner loop when it is read from the header)."""
+        width = 0
+        if ti.static(self.width > 0):
+            width = self.width
+        else:
+            width = ib[self.slot + ROW_STRIDE]
+        return width
+
+    @ti.func
+    def row(self, ib: ti.template(), base: ti.i32, i: ti.i32) -> ti.i32:
+        return base + i * self.row_width(ib)
+
+    @ti.func
+    def at(self, ib: ti.template(), b: ti.i32, i: ti.i32) -> ti.i32:
+        """Row i of env b (one access; in a loop, take ``env`` once and ``row`` per i)."""
+        return self.row(ib, self.env(ib, b), i)
+
+    @ti.func
+    def get2(self, buf: ti.template(), ib: ti.template(), base: ti.i32, i: ti.i32):
+        """Row i's two entries, as a vector of the buffer's type (vec2 or ivec2)."""
+        k = self.row(ib, base, i)
+        return ti.Vector([buf[k], buf[k + 1]])
+
+    @ti.func
+    def set2(self, buf: ti.template(), ib: ti.template(), base: ti.i32, i: ti.i32, v: ti.template()):
+        k = self.row(ib, base, i)
+        buf[k] = v[0]
+        buf[k + 1] = v[1]
+
+    @ti.func
+    def load(self, buf: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
+        """``get2`` of row i of env b (the tasks' one-off reads)."""
+        return self.get2(buf, ib, self.env(ib, b), i)
+
+    @ti.func
+    def store(self, buf: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, v: ti.template()):
+        """``set2`` of row i of env b."""
+        self.set2(buf, ib, self.env(ib, b), i, v)
+
+
+class Blocks:
+    """One ``BlockRef`` per block of ``BLOCKS``, by name: ``blocks.pos``, ``blocks.nbr``, ..."""
+
+    def __init__(self):
+        for spec in BLOCKS:
+            setattr(self, spec.name, BlockRef(spec))
+
+
+blocks = Blocks()
 
 # --- float32 header: physical and task parameters ------------------------------------
 # P_CELL / P_LCELL / P_TCELL: cell sides of the agents', landmarks' and targets' grids;
@@ -218,23 +276,12 @@ class Layout:
             max(d["GT1"] - 1, 0),
         )
         for name, block in self.blocks.items():
+            per_env = block.shape[1:]
             self.header[SLOT[name]] = block.offset
+            self.header[SLOT[name] + ENV_STRIDE] = math.prod(per_env)
+            self.header[SLOT[name] + ROW_STRIDE] = math.prod(per_env[1:])
 
     @property
     def nbytes(self) -> int:
         """Memory of the three buffers."""
         return 4 * self.sizes["f32"] + 4 * self.sizes["i32"] + self.sizes["u8"]
-
-
-# --- named accessors: where env b's (and its agent i's) entry of a block starts ----------
-@ti.func
-def env_at(ib: ti.template(), slot: ti.template(), b: ti.i32) -> ti.i32:
-    """Index of env b's entry in a per-env block (reward, done, step, ...)."""
-    return ib[slot] + b
-
-
-@ti.func
-def agent_at(ib: ti.template(), slot: ti.template(), b: ti.i32, M: ti.i32, i: ti.i32, width: ti.template()) -> ti.i32:
-    """Index of agent i of env b in a per-agent block of ``width`` entries per agent
-    (pos and vel: 2, matched_dist: 1, obs_self: SELF_DIM)."""
-    return ib[slot] + (b * M + i) * width

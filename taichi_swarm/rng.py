@@ -9,14 +9,14 @@ per-thread streams depend on which thread ran which environment.
 import numpy as np
 import taichi as ti
 
-from .layout import O_RNG, env_at
+from .layout import blocks
 
 
 @ti.func
 def uniform(ib: ti.template(), b: ti.i32) -> ti.f32:
     """One U[0, 1) draw from environment b's stream (advances it)."""
-    s = ti.cast(ib[env_at(ib, O_RNG, b)], ti.u32) * ti.u32(747796405) + ti.u32(2891336453)
-    ib[env_at(ib, O_RNG, b)] = ti.cast(s, ti.i32)
+    s = ti.cast(ib[blocks.rng.env(ib, b)], ti.u32) * ti.u32(747796405) + ti.u32(2891336453)
+    ib[blocks.rng.env(ib, b)] = ti.cast(s, ti.i32)
     word = ((s >> ((s >> ti.u32(28)) + ti.u32(4))) ^ s) * ti.u32(277803737)
     word = (word >> ti.u32(22)) ^ word
     return ti.cast(word >> ti.u32(8), ti.f32) * (1.0 / 16777216.0)

@@ -14,9 +14,9 @@ Adding a task (docs/ARCHITECTURE.md "How to add a task"): write ``mytask.py`` li
 import taichi as ti
 
 from .. import rng
-from ..layout import O_POS, O_VEL, P_ARENA, agent_at, team_size
+from ..layout import P_ARENA, blocks, team_size
 from . import coverage, formation, line
-from .base import COMMON_PARAMS, Task, set2
+from .base import COMMON_PARAMS, Task
 
 TASK_SPECS: dict[str, Task] = {}
 _FUNCS_BY_ID: dict[int, object] = {}
@@ -65,8 +65,8 @@ def spawn(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.templ
     M = team_size(sm, ib)
     w = f[P_ARENA]
     for i in range(M):
-        set2(f, agent_at(ib, O_POS, b, M, i, 2), rng.uniform2(ib, b, -w, w))
-        set2(f, agent_at(ib, O_VEL, b, M, i, 2), ti.math.vec2(0.0, 0.0))
+        blocks.pos.store(f, ib, b, i, rng.uniform2(ib, b, -w, w))
+        blocks.vel.store(f, ib, b, i, ti.math.vec2(0.0, 0.0))
     _FUNCS_BY_ID[task].spawn_landmarks(sm, f, ib, b)
 
 

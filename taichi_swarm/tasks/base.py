@@ -87,17 +87,6 @@ class Task:
 
 
 @ti.func
-def get2(f: ti.template(), base: ti.i32) -> ti.math.vec2:
-    return ti.math.vec2(f[base], f[base + 1])
-
-
-@ti.func
-def set2(f: ti.template(), base: ti.i32, v: ti.math.vec2):
-    f[base] = v[0]
-    f[base + 1] = v[1]
-
-
-@ti.func
 def clipped_matched_distance(d: ti.f32) -> ti.f32:
     """-clip(d*_i, 0, 2): a per-agent term whose mean is the team reward -mean_clipped_d
     (formation's and line's ``matched_distance``)."""

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import O_LMK, O_TGT, P_ARENA, team_size
-from .base import Task, get2, set2
+from ..layout import P_ARENA, blocks, team_size
+from .base import Task
 
 
 @dataclass(frozen=True)
@@ -34,19 +34,19 @@ def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
 @ti.func
 def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     L = team_size(sm, ib)
-    lmk = ib[O_LMK] + b * L * 2
+    lmk = blocks.landmarks.env(ib, b)
     w = f[P_ARENA]
     for k in range(L):
-        set2(f, lmk + 2 * k, rng.uniform2(ib, b, -w, w))
+        blocks.landmarks.set2(f, ib, lmk, k, rng.uniform2(ib, b, -w, w))
 
 
 @ti.func
 def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     M = team_size(sm, ib)
-    lmk = ib[O_LMK] + b * M * 2
-    tgt = ib[O_TGT] + b * M * 2
+    lmk = blocks.landmarks.env(ib, b)
+    tgt = blocks.targets.env(ib, b)
     for k in range(M):
-        set2(f, tgt + 2 * k, get2(f, lmk + 2 * k))
+        blocks.targets.set2(f, ib, tgt, k, blocks.landmarks.get2(f, ib, lmk, k))
 
 
 @ti.func

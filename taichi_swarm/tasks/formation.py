@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import H_DENSITY, O_LMK, O_POS, O_TGT, P_TASK_PARAM, agent_at, team_size
-from .base import Task, get2, set2
+from ..layout import H_DENSITY, P_TASK_PARAM, blocks, team_size
+from .base import Task
 from .base import clipped_matched_distance as matched_distance  # the reward term line and formation share
 
 
@@ -51,14 +51,14 @@ def lattice_disc_radius(num_agents: int) -> float:
 @ti.func
 def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     centre = rng.uniform2(ib, b, -0.5, 0.5)
-    set2(f, ib[O_LMK] + b * 2, centre)
+    blocks.landmarks.store(f, ib, b, 0, centre)
     if ib[H_DENSITY] != 0:  # the agents, re-drawn over the lattice's own disc
         M = team_size(sm, ib)
         radius = LATTICE_SPACING * ti.sqrt(M * SQRT3 / (2.0 * math.pi))
         for i in range(M):
             r = radius * ti.sqrt(rng.uniform(ib, b))
             ang = 2.0 * math.pi * rng.uniform(ib, b)
-            set2(f, agent_at(ib, O_POS, b, M, i, 2), centre + r * ti.math.vec2(ti.cos(ang), ti.sin(ang)))
+            blocks.pos.store(f, ib, b, i, centre + r * ti.math.vec2(ti.cos(ang), ti.sin(ang)))
 
 
 @ti.func
@@ -98,20 +98,20 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
 @ti.func
 def place_lattice(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     M = team_size(sm, ib)
-    centre = get2(f, ib[O_LMK] + b * 2)
-    tgt = ib[O_TGT] + b * M * 2
+    centre = blocks.landmarks.load(f, ib, b, 0)
+    tgt = blocks.targets.env(ib, b)
     for k in range(M):
-        set2(f, tgt + 2 * k, centre + LATTICE_SPACING * lattice_point(k))
+        blocks.targets.set2(f, ib, tgt, k, centre + LATTICE_SPACING * lattice_point(k))
 
 
 @ti.func
 def place_ring(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     M = team_size(sm, ib)
-    centre = get2(f, ib[O_LMK] + b * 2)
-    tgt = ib[O_TGT] + b * M * 2
+    centre = blocks.landmarks.load(f, ib, b, 0)
+    tgt = blocks.targets.env(ib, b)
     theta0 = 1e9
     for i in range(M):
-        d = get2(f, agent_at(ib, O_POS, b, M, i, 2)) - centre
+        d = blocks.pos.load(f, ib, b, i) - centre
         ang = ti.atan2(d[1], d[0])
         if ang < 0.0:
             ang += 2.0 * math.pi
@@ -119,7 +119,7 @@ def place_ring(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
     radius = f[P_TASK_PARAM]
     for k in range(M):
         ang = theta0 + 2.0 * math.pi * k / M
-        set2(f, tgt + 2 * k, centre + radius * ti.math.vec2(ti.cos(ang), ti.sin(ang)))
+        blocks.targets.set2(f, ib, tgt, k, centre + radius * ti.math.vec2(ti.cos(ang), ti.sin(ang)))
 
 
 @ti.func

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import H_DENSITY, O_LMK, O_POS, O_TGT, P_TASK_PARAM, agent_at, team_size
-from .base import Task, get2, set2
+from ..layout import H_DENSITY, P_TASK_PARAM, blocks, team_size
+from .base import Task
 from .base import clipped_matched_distance as matched_distance  # the reward term line and formation share
 
 TURN = 5.0 * math.pi / 180.0  # turn the heading by 5 degrees until l1 fits
@@ -80,17 +80,16 @@ def spawn_rows(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
     along = ti.math.vec2(ti.cos(theta), ti.sin(theta))
     across = ti.math.vec2(-along[1], along[0])
     l0 = centre - 0.5 * (m - 1) * spacing * along - 0.5 * (n - 1) * gap * across
-    set2(f, ib[O_LMK] + b * 4, l0)
-    set2(f, ib[O_LMK] + b * 4 + 2, l0 + (m - 1) * spacing * along)
+    blocks.landmarks.store(f, ib, b, 0, l0)
+    blocks.landmarks.store(f, ib, b, 1, l0 + (m - 1) * spacing * along)
     for i in range(M):  # the agents, re-drawn over the block's footprint
         a = -0.5 * spacing + (m * spacing) * rng.uniform(ib, b)
         c = -0.5 * gap + (n * gap) * rng.uniform(ib, b)
-        set2(f, agent_at(ib, O_POS, b, M, i, 2), l0 + a * along + c * across)
+        blocks.pos.store(f, ib, b, i, l0 + a * along + c * across)
 
 
 @ti.func
 def spawn_segment(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
-    lmk = ib[O_LMK] + b * 4
     length = f[P_TASK_PARAM]
     l0 = rng.uniform2(ib, b, -0.25, 0.25)
     theta = 2.0 * math.pi * rng.uniform(ib, b)
@@ -100,27 +99,26 @@ def spawn_segment(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
         theta += TURN
         l1 = l0 + length * ti.math.vec2(ti.cos(theta), ti.sin(theta))
         turns += 1
-    set2(f, lmk, l0)
-    set2(f, lmk + 2, l1)
+    blocks.landmarks.store(f, ib, b, 0, l0)
+    blocks.landmarks.store(f, ib, b, 1, l1)
 
 
 @ti.func
 def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     M = team_size(sm, ib)
-    lmk = ib[O_LMK] + b * 4
-    tgt = ib[O_TGT] + b * M * 2
-    l0 = get2(f, lmk)
-    l1 = get2(f, lmk + 2)
+    tgt = blocks.targets.env(ib, b)
+    l0 = blocks.landmarks.load(f, ib, b, 0)
+    l1 = blocks.landmarks.load(f, ib, b, 1)
     if ib[H_DENSITY] != 0:
         n = _rows(M)
         m = (M + n - 1) // n
         step = (l1 - l0) / (m - 1)
         across = ti.math.vec2(-step[1], step[0]) * (f[P_TASK_PARAM] / step.norm())
         for k in range(M):
-            set2(f, tgt + 2 * k, l0 + (k % m) * step + (k // m) * across)
+            blocks.targets.set2(f, ib, tgt, k, l0 + (k % m) * step + (k // m) * across)
     else:
         for k in range(M):
-            set2(f, tgt + 2 * k, l0 + (l1 - l0) * (k / (M - 1)))
+            blocks.targets.set2(f, ib, tgt, k, l0 + (l1 - l0) * (k / (M - 1)))
 
 
 @ti.func

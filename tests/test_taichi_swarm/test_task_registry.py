@@ -12,8 +12,8 @@ import taichi as ti
 
 import taichi_swarm
 from taichi_swarm import rng, tasks
-from taichi_swarm.layout import O_LMK, O_TGT, P_TASK_PARAM, team_size
-from taichi_swarm.tasks.base import Task, get2, set2
+from taichi_swarm.layout import P_TASK_PARAM, blocks, team_size
+from taichi_swarm.tasks.base import Task
 
 
 # --- the toy task: what a task module holds ---------------------------------------------
@@ -33,14 +33,14 @@ def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
 @ti.func
 def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     s = f[P_TASK_PARAM]
-    set2(f, ib[O_LMK] + b * 2, rng.uniform2(ib, b, -s, s))
+    blocks.landmarks.store(f, ib, b, 0, rng.uniform2(ib, b, -s, s))
 
 
 @ti.func
 def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     M = team_size(sm, ib)
     for k in range(M):  # every target on the landmark
-        set2(f, ib[O_TGT] + (b * M + k) * 2, get2(f, ib[O_LMK] + b * 2))
+        blocks.targets.store(f, ib, b, k, blocks.landmarks.load(f, ib, b, 0))
 
 
 @ti.func
