@@ -6,6 +6,15 @@ simulator's episode statistics (the TorchRL env's ("next", "episode", ...) entri
 ``SwarmEnv.info["episode"]``): one episode per environment, ``episodes`` environments started
 from ``seed``; S% = share of episodes ending in success, T = mean episode length (the time
 limit for failures), DIST = mean landmark-to-closest-agent distance at the end (coverage).
+
+BenchMARL is used through its public API only (``Experiment``, ``ExperimentConfig``,
+``Callback``, ``Experiment.reload_from_file``). A stopped run resumes at BenchMARL's own latest
+checkpoint, which BenchMARL writes in place: a run stopped while saving leaves that checkpoint
+incomplete, and the next command refuses it by name (remove it to resume from the one before).
+The optimisers' state travels in the checkpoint (``OptimizerState``); the random number
+generators' does not: BenchMARL reseeds from the seed in ``run`` with no public hook before
+the first collection, so a resumed run is not the uninterrupted one (its environments start
+new episodes too).
 """
 
 from __future__ import annotations
@@ -19,9 +28,10 @@ import sys
 import time
 
 import torch
+from benchmarl.experiment import Callback
 
 from taichi_swarm import TASKS, NaNActionsError
-from taichi_swarm.files import atomic_write_json, ensure_writable
+from taichi_swarm.files import atomic_write_bytes, atomic_write_json, ensure_writable
 from taichi_swarm.metrics import FirstEpisodes
 
 from .benchmarl_tasks import SwarmTaskClass, get_task
@@ -57,7 +67,7 @@ def experiment_config(
     """BenchMARL's default ExperimentConfig with the run's budget, batch, folder and device;
     no wandb, no rendering, no evaluation during training (``evaluate_policy`` does it after),
     a checkpoint every ``checkpoint_every`` iterations (0: none) and at the end, the last two
-    kept. ``overrides``: any other ExperimentConfig field."""
+    kept (BenchMARL writes them, in place). ``overrides``: any other ExperimentConfig field."""
     from benchmarl.experiment import ExperimentConfig
 
     cfg = ExperimentConfig.get_from_yaml()
@@ -90,6 +100,11 @@ def experiment_config(
         # a multiple of both batch sizes (BenchMARL checks it against the one its algorithm uses)
         batch = math.lcm(cfg.on_policy_collected_frames_per_batch, cfg.off_policy_collected_frames_per_batch)
         cfg.checkpoint_interval = checkpoint_every * batch
+    if "checkpoint_at_end" not in (overrides or {}) and cfg.checkpoint_interval:
+        # a last checkpoint on the interval would be written twice and counted twice towards
+        # keep_checkpoints_num (BenchMARL's deque), which then keeps one fewer
+        ends = {cfg.get_max_n_iters(p) * cfg.collected_frames_per_batch(p) for p in (True, False)}
+        cfg.checkpoint_at_end = any(end % cfg.checkpoint_interval for end in ends)
     return cfg
 
 
@@ -101,9 +116,10 @@ def _checkpoint_frames(path) -> int | None:
     return int(match.group(1)) if match else None
 
 
-def latest_checkpoint(out_dir: str) -> str | None:
-    """The checkpoint with the most env steps in ``out_dir``'s BenchMARL experiment folder
-    (``<out>/<experiment>/checkpoints/checkpoint_<frames>.pt``), or None."""
+def _checkpoints(out_dir: str) -> list[str]:
+    """BenchMARL's checkpoints in ``out_dir``, fewest env steps first: the layout that
+    ``Experiment.reload_from_file`` reads, ``<out>/<experiment>/checkpoints/checkpoint_<frames>.pt``
+    beside ``<out>/<experiment>/config.pkl``."""
     import glob
 
     found = [
@@ -116,13 +132,18 @@ def latest_checkpoint(out_dir: str) -> str | None:
         raise ValueError(
             f"--out {out_dir} holds {len(folders)} experiments with checkpoints; keep one: {sorted(folders)}"
         )
-    return max(found, key=_checkpoint_frames) if found else None
+    return sorted(found, key=_checkpoint_frames)
+
+
+def latest_checkpoint(out_dir: str) -> str | None:
+    """The checkpoint with the most env steps in ``out_dir``'s BenchMARL experiment folder, or None."""
+    found = _checkpoints(out_dir)
+    return found[-1] if found else None
 
 
 # ExperimentConfig fields a resumed run may change: its length, where it saves, how it checkpoints
 RESUMABLE_CHANGES = {
     "max_n_frames",
-    "restore_file",
     "restore_map_location",
     "save_folder",
     "checkpoint_interval",
@@ -131,108 +152,82 @@ RESUMABLE_CHANGES = {
 }
 
 
-def check_resumable(checkpoint: str, algorithm: str, task: SwarmTaskClass, seed: int, model_cfg, config) -> None:
+def check_resumable(experiment, algorithm: str, task: SwarmTaskClass, seed: int, model_cfg, config) -> None:
     """Refuse to resume another run: a ValueError naming what differs (algorithm, task and its
     config, seed, model, or any ExperimentConfig field but the run's length and checkpointing)
-    between the experiment folder's config.pkl, as BenchMARL wrote it, and this command."""
-    import pickle
-
-    path = os.path.join(os.path.dirname(os.path.dirname(checkpoint)), "config.pkl")
-    try:
-        with open(path, "rb") as f:  # the order of Experiment._setup_name
-            saved_task, saved_task_config, saved_algorithm, saved_model, saved_seed, saved_config = (
-                pickle.load(f) for _ in range(6)
-            )
-    except (OSError, EOFError, pickle.UnpicklingError, AttributeError) as exc:
-        raise ValueError(f"--out: cannot resume {checkpoint}: its {path} is unreadable ({exc})") from None
+    between the run ``Experiment.reload_from_file`` rebuilt from its folder and this command."""
     want = {
-        "--algorithm": (saved_algorithm, algorithm_config(algorithm)),
-        "--task": (saved_task.name, task.name),
-        "task config (--agents, --comm, --obs-mode, --actions, --max-steps)": (saved_task_config, task.config),
-        "--seed": (saved_seed, seed),
-        "--model": (saved_model, model_cfg),
+        "--algorithm": (experiment.algorithm_config, algorithm_config(algorithm)),
+        "--task": (experiment.task.name, task.name),
+        "task config (--agents, --comm, --obs-mode, --actions, --max-steps)": (experiment.task.config, task.config),
+        "--seed": (experiment.seed, seed),
+        "--model": (experiment.model_config, model_cfg),
     }
     for field in dataclasses.fields(config):
-        if field.name not in RESUMABLE_CHANGES:
+        if field.name not in RESUMABLE_CHANGES | {"restore_file"}:
             want[f"{field.name} (--num-envs, --frames-per-batch, --device or --experiment)"] = (
-                getattr(saved_config, field.name),
+                getattr(experiment.config, field.name),
                 getattr(config, field.name),
             )
     for name, (saved, now) in want.items():
         if saved != now:
             raise ValueError(
-                f"--out: {checkpoint} is from a run with another {name} ({saved!r}, this command: {now!r}); "
-                "give the run's own options, or another --out to start a new run"
+                f"--out: {experiment.config.restore_file} is from a run with another {name} ({saved!r}, "
+                f"this command: {now!r}); give the run's own options, or another --out to start a new run"
             )
 
 
-def _atomic_experiment_class():
-    """BenchMARL's Experiment with checkpoints that make a stopped run continue as it was: each
-    written to a temporary file and renamed (a run stopped while saving keeps the previous
-    checkpoint whole; older ones are pruned only after), holding the optimisers' state and
-    the random number generators' too (BenchMARL saves neither, and reseeds in ``run``).
-    The environments start new episodes on resume."""
-    import random
+class OptimizerState(Callback):
+    """Adds the optimisers' state to each BenchMARL checkpoint and loads it back on resume, so
+    Adam continues where it stopped (BenchMARL checkpoints the losses, buffers and collector,
+    not the optimisers). BenchMARL pickles its callbacks into config.pkl and
+    ``reload_from_file`` brings this one back with the run."""
 
-    import numpy as np
+    def __getstate__(self):
+        return {}  # not the experiment it is attached to (BenchMARL attaches it again)
+
+    def on_state_dict(self, state_dict) -> None:
+        state_dict["optimizers"] = {
+            group: {name: opt.state_dict() for name, opt in optimizers.items()}
+            for group, optimizers in self.experiment.optimizers.items()
+        }
+
+    def on_load_state_dict(self, state_dict) -> None:
+        for group, optimizers in state_dict.get("optimizers", {}).items():
+            for name, opt_state in optimizers.items():
+                self.experiment.optimizers[group][name].load_state_dict(opt_state)
+
+
+def resume(restore_file: str, algorithm: str, task: SwarmTaskClass, seed: int, model_cfg, config):
+    """The run that wrote ``restore_file``, rebuilt by ``Experiment.reload_from_file`` from its
+    config.pkl and checkpoint, with this command's length and checkpointing; refused (a
+    ValueError, config.pkl as it was) when this command describes another run."""
     from benchmarl.experiment import Experiment
 
-    class AtomicCheckpointExperiment(Experiment):
-        def _save_experiment(self) -> None:
-            path = self.folder_name / "checkpoints" / f"checkpoint_{self.total_frames}.pt"
-            if path in self._checkpointed_files:  # the end of a run on an interval: rewritten, not counted twice
-                self._checkpointed_files.remove(path)
-            path.parent.mkdir(parents=False, exist_ok=True)
-            tmp = path.with_suffix(".pt.tmp")
-            torch.save(self.state_dict(), tmp)
-            os.replace(tmp, path)
-            self._checkpointed_files.append(path)
-            if self.config.keep_checkpoints_num is not None:
-                while len(self._checkpointed_files) > self.config.keep_checkpoints_num:
-                    self._checkpointed_files.popleft().unlink(missing_ok=True)
-
-        def state_dict(self):
-            state = super().state_dict()
-            state["optimizers"] = {
-                group: {name: opt.state_dict() for name, opt in optimizers.items()}
-                for group, optimizers in self.optimizers.items()
-            }
-            state["rng"] = {
-                "torch": torch.get_rng_state(),
-                "numpy": np.random.get_state(),  # noqa: NPY002 - BenchMARL seeds the global one
-                "python": random.getstate(),
-            }
-            return state
-
-        def load_state_dict(self, state_dict) -> None:
-            super().load_state_dict(state_dict)
-            for group, optimizers in state_dict.get("optimizers", {}).items():
-                for name, opt_state in optimizers.items():
-                    self.optimizers[group][name].load_state_dict(opt_state)
-            self._restored_rng = state_dict.get("rng")
-
-        def _load_experiment(self):
-            folder = self.folder_name / "checkpoints"
-            for stale in folder.glob("*.pt.tmp"):  # a save that was stopped part-way
-                stale.unlink(missing_ok=True)
-            # the checkpoints already written count towards keep_checkpoints_num
-            found = [p for p in folder.glob("checkpoint_*.pt") if _checkpoint_frames(p) is not None]
-            self._checkpointed_files.extend(sorted(found, key=_checkpoint_frames))
-            # the checkpoint holds the collector's and buffers' plain-Python state too
-            self.load_state_dict(
-                torch.load(self.config.restore_file, map_location=self.config.restore_map_location, weights_only=False)
-            )
-            return self
-
-        def _collection_loop(self):
-            rng = getattr(self, "_restored_rng", None)
-            if rng is not None:  # after run()'s seed_everything, which would replay iteration 0's stream
-                torch.set_rng_state(rng["torch"])
-                np.random.set_state(rng["numpy"])  # noqa: NPY002
-                random.setstate(rng["python"])
-            return super()._collection_loop()
-
-    return AtomicCheckpointExperiment
+    # reload_from_file rewrites config.pkl with the patch before we can compare: a refused
+    # command puts its bytes back (read and written whole, never unpickled here)
+    pkl = os.path.join(os.path.dirname(os.path.dirname(restore_file)), "config.pkl")
+    try:
+        with open(pkl, "rb") as f:
+            saved = f.read()
+    except OSError as exc:
+        raise ValueError(f"--out: cannot resume {restore_file}: {exc}") from None
+    patch = {name: getattr(config, name) for name in RESUMABLE_CHANGES}
+    try:
+        experiment = Experiment.reload_from_file(restore_file, experiment_patch=patch)
+    except Exception as exc:  # noqa: BLE001 - an unreadable config.pkl or checkpoint, whatever the cause
+        atomic_write_bytes(pkl, lambda f: f.write(saved))
+        raise ValueError(
+            f"--out: cannot resume {restore_file} ({type(exc).__name__}: {exc}); a checkpoint "
+            "whose save was stopped part-way is incomplete: remove it to resume from the one before"
+        ) from None
+    try:
+        check_resumable(experiment, algorithm, task, seed, model_cfg, config)
+    except ValueError:
+        experiment.close()
+        atomic_write_bytes(pkl, lambda f: f.write(saved))
+        raise
+    return experiment
 
 
 def train(
@@ -243,25 +238,31 @@ def train(
     model: str = "mlp",
     restore_file: str | None = None,
 ):
-    """Build and run a BenchMARL Experiment, from ``restore_file`` (a checkpoint of the same
-    run) where given; returns it (its ``policy`` is the trained one)."""
+    """Build and run a BenchMARL Experiment, resumed at ``restore_file`` (a checkpoint of the
+    same run) where given; returns it (its ``policy`` is the trained one)."""
+    from benchmarl.experiment import Experiment
     from benchmarl.models import model_config_registry
 
     if model not in model_config_registry:
         raise ValueError(f"model must be one of {sorted(model_config_registry)}, got {model!r}")
     model_cfg = model_config_registry[model].get_from_yaml()
     if restore_file is not None:
-        check_resumable(restore_file, algorithm, task, seed, model_cfg, config)
-        config.restore_file = restore_file
-    experiment = _atomic_experiment_class()(
-        task=task,
-        algorithm_config=algorithm_config(algorithm),
-        model_config=model_cfg,
-        critic_model_config=model_config_registry[model].get_from_yaml(),
-        seed=seed,
-        config=config,
-    )
+        experiment = resume(restore_file, algorithm, task, seed, model_cfg, config)
+    else:
+        experiment = Experiment(
+            task=task,
+            algorithm_config=algorithm_config(algorithm),
+            model_config=model_cfg,
+            critic_model_config=model_config_registry[model].get_from_yaml(),
+            seed=seed,
+            config=config,
+            callbacks=[OptimizerState()],
+        )
     experiment.run()
+    if config.keep_checkpoints_num is not None:
+        # BenchMARL counts only the checkpoints this command wrote: those from before a resume go here
+        for stale in _checkpoints(os.path.dirname(str(experiment.folder_name)))[: -config.keep_checkpoints_num]:
+            os.remove(stale)
     return experiment
 
 

@@ -297,7 +297,7 @@ def baseline_config(cell: Cell, seed: int, directory: str, device: str = "cpu"):
 def run_baseline(cfg) -> dict:
     """Train and evaluate a stock BenchMARL algorithm (baselines.run.run) as ``cfg`` says; the
     row in this module's format. A stopped one resumes from its latest BenchMARL checkpoint
-    (baselines/run.py writes one every 25 iterations)."""
+    (BenchMARL writes one every 25 iterations, as baselines/run.py sets it)."""
     try:
         from baselines.run import run
     except ImportError as exc:

@@ -13,12 +13,14 @@ What it does (baselines/run.py):
    ``--obs-mode local`` gives the paper's own observation instead;
 2. runs a BenchMARL Experiment (its default yaml configs for the algorithm, the model and the
    experiment) for ``--frames`` env steps, ``--num-envs`` environments stepped together,
-   ``--frames-per-batch`` env steps per iteration; CSV logs and checkpoints (every
-   ``--checkpoint-every`` iterations and at the end, the last two kept, each written whole
-   before it replaces anything) go under ``--out``; ``--experiment KEY=VALUE`` overrides any
-   other ExperimentConfig field. The same command given again resumes from the latest
-   checkpoint in ``--out`` (a larger ``--frames`` extends the run); a checkpoint of another
-   algorithm, task, seed or batch there is refused;
+   ``--frames-per-batch`` env steps per iteration; CSV logs and BenchMARL's checkpoints (every
+   ``--checkpoint-every`` iterations and at the end, the last two kept, with the optimisers'
+   state) go under ``--out``; ``--experiment KEY=VALUE`` overrides any other ExperimentConfig
+   field. The same command given again resumes from the latest checkpoint in ``--out`` through
+   BenchMARL's ``Experiment.reload_from_file`` (a larger ``--frames`` extends the run); a
+   checkpoint of another algorithm, task, seed or batch there is refused, and so is one that
+   a stop cut short while it was written (BenchMARL writes in place: remove it to resume from
+   the one before);
 3. evaluates the trained policy with greedy (deterministic) actions on ``--eval-episodes``
    (500) fresh episodes from ``--eval-seed`` (12345), one episode per environment, and writes
    ``<out>/results.json``: S% (success rate in percent), T (mean episode length, the time limit

@@ -418,8 +418,9 @@ def test_run_baselines_rejects_bad_arguments(tmp_path, capsys):
 
 
 def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
-    """A run given the same command again continues from its checkpoint (here: extended from
-    200 to 400 env steps) with its optimisers' state; another run's options are refused."""
+    """A run given the same command again continues from BenchMARL's checkpoint (here: extended
+    from 200 to 400 env steps) with its optimisers' state, the last two checkpoints kept; another
+    run's options are refused with config.pkl left as it was, and so is an unreadable checkpoint."""
     pytest.importorskip("benchmarl")
     import torch
 
@@ -433,7 +434,6 @@ def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
     assert len(list(out.glob("*/checkpoints/*.pt"))) == 2  # the last two kept: 100 and 200
     folder = next(out.glob("*/checkpoints"))
     (folder / "checkpoint_final.pt").write_text("not ours")  # ignored
-    (folder / "checkpoint_300.pt.tmp").write_text("a save stopped part-way")  # removed
 
     def adam_steps(path):
         state = torch.load(path, weights_only=False)["optimizers"]["agents"]
@@ -451,6 +451,8 @@ def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
     assert sorted(p.name for p in folder.iterdir()) == ["checkpoint_300.pt", "checkpoint_400.pt", "checkpoint_final.pt"]
     # Adam continued where it stopped: twice the steps after twice the iterations
     assert adam_steps(folder / "checkpoint_400.pt") == {k: 2 * n for k, n in steps_at_200.items()}
+    pkl = (folder.parent / "config.pkl").read_bytes()
+    even_longer = [*base[:frames_at], "500", *base[frames_at + 1 :]]
     for change, named in [
         (["--algorithm", "iql"], "--algorithm"),
         (["--agents", "3"], "task config"),
@@ -458,8 +460,14 @@ def test_run_baselines_resumes_from_its_latest_checkpoint(tmp_path, capsys):
         (["--experiment", "lr=0.001"], "lr"),
         (["--num-envs", "2"], "n_envs_per_worker"),
     ]:
-        assert main([*longer, *change]) == 2
+        assert main([*even_longer, *change]) == 2
         assert named in capsys.readouterr().err
+        assert (folder.parent / "config.pkl").read_bytes() == pkl
+    assert sorted(p.name for p in folder.iterdir()) == ["checkpoint_300.pt", "checkpoint_400.pt", "checkpoint_final.pt"]
+    (folder / "checkpoint_500.pt").write_bytes((folder / "checkpoint_400.pt").read_bytes()[:1000])  # a save cut short
+    assert main(even_longer) == 2
+    assert "cannot resume" in (err := capsys.readouterr().err) and "checkpoint_500.pt" in err
+    assert (folder.parent / "config.pkl").read_bytes() == pkl
 
 
 def test_run_baselines_refuses_a_batch_that_is_not_a_multiple_of_the_envs(tmp_path, capsys):
