@@ -198,6 +198,10 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     except ValueError as exc:
         raise CheckpointError(str(exc)) from None
     _check_landmarks_fit(cfg, setting)
+    if cfg.edge_position != "none":
+        # its round pieces would take the heard senders' offsets, which neither the executor
+        # nor the agent protocol carries yet (docs/SWARM.md)
+        raise CheckpointError(f"{checkpoint}: edge_position {cfg.edge_position!r} policies do not export yet")
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise FileExistsError(f"--out {out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)

@@ -62,6 +62,7 @@ SCHEMA = {
                 "entity_mode": {"enum": list(ENTITY_MODES)},
                 "num_landmarks": {"type": "integer", "minimum": 0},
                 "self_position": {"enum": ["absolute", "none"]},
+                "edge_position": {"enum": ["none"]},  # "relative" does not export yet
             },
         },
         "rounds": {"type": "integer", "minimum": 0, "maximum": 64},

@@ -36,6 +36,7 @@ from taichi_swarm.physics import NUM_ACTIONS
 PADDED_SLOTS = 10  # the paper's "without EMP" baseline: 10 landmarks x 2 = 20 inputs
 MASK_FILL = -1e9  # finite: an all-masked row must not turn into NaN (and exports cleanly)
 SELF_POSITIONS = ("absolute", "none")
+EDGE_POSITIONS = ("none", "relative")
 
 # the simulator's observation keys -> the forward's arguments (``policy_inputs``)
 OBS_INPUTS = {
@@ -119,12 +120,20 @@ class ModelConfig:
     density-scaled arena (scale="density") grows as sqrt(M), and absolute positions there
     leave the range seen in training; relative inputs are what a robot without a shared
     frame has too (docs/SWARM.md)."""
+    edge_position: str = "none"
+    """"none": a message is the sender's key and value alone (the paper); "relative": the
+    receiver adds what it measures of the sender, the offset p_j - p_i, to both
+    (k_ij = W_k h_j + E_k (p_j - p_i), likewise v_ij), so agents without a shared frame
+    still know where their neighbours are. E_k, E_v start at zero: a policy without them
+    is the same function with them, and may be fine-tuned into them (docs/SWARM.md)."""
 
     def __post_init__(self):
         if self.entity_mode not in ENTITY_MODES:
             raise ValueError(f"entity_mode must be one of {ENTITY_MODES}, got {self.entity_mode!r}")
         if self.self_position not in SELF_POSITIONS:
             raise ValueError(f"self_position must be one of {SELF_POSITIONS}, got {self.self_position!r}")
+        if self.edge_position not in EDGE_POSITIONS:
+            raise ValueError(f"edge_position must be one of {EDGE_POSITIONS}, got {self.edge_position!r}")
         if self.hidden < 1 or self.rounds < 0:
             raise ValueError(f"hidden must be >= 1 and rounds >= 0, got {self.hidden}, {self.rounds}")
         if self.num_landmarks < 0:
@@ -186,6 +195,8 @@ class FusedWeights(NamedTuple):
     entity: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None  # EMP: own [H, 2H], own_bias [2H], heard [H, H]
     comm: tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # the communication round, same layout
     heads: tuple[torch.Tensor, torch.Tensor]  # first layers of both heads: [H, 2H], [2H]
+    # edge_position "relative": h -> its score with an offset [H, 2], pooled offset -> update [2, H]
+    edge: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 class SwarmPolicy(nn.Module):
@@ -209,6 +220,9 @@ class SwarmPolicy(nn.Module):
             self.entity_update = nn.Linear(2 * H, H)
         self.comm_attention = Attention(H)
         self.comm_update = nn.Linear(2 * H, H)
+        if config.edge_position == "relative":
+            self.edge_key = nn.Linear(2, H, bias=False)
+            self.edge_value = nn.Linear(2, H, bias=False)
         self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, NUM_ACTIONS))
         self.value_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, 1))
         self._init_weights()
@@ -224,7 +238,11 @@ class SwarmPolicy(nn.Module):
         for module in self.modules():
             if isinstance(module, nn.Linear) and id(module) not in attention_linears:
                 nn.init.orthogonal_(module.weight, gain=1.0)
-                nn.init.zeros_(module.bias)
+                if module.bias is not None:
+                    nn.init.zeros_(module.bias)
+        if self.config.edge_position == "relative":  # zero: the paper's network until trained
+            nn.init.zeros_(self.edge_key.weight)
+            nn.init.zeros_(self.edge_value.weight)
 
     # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
     def own_input(self, self_obs: torch.Tensor) -> torch.Tensor:
@@ -276,11 +294,30 @@ class SwarmPolicy(nn.Module):
         """What an agent sends its neighbours: its attention key and value [..., H] each."""
         return self.comm_attention.w_k(h), self.comm_attention.w_v(h)
 
-    def update(self, h: torch.Tensor, keys: torch.Tensor, values: torch.Tensor, mask: torch.Tensor):
+    def update(
+        self,
+        h: torch.Tensor,
+        keys: torch.Tensor,
+        values: torch.Tensor,
+        mask: torch.Tensor,
+        offsets: torch.Tensor | None = None,
+    ):
         """One communication round: h [..., Q, H] attends over keys/values [..., S, H]
-        heard (mask [..., Q, S]); returns (new h [..., Q, H], attention weights [..., Q, S])."""
+        heard (mask [..., Q, S]); with edge_position "relative", ``offsets`` [..., Q, S, 2]
+        (p_j - p_i, as receiver i measures sender j) are added to each key and value.
+        Returns (new h [..., Q, H], attention weights [..., Q, S])."""
         att = self.comm_attention
-        m, weights = att.attend(att.w_q(h), keys, values, mask)
+        if self.config.edge_position == "relative":
+            if offsets is None:
+                raise ValueError('edge_position "relative" needs the offsets of the heard agents')
+            q = att.w_q(h).unsqueeze(-2)  # [..., Q, 1, H]: one query per receiver, keys per edge
+            k = keys.unsqueeze(-3) + self.edge_key(offsets)  # [..., Q, S, H]
+            v = values.unsqueeze(-3) + self.edge_value(offsets)
+            edge_mask = None if mask is None else mask.unsqueeze(-2)  # [..., Q, 1, S]
+            m, weights = att.attend(q, k, v, edge_mask)
+            m, weights = m.squeeze(-2), weights.squeeze(-2)
+        else:
+            m, weights = att.attend(att.w_q(h), keys, values, mask)
         return torch.relu(self.comm_update(torch.cat([h, m], dim=-1))), weights
 
     def heads(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -307,7 +344,25 @@ class SwarmPolicy(nn.Module):
         comm = fuse(self.comm_attention, self.comm_update)
         p0, v0 = self.policy_head[0], self.value_head[0]
         heads = (torch.cat([p0.weight, v0.weight]).t(), torch.cat([p0.bias, v0.bias]))  # [H, 2H], [2H]
-        return FusedWeights(entity, comm, heads)
+        edge = None
+        if self.config.edge_position == "relative":
+            # score_ij += (h_i W_q^T E_k / sqrt(H)) . r_ij; update += (sum_j w_ij r_ij) E_v^T W_out^T W_u2^T
+            att, upd = self.comm_attention, self.comm_update
+            edge = (
+                (att.w_q.weight.t() @ self.edge_key.weight) * scale,  # [H, 2]
+                self.edge_value.weight.t() @ (att.w_out.weight.t() @ upd.weight[:, H:].t()),  # [2, H]
+            )
+        return FusedWeights(entity, comm, heads, edge)
+
+    def edge_offsets(self, self_obs: torch.Tensor, slots: torch.Tensor | None) -> torch.Tensor | None:
+        """p_j - p_i of every heard pair (edge_position "relative"; else None), from the
+        positions in self_obs [N, M, 4]: [N, M, M, 2] dense, [N, M, S, 2] over the lists' slots."""
+        if self.config.edge_position != "relative":
+            return None
+        p = self_obs[..., 2:4]
+        if slots is None:
+            return p.unsqueeze(-3) - p.unsqueeze(-2)  # [n, i, j] = p_j - p_i
+        return gather_agents(p, slots) - p.unsqueeze(-2)
 
     def _graph(self, self_obs, adj, nbr, nbr_mask):
         """The communication graph in either layout -> (slots, mask) of the lists, or None (dense)."""
@@ -379,26 +434,40 @@ class SwarmPolicy(nn.Module):
         if lists is None:
             blocked = ~adj  # [N, M, M]
             heard_mask = adj.to(h.dtype)
+            offsets = self.edge_offsets(self_obs, None)  # [N, M, M, 2] or None
         else:
             slots, listed = lists  # [N, M, S]: self, then the K listed
             S = slots.shape[-1]
             blocked = ~listed.view(N * M, S)
             heard_mask = listed.view(N * M, S).to(h.dtype)
+            offsets = self.edge_offsets(self_obs, slots)
+            offsets = None if offsets is None else offsets.reshape(N * M, S, 2)
         attention = []
         for _ in range(self.config.rounds):
             q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
             if lists is None:
                 h3 = h.view(N, 1, M, H)
                 scores = (q_own[:, :H].reshape(N, M, 1, H) * h3).sum(-1)  # [N, M, M]
+                if offsets is not None:
+                    scores = scores + (offsets * (h @ fw.edge[0]).view(N, M, 1, 2)).sum(-1)
                 weights = torch.softmax(scores.masked_fill(blocked, MASK_FILL), dim=-1) * heard_mask
                 pooled = (weights.unsqueeze(-1) * h3).sum(2).view(N * M, H)
+                if offsets is not None:
+                    pooled_offset = (weights.unsqueeze(-1) * offsets).sum(2).view(N * M, 2)
             else:  # a gather of the S = 1 + K heard embeddings per agent: O(K), whatever M
                 hs = gather_agents(h.view(N, M, H), slots).view(N * M, S, H)
                 scores = (q_own[:, None, :H] * hs).sum(-1)  # [NM, S]
+                if offsets is not None:
+                    scores = scores + (offsets * (h @ fw.edge[0]).unsqueeze(1)).sum(-1)
                 weights = torch.softmax(scores.masked_fill(blocked, MASK_FILL), dim=-1) * heard_mask
                 pooled = (weights.unsqueeze(-1) * hs).sum(1)  # [NM, H]
+                if offsets is not None:
+                    pooled_offset = (weights.unsqueeze(-1) * offsets).sum(1)  # [NM, 2]
                 weights = weights.view(N, M, S)
-            h = torch.relu(torch.addmm(q_own[:, H:], pooled, heard))
+            update = torch.addmm(q_own[:, H:], pooled, heard)
+            if offsets is not None:
+                update = update + pooled_offset @ fw.edge[1]
+            h = torch.relu(update)
             attention.append(weights)
         w_heads, b_heads = fw.heads
         z = torch.relu(torch.addmm(b_heads, h, w_heads))  # [NM, 2H]
@@ -415,15 +484,17 @@ class SwarmPolicy(nn.Module):
         with lists, each agent's query attends over the keys and values of [self; listed]."""
         lists = self._graph(self_obs, adj, nbr, nbr_mask)
         h = self.encode(self_obs, entities, entity_mask)  # [N, M, H]
+        offsets = self.edge_offsets(self_obs, None if lists is None else lists[0])
         attention = []
         for _ in range(self.config.rounds):
             keys, values = self.message(h)
             if lists is None:
-                h, w = self.update(h, keys, values, adj)
+                h, w = self.update(h, keys, values, adj, offsets)
             else:
                 slots, listed = lists
                 heard_k, heard_v = gather_agents(keys, slots), gather_agents(values, slots)  # [N, M, S, H]
-                h, w = self.update(h.unsqueeze(-2), heard_k, heard_v, listed.unsqueeze(-2))
+                edge = None if offsets is None else offsets.unsqueeze(-3)  # [N, M, 1, S, 2]
+                h, w = self.update(h.unsqueeze(-2), heard_k, heard_v, listed.unsqueeze(-2), edge)
                 h, w = h.squeeze(-2), w.squeeze(-2)
             attention.append(w)
         logits, value = self.heads(h)

@@ -75,7 +75,7 @@ def model_config_for(cfg: TrainConfig) -> ModelConfig:
     m = cfg.model
     if m.entity_mode == "concat":
         L = taichi_swarm.TASK_SPECS[cfg.task].num_landmarks(cfg.agents)
-        m = ModelConfig(m.hidden, m.rounds, m.entity_mode, L)
+        m = dataclasses.replace(m, num_landmarks=L)  # every other field as configured
     return m
 
 
@@ -120,13 +120,17 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     init_payload = None
     if cfg.init_from and payload is None:
         init_policy, init_payload = checkpoint.load_policy(cfg.init_from, trust_unsigned=cfg.trust_unsigned)
-        # the same shapes; self_position only changes what the encoder is fed, so a policy
-        # may be fine-tuned into relative inputs
-        if dataclasses.replace(init_policy.config, self_position=policy.config.self_position) != policy.config:
+        # the same shapes; self_position only changes what the encoder is fed, and relative
+        # edges add two weights that start at zero (the same function), so a policy may be
+        # fine-tuned into relative inputs and edges
+        relative = {"self_position": policy.config.self_position, "edge_position": policy.config.edge_position}
+        dropped = init_policy.config.edge_position == "relative" and policy.config.edge_position == "none"
+        if dropped or dataclasses.replace(init_policy.config, **relative) != policy.config:
             raise checkpoint.CheckpointError(
                 f"--init-from {cfg.init_from} has model {init_policy.config}, this run wants {policy.config}"
             )
-        policy.load_state_dict(init_policy.state_dict())
+        own = policy.state_dict()
+        policy.load_state_dict({**own, **{k: v for k, v in init_policy.state_dict().items() if k in own}})
     # fused: one kernel for every parameter (the per-tensor loop cost ~1.4 ms per minibatch)
     optimizer = torch.optim.Adam(policy.parameters(), lr=p.lr, eps=1e-5, fused=True)
     sizes = cfg.training_sizes()
