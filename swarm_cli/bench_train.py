@@ -9,7 +9,6 @@ the effect of the torch thread count on the update.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import io
 import os
 import shutil
@@ -87,15 +86,12 @@ def measure(
 ) -> dict:
     tmp = tempfile.mkdtemp(prefix="swarm-bench-")
     try:
-        cfg = TrainConfig(
+        ppo = {k: v for k, v in (("num_envs", num_envs), ("minibatches", minibatches)) if v}
+        cfg = TrainConfig.with_preset(
+            preset,
+            ppo,
             task=task,
             agents=agents,
-            preset=preset,
-            ppo=dataclasses.replace(
-                PRESETS[preset],
-                **({"num_envs": num_envs} if num_envs else {}),
-                **({"minibatches": minibatches} if minibatches else {}),
-            ),
             device=device,
             arch=arch,
             compile=compile,

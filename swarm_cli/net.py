@@ -14,6 +14,7 @@ from typing import Annotated
 
 import tyro
 
+from deploy.net.faults import FaultSpec
 from swarm_cli.options import (
     Default,
     OptionError,
@@ -30,35 +31,8 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 @dataclass(kw_only=True)
 class FaultOptions:
+    faults: Annotated[FaultSpec, tyro.conf.OmitArgPrefixes] = FaultSpec()
     """Faults injected at each agent's radio (between processes); all off by default."""
-
-    drop: float = 0.0
-    """independent loss of each message, probability"""
-    burst_loss: float = 0.0
-    """Gilbert-Elliott bursty loss: the mean loss probability"""
-    burst_len: float = 4.0
-    """Gilbert-Elliott bursty loss: the mean length of a loss burst, in messages"""
-    latency_ms: float = 0.0
-    """latency added to every message, ms"""
-    jitter_ms: float = 0.0
-    """uniform jitter around the latency, +- ms"""
-    reorder: float = 0.0
-    """probability that a message is held back behind the next one on its link"""
-    reorder_hold_ms: float = 20.0
-    """how long a held-back message waits at most for the next one, ms"""
-    late_round: int | None = None
-    """every message of this round (0-based) arrives after the round's deadline"""
-    fault_seed: int = 0
-    """seed of the injected faults"""
-
-    def fault_spec(self):
-        from deploy.net.faults import FaultSpec
-
-        return FaultSpec(
-            drop=self.drop, burst_loss=self.burst_loss, burst_len=self.burst_len, latency_ms=self.latency_ms,
-            jitter_ms=self.jitter_ms, reorder=self.reorder, reorder_hold_ms=self.reorder_hold_ms,
-            late_round=self.late_round, seed=self.fault_seed,
-        )  # fmt: skip
 
 
 @dataclass(kw_only=True)
@@ -176,7 +150,7 @@ def agent_main(argv: list[str]) -> int:
     from deploy.net.transport import Endpoint, TransportError, open_session
 
     try:
-        spec = args.fault_spec()
+        spec = args.faults
         model = ExportedModel(args.directory)
         session = open_session("peer", [args.listen], [args.connect])
         endpoint = Endpoint(session, args.ns)
@@ -216,7 +190,7 @@ def world_main(argv: list[str]) -> int:
                 ensure_writable(out, what)
         check_endpoint(args.listen, "--listen")
         check_namespace(args.ns)
-        spec = args.fault_spec()
+        spec = args.faults
         model = ExportedModel(args.export)
         s = resolve_settings(
             model, args.task, args.agents, args.comm, args.comm_radius, episodes=args.episodes, seed=args.seed

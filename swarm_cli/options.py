@@ -1,8 +1,9 @@
 """The options of every ``swarm`` command, as typed dataclasses parsed by tyro.
 
 One config system for the whole CLI: each command's options are one dataclass here
-(train and curriculum take ``trainer.config.TrainConfig`` / ``CurriculumConfig``); a
-field's docstring is its ``--help`` text and its default is shown beside it. Checks
+(train and curriculum parse into ``trainer.config.TrainConfig`` / ``CurriculumConfig``, in
+groups and over a preset: ``swarm_cli.train``); a field's docstring is its ``--help`` text
+and its default is shown beside it. Checks
 that need no file or library run in ``__post_init__`` and raise ``OptionError``; tyro
 reports those like a value it refuses itself (a message naming the option, then
 SystemExit(2), which ``swarm_cli.main.dispatch`` returns as the exit status). A list
@@ -57,7 +58,7 @@ def box_message(text: str) -> str:
         started = True
         body.append(line)
     message = re.sub(r"\s+", " ", " ".join(body)).strip() or text.strip()
-    return re.sub(r"^Error parsing [A-Z]\w*: ", "", message)
+    return re.sub(r"^Error parsing [A-Za-z_]\w*: ", "", message)  # (a dataclass's name: a flag's stays)
 
 
 def cli(options_type, argv: list[str], prog: str, **kwargs):
@@ -188,25 +189,6 @@ class OutputOptions(VideoOption):
 
 
 # ----------------------------------------------------------------------------- trainer commands
-@dataclass(kw_only=True)
-class ResumeOptions:
-    """Continue a stopped run from its checkpoint.pt (same config, nothing repeated)."""
-
-    resume: str
-    """run directory of the stopped run"""
-    updates: Annotated[int | None, Default("keep it")] = None
-    """raise the run's total update budget to this"""
-    progress: Annotated[bool, Default("the run's own setting")] = True
-    """show a progress bar (--no-progress for a run in the background with output to a log)"""
-    arch: Annotated[Arch | None, Default("the run's own")] = None
-    """simulator arch (a run stopped on one machine may go on on another)"""
-    device: Annotated[str | None, Default("the run's own")] = None
-    """torch device: cpu | cuda | auto"""
-
-    def __post_init__(self):
-        at_least(self.updates, 1, "updates")
-
-
 @dataclass(kw_only=True)
 class EvaluationOptions(SettingOptions, SwarmOptions):
     """What every evaluation of a checkpoint takes (swarm eval, swarm zero-shot)."""

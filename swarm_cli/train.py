@@ -2,64 +2,165 @@
 
 from __future__ import annotations
 
-import argparse
-import copy
 import dataclasses
 import json
 import os
 import sys
+from typing import Annotated, Literal, TypedDict
 
-from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ResumeOptions, ZeroShotOptions, cli, fail, parse
+import tyro
+from tyro.constructors import ConstructorRegistry, StructTypeInfo
+
+from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ZeroShotOptions, at_least, cli, fail, parse
 from trainer.checkpoint import CheckpointError, atomic_write_json, ensure_writable
 from trainer.rundir import POLICY
 
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, CheckpointError)
 
 
-def _config_from_argv(argv: list[str], prog: str, config_type=None):
-    """Pre-read --preset, then let tyro parse the rest over that preset's defaults
-    (``config_type``: TrainConfig, or CurriculumConfig which extends it)."""
+# `swarm train --help` / `swarm curriculum --help` lists the options a run is most often changed
+# by first, then the rest in groups by what they are about; a group's flags keep their plain
+# names (--neighbours, not --large-teams.neighbours). A field of the config in no group here is
+# listed under "other" (a test keeps that group empty).
+GROUPS = {
+    "": ("", "task agents comm comm_radius preset updates seed run_dir device"),
+    "curriculum": (
+        "the stages over team sizes",
+        "sizes threshold max_updates_per_stage min_updates_per_stage fresh_eval_episodes fresh_eval_seed "
+        "polish_updates polish_lr",
+    ),
+    "large teams": (
+        "neighbour lists and density scaling (docs/SWARM.md)",
+        "neighbours landmark_neighbours sense_radius scale",
+    ),
+    "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst"),
+    "training": (
+        "what the run learns from",
+        "reward team_sizes init_from init_carry trust_unsigned target_success min_updates",
+    ),
+    "evaluation": ("the evaluations during the run", "eval_every eval_episodes transfer_offsets"),
+    "run management": ("the run directory and its display", "resume checkpoint_every progress tensorboard"),
+    "compute": ("where and how the run computes", "arch torch_threads compile precision"),
+}
+RESUMED = ("updates", "progress", "arch", "device")  # what --resume takes; the rest is the run's own
+RESUME = Annotated[
+    str | None,
+    tyro.conf.arg(
+        metavar="RUN_DIR",
+        help="continue the stopped run in RUN_DIR from its checkpoint.pt, with its own config: only "
+        "--updates (raising its budget), --progress, --arch and --device go with it, each else the run's own",
+        help_behavior_hint="",
+    ),
+]
 
-    from trainer.config import DEFAULT_PRESET, PRESET_UPDATES, PRESETS, TrainConfig
+
+def _text(value) -> str:
+    return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+def _options(cls, values) -> dict:
+    """The fields of dataclass ``cls`` as options tyro leaves out of its result unless given (a
+    TypedDict's, total=False), each with its docstring and "(default: ...)": ``values(name)``, the
+    field's value under each preset, shown as the default preset's and the others' that differ."""
+    from trainer.config import DEFAULT_PRESET, PRESETS
+
+    out = {}
+    for f in ConstructorRegistry.get_struct_spec(StructTypeInfo.make(cls, tyro.MISSING_NONPROP, False)).fields:
+        typ, by_preset = f.type, values(f.name)
+        if f.name == "preset":  # a choice: tyro refuses another naming the presets
+            typ, by_preset = Literal[tuple(PRESETS)], {DEFAULT_PRESET: DEFAULT_PRESET}
+        default = by_preset[DEFAULT_PRESET]
+        others = ", ".join(f"{p}: {_text(v)}" for p, v in by_preset.items() if v != default)
+        hint = f"(default: {_text(default)}" + (f"; --preset {others})" if others else ")")
+        helptext = f.helptext() if callable(f.helptext) else f.helptext
+        out[f.name] = Annotated[typ, tyro.conf.arg(help=helptext, help_behavior_hint=hint)]
+    return out
+
+
+def _schema(config_type):
+    """What tyro parses ``swarm train`` / ``swarm curriculum`` into: a dict of the options given,
+    the groups of GROUPS nested in it (and model, ppo)."""
+    from trainer.config import PRESETS, PPOConfig
+    from trainer.model import ModelConfig
+
+    configs = {p: config_type.with_preset(p) for p in PRESETS}
+    fields = _options(config_type, lambda name: {p: getattr(c, name) for p, c in configs.items()})
+    if config_type.carry_needs_init_from:  # (a curriculum resumes by its own command)
+        fields["resume"] = RESUME
+    top = {}
+    for title, (about, names) in [*GROUPS.items(), ("other", ("", " ".join(fields)))]:
+        group = {name: fields.pop(name) for name in names.split() if name in fields and name not in ("model", "ppo")}
+        if not title:
+            top = group
+        elif group:
+            top[title] = Annotated[
+                TypedDict(title, group, total=False), tyro.conf.OmitArgPrefixes, tyro.conf.arg(help=about)
+            ]
+    for name, cls in (("model", ModelConfig), ("ppo", PPOConfig)):
+        nested = _options(cls, lambda n, name=name: {p: getattr(getattr(c, name), n) for p, c in configs.items()})
+        help_ = fields.pop(name).__metadata__[0].help
+        top[name] = Annotated[TypedDict(name, nested, total=False), tyro.conf.arg(help=help_)]
+    return TypedDict(config_type.__name__, top, total=False)
+
+
+def given_options(argv: list[str], prog: str, config_type) -> dict:
+    """The options given in ``argv``, as ``config_type.with_preset`` takes them (model and ppo:
+    dicts of their fields given; resume too, for swarm train)."""
+    from trainer.config import DEFAULT_PRESET, PRESETS
+
+    others = ", ".join(p for p in PRESETS if p != DEFAULT_PRESET)
+    description = (
+        f"{prog}: --updates and the --ppo options not given take the preset's values (shown: --preset "
+        f"{DEFAULT_PRESET}'s, then {others} where they differ); an option given wins over the preset."
+    )
+    given = {}
+    for key, value in cli(_schema(config_type), argv, prog, description=description).items():
+        if key in GROUPS or key == "other":
+            given.update(value)
+        else:
+            given[key] = value
+    return given
+
+
+def config_from_argv(argv: list[str], prog: str, config_type=None):
+    """``config_type`` (TrainConfig, or CurriculumConfig which extends it) from the command line:
+    the preset's values under the options given."""
+    from trainer.config import TrainConfig
 
     config_type = config_type or TrainConfig
-    pre = argparse.ArgumentParser(add_help=False)
-    pre.add_argument("--preset", default=DEFAULT_PRESET)
-    known, _ = pre.parse_known_args(argv)
-    if known.preset not in PRESETS:
-        raise ValueError(f"--preset must be one of {tuple(PRESETS)}, got {known.preset!r}")
-    # the chosen preset's values are the defaults tyro parses over and --help shows
-    default = config_type(
-        preset=known.preset, updates=PRESET_UPDATES[known.preset], ppo=copy.deepcopy(PRESETS[known.preset])
-    )
-    others = ", ".join(f"--preset {p}" for p in PRESETS if p != known.preset)
-    description = f"{prog}: the defaults shown are those of --preset {known.preset} (others: {others})."
-    return cli(config_type, argv, prog, default=default, description=description)
+    return _config(config_type, given_options(argv, prog, config_type))
+
+
+def _config(config_type, given: dict):
+    from trainer.model import ModelConfig
+
+    model = ModelConfig(**given.pop("model"))
+    return config_type.with_preset(**given, model=model)
 
 
 def train_main(argv: list[str]) -> int:
-    """swarm train --resume RUN_DIR [--updates N] | [config options, see --help]"""
+    """swarm train [options, see --help] | --resume RUN_DIR [--updates N]"""
+    from trainer.config import TrainConfig
     from trainer.train import train
 
     try:
-        if "--resume" in argv or any(a.startswith("--resume=") for a in argv):
-            opts = parse(ResumeOptions, argv, "swarm train --resume RUN_DIR")
-            given = any(a in ("--progress", "--no-progress") for a in argv)  # else the run's own setting
-            summary = train(
-                resume=opts.resume,
-                updates=opts.updates,
-                progress=opts.progress if given else None,
-                arch=opts.arch,
-                device=opts.device,
-            )
+        given = given_options(argv, "swarm train", TrainConfig)
+        resume = given.pop("resume", None)
+        if resume is None:
+            summary = train(_config(TrainConfig, given))
         else:
-            if "-h" in argv or "--help" in argv:
-                print(
-                    "swarm train --resume RUN_DIR [--updates N] [--no-progress] [--arch A] [--device D]\n"
-                    "                      continue a stopped run (N raises its update budget)\n"
-                    "swarm train [options below]   start a run\n"
+            others = [
+                " ".join(f"--{k}.{n}" for n in v) if isinstance(v, dict) else f"--{k}"
+                for k, v in given.items()
+                if k not in RESUMED and v != {}
+            ]
+            if others:
+                raise ValueError(
+                    "--resume continues the run with its own config: only --updates, --progress, --arch and "
+                    f"--device go with it, not {' '.join(others).replace('_', '-')}"
                 )
-            summary = train(_config_from_argv(argv, "swarm train"))
+            at_least(given.get("updates"), 1, "updates")
+            summary = train(resume=resume, **{k: given.get(k) for k in RESUMED})
     except KeyboardInterrupt:
         return 130
     except USER_ERRORS as exc:
@@ -188,7 +289,7 @@ def curriculum_main(argv: list[str]) -> int:
     from trainer.curriculum import format_stages, run_curriculum
 
     try:
-        cfg = _config_from_argv(argv, "swarm curriculum", CurriculumConfig)
+        cfg = config_from_argv(argv, "swarm curriculum", CurriculumConfig)
         if cfg.max_updates_per_stage < 1:
             raise ValueError(f"--max-updates-per-stage must be >= 1, got {cfg.max_updates_per_stage}")
         run_dir = cfg.default_run_dir()

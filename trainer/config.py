@@ -181,10 +181,11 @@ class TrainConfig:
     own running return in the reward normaliser: the signal a team reward gives one agent is
     diluted M times, which matters for large teams (docs/SWARM.md)."""
     preset: str = "paper"
-    """PPO preset the ``ppo`` options and ``updates`` start from: fast (the recipe behind the model
-    zoo) | paper (the paper's schedule) | gpu (4096 environments, for one GPU)."""
+    """PPO preset, the values of the ``ppo`` options and ``updates`` not given (``with_preset``
+    makes a config from one): fast (the recipe behind the model zoo) | paper (the paper's schedule) |
+    gpu (4096 environments, for one GPU)."""
     updates: int = 1100
-    """PPO updates to run (default: the preset's budget, 4.5 M env steps for fast and paper)."""
+    """PPO updates to run (the preset's budget: 4.5 M env steps for fast and paper)."""
     target_success: float = 0.0
     """Stop early once the evaluation success rate reaches this (0 = never)."""
     min_updates: int = 0
@@ -246,7 +247,16 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     """Network architecture."""
     ppo: PPOConfig = field(default_factory=PPOConfig)
-    """PPO hyperparameters (start from ``preset``)."""
+    """PPO hyperparameters (those not given: the preset's)."""
+
+    @classmethod
+    def with_preset(cls, preset: str = DEFAULT_PRESET, ppo: dict | None = None, **options):
+        """This config as ``preset`` makes it: the preset's PPO values and update budget, with the
+        ``ppo`` fields and ``options`` given over them (what ``swarm train`` parses into)."""
+        if preset not in PRESETS:
+            raise ValueError(f"--preset must be one of {tuple(PRESETS)}, got {preset!r}")
+        options.setdefault("updates", PRESET_UPDATES[preset])
+        return cls(preset=preset, ppo=dataclasses.replace(PRESETS[preset], **(ppo or {})), **options)
 
     def validate(self) -> None:
         if self.task not in TASKS:

@@ -20,8 +20,10 @@ restarted or never starts) are options of ``swarm agent`` and of the launcher.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
+from typing import Annotated
 
 import numpy as np
+import tyro
 
 
 class FaultError(ValueError):
@@ -30,15 +32,27 @@ class FaultError(ValueError):
 
 @dataclass(frozen=True)
 class FaultSpec:
+    """The faults of every link into one agent; the docstrings are the options' --help texts
+    (``swarm agent``, ``swarm world``)."""
+
     drop: float = 0.0
+    """independent loss of each message, probability"""
     burst_loss: float = 0.0
+    """Gilbert-Elliott bursty loss: the mean loss probability"""
     burst_len: float = 4.0
+    """Gilbert-Elliott bursty loss: the mean length of a loss burst, in messages"""
     latency_ms: float = 0.0
+    """latency added to every message, ms"""
     jitter_ms: float = 0.0
+    """uniform jitter around the latency, +- ms"""
     reorder: float = 0.0
+    """probability that a message is held back behind the next one on its link"""
     reorder_hold_ms: float = 20.0
+    """how long a held-back message waits at most for the next one, ms"""
     late_round: int | None = None
-    seed: int = 0
+    """every message of this round (0-based) arrives after the round's deadline"""
+    seed: Annotated[int, tyro.conf.arg(name="fault-seed")] = 0  # (--seed is the world's episodes')
+    """seed of the injected faults"""
 
     def __post_init__(self):
         for name in ("drop", "reorder"):

@@ -177,7 +177,7 @@ def test_gpu_campaign_script_arguments(tmp_path):
     import shlex
     import subprocess
 
-    from swarm_cli.train import _config_from_argv
+    from swarm_cli.train import config_from_argv
     from trainer.config import CurriculumConfig, TrainConfig
 
     script = os.path.join(os.path.dirname(__file__), "..", "..", "tools", "gpu_campaign.sh")
@@ -188,7 +188,7 @@ def test_gpu_campaign_script_arguments(tmp_path):
     for name, command in jobs.items():
         argv = shlex.split(command)
         config_type = TrainConfig if argv[0] == "train" else CurriculumConfig
-        cfg = _config_from_argv(argv[1:], f"swarm {argv[0]}", config_type)
+        cfg = config_from_argv(argv[1:], f"swarm {argv[0]}", config_type)
         assert cfg.preset == "gpu" and cfg.device == "cuda" and cfg.arch == "cuda", name
         assert cfg.ppo.num_envs == 4096 and cfg.ppo.minibatches == 16, name
         want_mode = "concat" if name.endswith("-concat") else "padded" if name.endswith("-noemp") else "emp"

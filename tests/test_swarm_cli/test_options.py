@@ -50,3 +50,87 @@ def test_values_parse_into_typed_fields():
     opts = options.parse(options.EvalOptions, ["c.pt", "--gif", "a.gif"], "x")
     assert opts.video == "a.gif" and opts.checkpoint == "c.pt" and opts.seed == 12345
     assert options.parse(options.ReproduceOptions, ["--tables", "2", "3"], "x").tables == (2, 3)
+
+
+PAPER_LR4 = {"num_envs": 32, "num_steps": 128, "lr": 1e-4, "lr_end": None, "minibatches": 32}
+
+
+@pytest.mark.parametrize(
+    "argv, preset, updates, ppo",
+    [
+        ([], "fast", 2200, {}),
+        (["--preset", "paper", "--ppo.lr", "1e-4"], "paper", 1100, PAPER_LR4),
+        (["--ppo.lr", "1e-4", "--preset", "paper"], "paper", 1100, PAPER_LR4),  # in any order
+        (["--preset", "gpu"], "gpu", 300, {"num_envs": 4096, "num_steps": 16, "lr": 7e-4, "minibatches": 16}),
+        (["--preset", "gpu", "--updates", "5", "--ppo.lr", "7e-4"], "gpu", 5, {"num_envs": 4096, "lr": 7e-4}),
+        (["--preset", "paper", "--ppo.lr", "7e-4", "--ppo.bootstrap-time-limit"], "paper", 1100,
+         {"lr": 7e-4, "num_envs": 32, "bootstrap_time_limit": True}),
+        (["--ppo.no-bootstrap-time-limit", "--ppo.lr-end", "None"], "fast", 2200,
+         {"lr": 7e-4, "lr_end": None, "num_envs": 64, "bootstrap_time_limit": False}),
+    ],
+)  # fmt: skip
+def test_a_preset_gives_the_values_not_given(argv, preset, updates, ppo):
+    """The preset is a value of the config: the PPO options and --updates not on the command line
+    are its, those given win (whatever the preset's value and the order of the flags)."""
+    import dataclasses
+
+    from swarm_cli.train import config_from_argv
+    from trainer.config import PRESETS, CurriculumConfig, TrainConfig, to_dict
+
+    for config_type in (TrainConfig, CurriculumConfig):
+        cfg = config_from_argv(argv, "swarm train", config_type)
+        assert type(cfg) is config_type and cfg.preset == preset and cfg.updates == updates
+        assert {k: getattr(cfg.ppo, k) for k in ppo} == ppo
+        given = {k: v for k, v in ppo.items() if getattr(PRESETS[preset], k) != v}
+        want = config_type(preset=preset, updates=updates, ppo=dataclasses.replace(PRESETS[preset], **given))
+        assert to_dict(cfg) == to_dict(want)
+
+
+def test_train_help_groups_every_option(capsys):
+    """swarm train --help: the options changed first at the top, every other in a named group
+    (none left to "other"), each flag under its plain name."""
+    assert swarm(["train", "--help"]) == 0
+    text = capsys.readouterr().out
+    top = text[: text.index("large teams options")]
+    for flag in ("--task", "--agents", "--comm", "--preset", "--updates", "--seed", "--run-dir", "--device"):
+        assert f"{flag} " in top, flag
+    assert "other options" not in text
+    for flag in ("--neighbours", "--scale", "--message-drop", "--model.self-position", "--ppo.lr", "--resume"):
+        assert f"{flag} " in text, flag
+    assert "(default: 0.0007; --preset paper: 0.0001)" in " ".join(text.split())
+    assert swarm(["curriculum", "--help"]) == 0
+    text = capsys.readouterr().out
+    assert "curriculum options" in text and "other options" not in text and "--resume" not in text
+
+
+@pytest.mark.parametrize(
+    "argv, says",
+    [
+        (["train", "--preset", "papr"], "invalid choice 'papr' for argument '--preset'"),
+        (["curriculum", "--preset", "papr"], "invalid choice 'papr' for argument '--preset'"),
+        (["train", "--resume", "r", "--task", "line", "--ppo.lr", "1"], "not --task --ppo.lr"),
+        (["train", "--resume", "r", "--updates", "0"], "--updates must be >= 1"),
+    ],
+)
+def test_bad_train_options_are_refused_in_one_line(argv, says, capsys):
+    assert swarm(argv) == 2
+    err = capsys.readouterr().err
+    assert says in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_fault_options_parse_into_the_fault_spec(capsys):
+    """swarm agent / swarm world take deploy.net.faults.FaultSpec itself under its flags (--fault-seed:
+    the world's --seed is its episodes'); FaultSpec.to_args gives the same spec back."""
+    from deploy.net.faults import FaultSpec
+    from swarm_cli.net import AgentOptions, WorldOptions
+
+    argv = ["--drop", "0.1", "--burst-loss", "0.2", "--late-round", "1", "--fault-seed", "5"]
+    agent = options.parse(AgentOptions, ["d", "--id", "2", *argv], "x")
+    assert agent.faults == FaultSpec(drop=0.1, burst_loss=0.2, late_round=1, seed=5)
+    assert options.parse(AgentOptions, ["d", "--id", "2", *agent.faults.to_args()], "x").faults == agent.faults
+    world = options.parse(WorldOptions, ["--export", "d", "--seed", "3", *argv], "x")
+    assert world.seed == 3 and world.faults == agent.faults
+    assert options.parse(WorldOptions, ["--export", "d"], "x").faults == FaultSpec()
+    assert swarm(["agent", "d", "--id", "0", "--drop", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("swarm agent: error: --drop must be a probability") and len(err.splitlines()) == 1
