@@ -169,13 +169,23 @@ class Pieces:
 class MessageBus:
     """The radio between agents of B teams: delivers only along edges, with seeded drops and delays."""
 
-    def __init__(self, num_envs: int, num_agents: int, rounds: int, drop: float = 0.0, delay: int = 0, seed: int = 0):
+    def __init__(
+        self, num_envs: int, num_agents: int, rounds: int, drop: float = 0.0, delay: int = 0, seed: int = 0,
+        burst_loss: float = 0.0, burst_len: float = 4.0,
+    ):  # fmt: skip
         if not 0.0 <= drop <= 1.0:
             raise DeployError(f"drop probability must be in [0, 1], got {drop}")
         if delay < 0:
             raise DeployError(f"delay must be >= 0 steps, got {delay}")
+        if not 0.0 <= burst_loss < 1.0 or not burst_len >= 1.0:
+            raise DeployError(f"burst loss must be in [0, 1) and burst length >= 1, got {burst_loss}, {burst_len}")
         self.drop, self.delay = float(drop), int(delay)
         self._rng = np.random.default_rng(seed)
+        # Gilbert-Elliott loss, the networked agents' --burst-loss (deploy/net/faults.py): one
+        # chain per link (receiver i, sender j) stepping once per message, bursts of burst_len
+        # messages on average, stationary loss burst_loss; drawn from that law at the first send
+        self.burst_loss, self._to_good = float(burst_loss), 1.0 / burst_len
+        self._bad: np.ndarray | None = None  # [B, M, M]
         self._offdiag = ~np.eye(num_agents, dtype=bool)  # [M, M]; own messages never go through the bus
         # per round: queue of (messages [B, M, 2, H], edges [B, M, M]) in flight
         self._queues: list[deque] = [deque() for _ in range(rounds)]
@@ -191,8 +201,8 @@ class MessageBus:
 
     def exchange_lists(self, r: int, messages: np.ndarray, nbr: np.ndarray, nbr_mask: np.ndarray):
         """The same along neighbour lists ``nbr`` [B, M, K] (i hears nbr[b, i, k] where
-        ``nbr_mask``): returns (messages [B, M, 2, H], senders [B, M, K] int, edges [B, M, K]
-        bool: i receives senders[b, i, k]'s message where edges[b, i, k])."""
+        ``nbr_mask``): returns (messages [B, M, 2, H], edges [B, M, K] bool, senders [B, M, K]
+        int: i receives senders[b, i, k]'s message where edges[b, i, k])."""
         M = nbr.shape[1]
         nbr = np.asarray(nbr, dtype=np.int64)
         edges = np.asarray(nbr_mask, dtype=bool) & (nbr != np.arange(M)[None, :, None]) & (nbr >= 0) & (nbr < M)
@@ -202,6 +212,15 @@ class MessageBus:
         self.sent += int(edges.sum())
         if self.drop > 0.0:
             edges = edges & (self._rng.random(edges.shape) >= self.drop)
+        if self.burst_loss > 0.0:
+            u = self._rng.random(edges.shape[:2] + edges.shape[1:2])  # [B, M, M]
+            if self._bad is None:
+                self._bad = u < self.burst_loss
+            else:
+                to_bad = self.burst_loss * self._to_good / (1.0 - self.burst_loss)
+                self._bad = np.where(self._bad, u >= self._to_good, u < to_bad)
+            bad = self._bad if senders is None else np.take_along_axis(self._bad, np.clip(senders, 0, None), axis=2)
+            edges = edges & ~bad
         queue = self._queues[r]
         queue.append((messages.copy() if self.delay else messages, edges, senders))
         if len(queue) <= self.delay:
@@ -233,6 +252,7 @@ class Executor:
         delay: int = 0,
         seed: int = 0,
         threads: int = 1,
+        burst: tuple[float, float] = (0.0, 4.0),
     ):
         if num_agents < 1:
             raise DeployError(f"agents must be >= 1, got {num_agents}")
@@ -241,7 +261,7 @@ class Executor:
         self.model = model
         self.B, self.M, self.K = num_envs, num_agents, model.rounds
         self.pieces = Pieces(model, threads)
-        self.bus = MessageBus(num_envs, num_agents, self.K, drop, delay, seed)
+        self.bus = MessageBus(num_envs, num_agents, self.K, drop, delay, seed, *burst)
 
     def decide(
         self,
@@ -322,6 +342,10 @@ class ExecuteSettings:
     drop: float = 0.0
     delay: int = 0
     seed: int = 12345
+    burst_loss: float = 0.0
+    """Gilbert-Elliott loss on every link: the mean loss (MessageBus)"""
+    burst_len: float = 4.0
+    """its mean burst length, in messages"""
     swarm: dict | None = None
     """the simulator's neighbour lists / density scaling (``make()`` keywords; None: dense)"""
 
@@ -335,6 +359,10 @@ class ExecuteSettings:
                 raise DeployError(f"--{name} must be >= {low}, got {getattr(self, name)}")
         if not 0.0 <= self.drop <= 1.0:
             raise DeployError(f"--drop values must be probabilities in [0, 1], got {self.drop}")
+        if not 0.0 <= self.burst_loss < 1.0:
+            raise DeployError(f"--burst-loss must be in [0, 1), got {self.burst_loss}")
+        if not self.burst_len >= 1.0:
+            raise DeployError(f"--burst-len must be >= 1 message, got {self.burst_len}")
 
 
 def resolve_settings(
@@ -380,7 +408,7 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy",
         **swarm,
     )  # fmt: skip
-    executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, seed=s.seed, threads=threads)
+    executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, s.seed, threads, (s.burst_loss, s.burst_len))
     drawn = getattr(recorder, "drawn", s.episodes)
 
     def decide(obs):
@@ -398,6 +426,7 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         **swarm,
         "drop": s.drop,
         "delay": s.delay,
+        **({"burst_loss": s.burst_loss, "burst_len": s.burst_len} if s.burst_loss else {}),
         "messages_sent": executor.bus.sent,
         "messages_delivered": executor.bus.delivered,
         **tally.summary(s.task),
@@ -421,4 +450,5 @@ def format_table(rows: list[dict]) -> str:
     """Rows of run_episodes() results: S% (and T, DIST) against drop rate and delay (and the
     fraction of landmarks covered, where every row has it)."""
     covered = ("covered",) if rows and all(r.get("covered") is not None for r in rows) else ()
-    return format_results(rows, extra=("drop", "delay", *covered))
+    burst = ("burst_loss",) if any(r.get("burst_loss") for r in rows) else ()
+    return format_results(rows, extra=("drop", "delay", *burst, *covered))

@@ -28,6 +28,8 @@ TITLES = {
     7: "Beyond the paper: the coverage curriculum 5 -> 7 -> 10 from each of those M = 3 policies",
     8: "Beyond the paper: formation 3 -> 5 with EMP against the landmark offset concatenated",
     9: "Beyond the paper: zero-shot S% of those formation M = 5 policies (paper: Table 4's formation UC row)",
+    10: "Swarms: a curriculum on neighbour lists in density-scaled arenas (S% and updates N per stage)",
+    11: "Beyond the paper: policies trained through a lossy radio (fault-free S%; faults in docs/DEPLOY.md)",
 }
 
 

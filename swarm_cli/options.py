@@ -323,6 +323,10 @@ class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
     """message drop probabilities, one row each (e.g. --drop 0 0.1 0.3); --record/--video draw the first"""
     delay: int = 0
     """deliver messages this many steps late"""
+    burst_loss: float = 0.0
+    """Gilbert-Elliott bursty loss on every link, as `swarm agent --burst-loss`: mean loss Q"""
+    burst_len: float = 4.0
+    """mean length of a loss burst, in messages (with --burst-loss)"""
     seed: int = 12345
     """seed of the episodes and of the drops"""
     threads: int = 1

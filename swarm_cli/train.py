@@ -33,7 +33,7 @@ GROUPS = {
         "neighbour lists and density scaling (docs/SWARM.md)",
         "neighbours landmark_neighbours sense_radius scale",
     ),
-    "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst"),
+    "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst drop_per_round"),
     "training": (
         "what the run learns from",
         "reward team_sizes init_from init_carry trust_unsigned target_success min_updates",

@@ -98,12 +98,14 @@ def result_header(task: str, agents: int, comm: str, comm_radius: float, episode
 
 def format_results(rows: list[dict], extra: tuple[str, ...] = ()) -> str:
     """Result rows as an aligned table: task, comm, M, episodes, [extra columns], S%, T, DIST."""
-    head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8}" + "".join(f" {c:>5}" for c in extra)
+    head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8}" + "".join(f" {c:>{max(5, len(c))}}" for c in extra)
     head += f" {'S%':>6} {'T':>6} {'DIST':>7}"
     lines = [head, "-" * len(head)]
     for r in rows:
         d = "-" if r["dist"] is None else f"{r['dist']:.3f}"
-        cells = "".join(f" {r[c]:>5.2f}" if isinstance(r[c], float) else f" {r[c]:>5}" for c in extra)
+        cells = "".join(
+            f" {r[c]:>{max(5, len(c))}.2f}" if isinstance(r[c], float) else f" {r[c]:>{max(5, len(c))}}" for c in extra
+        )
         lines.append(
             f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8}{cells} "
             f"{100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}"

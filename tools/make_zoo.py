@@ -32,6 +32,13 @@ BEYOND_ROOT = "results/reproduce-beyond"
 # the transfer policy: M = 3 and 4 trained together (beyond spec), the seed of four whose
 # M = 3 policy carried furthest to M = 5 on 500 fresh episodes (x-zs-coverage-uc-m34)
 TRANSFER = ("x-coverage-uc-m34", 7, "x-zs-coverage-uc-m34")
+# single cells published as they are: (zoo name, spec, its results, cell, stage M of a curriculum)
+SINGLES = (
+    ("coverage-rc-m5-bursty", "recipe", RECIPE_ROOT, "f-coverage-rc-m5-bursty", 0,
+     "coverage RC M = 5: the zoo's, trained on through bursty message loss (f-coverage-rc-m5-bursty)"),
+    ("coverage-rc-swarm-m5", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m5", 5,
+     "coverage RC on neighbour lists, density-scaled, relative inputs: the M = 5 stage (s-coverage-rc-rel-m5)"),
+)  # fmt: skip
 
 
 def _rel(path: str) -> str:
@@ -81,7 +88,7 @@ def candidates(spec, task: str, comm: str, agents: int) -> list[dict]:
 
 
 def _entry(cell, seed: int, agents: int, row: dict, weights: str, zero_shot: dict, trained_on: tuple) -> dict:
-    spec_name = "recipe" if weights.startswith(RECIPE_ROOT) else "beyond"
+    spec_name = weights.split("/")[1].removeprefix("reproduce-")
     curves = os.path.join(os.path.dirname(weights), "curves.png")
     if not os.path.exists(os.path.join(ROOT, curves)):  # a polish's curves are its stage's
         curves = os.path.join(os.path.dirname(os.path.dirname(weights)), "curves.png")
@@ -138,6 +145,16 @@ def build() -> list[dict]:
     )
     entry["summary"] = "coverage UC, trained on M = 3 and 4 together: the M = 3 policy that carries furthest to M = 5"
     entries.append({"name": "coverage-uc-m3-transfer", **entry})
+    for name, spec_name, root, cell_id, stage, summary in SINGLES:
+        cell = load_spec(spec_name).cell(cell_id)
+        if not os.path.exists(os.path.join(ROOT, cell_dir(root, cell, 0), "result.json")):
+            print(f"no result for {cell_id}", file=sys.stderr)
+            continue
+        rows = {r["agents"]: r for r in _result(root, cell, 0)["rows"]}
+        agents = stage or cell.run.agents
+        trained_on = [m for m in cell.run.sizes if m <= agents] if stage else [agents]
+        entry = _entry(cell, 0, agents, rows[agents], _rel(os.path.join(ROOT, policy_path(root, cell, 0, stage))), {}, trained_on)
+        entries.append({"name": name, **entry, "summary": summary})
     return entries
 
 

@@ -175,6 +175,10 @@ class TrainConfig:
     """With message_drop: the losses come in bursts, as on a real radio (Gilbert-Elliott, per
     sender: a sender in a burst reaches nobody), of this mean length in control steps, at the
     environment's drawn rate on average (0: each message dropped independently)."""
+    drop_per_round: bool = False
+    """With message_drop (independent losses): every round of the step draws its own drops, as
+    `swarm execute --drop` and the networked agents lose messages, instead of one draw per step
+    that the rounds share (the buffer then holds each round's graph: R times the adjacency)."""
     reward: Literal["team", "agent"] = "team"
     """team: every agent is trained on the team reward (the paper); agent: each on its own
     terms (the simulator's info["agent_reward"], whose mean the team reward is), each with its
@@ -312,6 +316,8 @@ class TrainConfig:
             raise ValueError(f"message_drop must be in [0, 1), got {self.message_drop}")
         if self.message_burst and not (1 <= self.message_burst < float("inf") and self.message_drop > 0):
             raise ValueError(f"message_burst must be 0 or >= 1 step, with message_drop > 0, got {self.message_burst}")
+        if self.drop_per_round and not (self.message_drop > 0 and not self.message_burst):
+            raise ValueError("drop_per_round draws independent losses per round: set message_drop > 0, without message_burst")
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
         if self.comm_radius < 0:

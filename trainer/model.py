@@ -365,19 +365,30 @@ class SwarmPolicy(nn.Module):
         return gather_agents(p, slots) - p.unsqueeze(-2)
 
     def _graph(self, self_obs, adj, nbr, nbr_mask):
-        """The communication graph in either layout -> (slots, mask) of the lists, or None (dense)."""
+        """The communication graph in either layout -> (adj per round, None) dense or
+        (slots [N, M, S], mask per round [N, M, S]) on lists. A mask with a round axis
+        (adj [N, R, M, M], nbr_mask [N, R, M, K], R the rounds) gives each round the messages
+        that arrived in it, as a radio that loses messages per round does (training through
+        faults, TrainConfig.drop_per_round); without, every round hears the same graph."""
         if (adj is None) == (nbr is None):
             raise ValueError("give the communication graph either dense (adj) or as lists (nbr, nbr_mask), not both")
         N, M = self_obs.shape[:2]
-        if adj is not None:
-            if adj.shape != (N, M, M):
-                raise ValueError(f"adj must be [N, M, M] = {(N, M, M)}, got {tuple(adj.shape)}")
-            return None
-        if nbr_mask is None:
+        R = self.config.rounds
+        mask = adj if nbr is None else nbr_mask
+        if mask is None:
             raise ValueError("nbr needs nbr_mask (which of the K slots hold a heard agent)")
-        if nbr.shape[:2] != (N, M):
-            raise ValueError(f"nbr must be [N, M, K] with N, M = {N}, {M}, got {tuple(nbr.shape)}")
-        return neighbour_slots(nbr, nbr_mask)
+        per_round = mask.dim() == 4
+        if adj is not None:
+            if adj.shape not in ((N, M, M), (N, R, M, M)):
+                raise ValueError(f"adj must be [N, M, M] = {(N, M, M)} or per round {(N, R, M, M)}, got {tuple(adj.shape)}")
+            return [adj[:, r] if per_round else adj for r in range(R)], None
+        if nbr.shape[:2] != (N, M) or (per_round and nbr_mask.shape[1] != R):
+            raise ValueError(f"nbr must be [N, M, K] with N, M = {N}, {M} (nbr_mask per round [N, {R}, M, K]), got {tuple(nbr.shape)}")
+        if not per_round:
+            slots, listed = neighbour_slots(nbr, nbr_mask)
+            return [listed] * R, slots
+        slots, _ = neighbour_slots(nbr, nbr_mask.any(1))  # a slot masked in a round points at self
+        return [neighbour_slots(nbr, nbr_mask[:, r])[1] for r in range(R)], slots
 
     def forward(
         self,
@@ -403,13 +414,12 @@ class SwarmPolicy(nn.Module):
         ``fused``: ``fused_weights()`` computed once and reused while the weights do not
         change (rollouts, evaluation); recomputed per call otherwise (training).
         """
-        lists = self._graph(self_obs, adj, nbr, nbr_mask)
+        masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
         self._check_entity_mask(entities, entity_mask)
-        if lists is not None and not return_attention and self_obs.shape[1] <= lists[0].shape[-1]:
+        if slots is not None and not return_attention and self_obs.shape[1] <= slots.shape[-1]:
             # M <= 1 + K: the team fits in the lists, and the dense rounds over M are cheaper
             # than gathering 1 + K slots (the same function: the slots scattered into adj)
-            adj = lists_to_adj(*lists)
-            lists = None
+            masks, slots = [lists_to_adj(slots, m) for m in masks], None
         fw = self.fused_weights() if fused is None else fused
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]
@@ -431,21 +441,17 @@ class SwarmPolicy(nn.Module):
         else:
             h = self.encode(self_obs, entities, entity_mask).reshape(N * M, H)
         own, own_bias, heard = fw.comm
-        if lists is None:
-            blocked = ~adj  # [N, M, M]
-            heard_mask = adj.to(h.dtype)
-            offsets = self.edge_offsets(self_obs, None)  # [N, M, M, 2] or None
-        else:
-            slots, listed = lists  # [N, M, S]: self, then the K listed
+        offsets = self.edge_offsets(self_obs, slots)  # [N, M, M, 2] dense, [N, M, S, 2] lists, or None
+        if slots is not None:  # [N, M, S]: self, then the K listed
             S = slots.shape[-1]
-            blocked = ~listed.view(N * M, S)
-            heard_mask = listed.view(N * M, S).to(h.dtype)
-            offsets = self.edge_offsets(self_obs, slots)
+            masks = [m.view(N * M, S) for m in masks]
             offsets = None if offsets is None else offsets.reshape(N * M, S, 2)
         attention = []
-        for _ in range(self.config.rounds):
+        shared = (~masks[0], masks[0].to(h.dtype)) if masks else None
+        for heard_now in masks:  # the rounds, each with the messages that arrived in it
+            blocked, heard_mask = shared if heard_now is masks[0] else (~heard_now, heard_now.to(h.dtype))
             q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
-            if lists is None:
+            if slots is None:
                 h3 = h.view(N, 1, M, H)
                 scores = (q_own[:, :H].reshape(N, M, 1, H) * h3).sum(-1)  # [N, M, M]
                 if offsets is not None:
@@ -482,16 +488,15 @@ class SwarmPolicy(nn.Module):
     ):
         """The network written as the paper states it (the per-agent pieces deploy exports):
         with lists, each agent's query attends over the keys and values of [self; listed]."""
-        lists = self._graph(self_obs, adj, nbr, nbr_mask)
+        masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
         h = self.encode(self_obs, entities, entity_mask)  # [N, M, H]
-        offsets = self.edge_offsets(self_obs, None if lists is None else lists[0])
+        offsets = self.edge_offsets(self_obs, slots)
         attention = []
-        for _ in range(self.config.rounds):
+        for listed in masks:
             keys, values = self.message(h)
-            if lists is None:
-                h, w = self.update(h, keys, values, adj, offsets)
+            if slots is None:
+                h, w = self.update(h, keys, values, listed, offsets)
             else:
-                slots, listed = lists
                 heard_k, heard_v = gather_agents(keys, slots), gather_agents(values, slots)  # [N, M, S, H]
                 edge = None if offsets is None else offsets.unsqueeze(-3)  # [N, M, 1, S, 2]
                 h, w = self.update(h.unsqueeze(-2), heard_k, heard_v, listed.unsqueeze(-2), edge)

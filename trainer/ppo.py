@@ -41,46 +41,49 @@ class Rollout:
 
     self_obs: torch.Tensor  # [T, E, M, 4]
     entities: torch.Tensor  # [T, E, M, L, 2] (L: KL with landmark lists)
-    adj: torch.Tensor | None  # [T, E, M, M] bool (dense)
+    adj: torch.Tensor | None  # [T, E, M, M] bool (dense); [T, E, R, M, M] with a graph per round
     actions: torch.Tensor  # [T, E, M] int64
     logprobs: torch.Tensor  # [T, E, M]
     values: torch.Tensor  # [T, E, M]
     rewards: torch.Tensor  # [T, E, M]: the scaled team reward, + gamma * V(final state) at a time-limit end
     dones: torch.Tensor  # [T, E] bool: the episode ended at this step (every agent's)
     nbr: torch.Tensor | None = None  # [T, E, M, K] int32 (lists)
-    nbr_mask: torch.Tensor | None = None  # [T, E, M, K] bool
+    nbr_mask: torch.Tensor | None = None  # [T, E, M, K] bool; [T, E, R, M, K] per round
     entity_mask: torch.Tensor | None = None  # [T, E, M, KL] bool (landmark lists)
 
     @classmethod
     def allocate(
-        cls, T: int, E: int, M: int, L: int, device="cpu", neighbours: int | None = None, entity_mask: bool = False
-    ) -> Rollout:
+        cls, T: int, E: int, M: int, L: int, device="cpu", neighbours: int | None = None, entity_mask: bool = False,
+        rounds: int = 0,
+    ) -> Rollout:  # fmt: skip
         """``neighbours``: K of the simulator's lists (None: dense adj); ``entity_mask``: the
-        observation has landmark lists (L is then their KL)."""
+        observation has landmark lists (L is then their KL); ``rounds`` > 0: a graph per round
+        (TrainConfig.drop_per_round)."""
         z = dict(device=device)
         lists = neighbours is not None
+        R = (rounds,) if rounds else ()
         return cls(
             self_obs=torch.zeros(T, E, M, 4, **z),
             entities=torch.zeros(T, E, M, L, 2, **z),
-            adj=None if lists else torch.zeros(T, E, M, M, dtype=torch.bool, **z),
+            adj=None if lists else torch.zeros(T, E, *R, M, M, dtype=torch.bool, **z),
             actions=torch.zeros(T, E, M, dtype=torch.int64, **z),
             logprobs=torch.zeros(T, E, M, **z),
             values=torch.zeros(T, E, M, **z),
             rewards=torch.zeros(T, E, M, **z),
             dones=torch.zeros(T, E, dtype=torch.bool, **z),
             nbr=torch.zeros(T, E, M, neighbours, dtype=torch.int32, **z) if lists else None,
-            nbr_mask=torch.zeros(T, E, M, neighbours, dtype=torch.bool, **z) if lists else None,
+            nbr_mask=torch.zeros(T, E, *R, M, neighbours, dtype=torch.bool, **z) if lists else None,
             entity_mask=torch.zeros(T, E, M, L, dtype=torch.bool, **z) if entity_mask else None,
         )
 
     @classmethod
-    def for_env(cls, T: int, env, device="cpu") -> Rollout:
+    def for_env(cls, T: int, env, device="cpu", rounds: int = 0) -> Rollout:
         """Storage shaped like ``env``'s observation (dense or lists)."""
         obs = env.obs
         nbr = obs.get("nbr")
         return cls.allocate(
             T, env.num_envs, env.num_agents, obs["entities"].shape[-2], device,
-            neighbours=None if nbr is None else nbr.shape[-1], entity_mask="entity_mask" in obs,
+            neighbours=None if nbr is None else nbr.shape[-1], entity_mask="entity_mask" in obs, rounds=rounds,
         )  # fmt: skip
 
     def input_names(self) -> tuple[str, ...]:
@@ -98,8 +101,8 @@ class Rollout:
         keys = {"self_obs": "self", "entities": "entities"}
         out = {}
         for name in self.input_names():
-            buf = getattr(self, name)[t]
-            buf.copy_(obs[keys.get(name, name)])
+            buf, src = getattr(self, name)[t], obs[keys.get(name, name)]
+            buf.copy_(src.unsqueeze(1) if buf.dim() > src.dim() else src)  # (every round's graph the same)
             out[name] = buf
         return out
 
@@ -192,14 +195,11 @@ def drop_messages(inputs: dict, rate: torch.Tensor) -> None:
     """Drop each message of one step's stored graph with its environment's ``rate`` [E], in
     place (the buffer then holds the graph the agents heard, so the update sees it too). An
     agent always keeps its own state: the dense graph's diagonal is never dropped."""
+    graph = inputs["adj"] if "adj" in inputs else inputs["nbr_mask"]  # [E, (R,) M, M | K]
+    keep = torch.rand(graph.shape, device=graph.device) >= rate.view(-1, *[1] * (graph.dim() - 1))
     if "adj" in inputs:
-        adj = inputs["adj"]  # [E, M, M]
-        keep = torch.rand(adj.shape, device=adj.device) >= rate[:, None, None]
-        keep.diagonal(dim1=-2, dim2=-1).fill_(True)
-        adj &= keep
-    else:  # neighbour lists hold others only
-        mask = inputs["nbr_mask"]  # [E, M, K]
-        mask &= torch.rand(mask.shape, device=mask.device) >= rate[:, None, None]
+        keep.diagonal(dim1=-2, dim2=-1).fill_(True)  # (neighbour lists hold others only)
+    graph &= keep
 
 
 def burst_step(bad: torch.Tensor, rate: torch.Tensor, burst_len: float) -> torch.Tensor:

@@ -144,7 +144,8 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
         scaler = RewardScaler(
             scaler_slots(cfg, E, size), p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device
         )
-        groups.append(TeamGroup(size, env, {}, Rollout.for_env(p.num_steps, env, device), scaler))
+        rounds = cfg.model.rounds if cfg.drop_per_round else 0  # a graph per round to drop from
+        groups.append(TeamGroup(size, env, {}, Rollout.for_env(p.num_steps, env, device, rounds), scaler))
     state = TrainingState(policy, optimizer, groups, fresh_counters(), [])
     if init_payload is not None and cfg.init_carry != "weights":
         rundir.carry_training_state(init_payload, cfg, state)

@@ -221,6 +221,28 @@ def test_message_bus_delivers_only_along_edges():
     assert 0.4 < counts / (400 * 6) < 0.6  # each off-diagonal edge kept with probability 1 - p
 
 
+def test_message_bus_bursty_loss_has_its_rate_and_burst_length():
+    """Gilbert-Elliott per link: the stationary loss and the mean burst length it is given, on
+    the dense graph and on lists alike (a link's chain is the same whichever layout carries it)."""
+    B, M, H, n = 50, 3, 4, 400
+    msgs = np.zeros((B, M, 2, H), np.float32)
+    bus = MessageBus(B, M, rounds=1, seed=1, burst_loss=0.3, burst_len=4.0)
+    lost = np.stack([~bus.exchange(0, msgs, np.ones((B, M, M), bool))[1][:, 0, 1] for _ in range(n)])  # [n, B]
+    assert 0.25 < lost.mean() < 0.35
+    starts = (lost[1:] & ~lost[:-1]).sum()
+    assert 3.0 < lost[1:].sum() / starts < 5.0  # mean length of a run of losses
+    nbr = np.array([[1, 2], [0, 2], [0, 1]])[None].repeat(B, 0)
+    # the same draws: what the dense bus lost, the lists lose
+    a = MessageBus(B, M, rounds=1, seed=2, burst_loss=0.3)
+    b = MessageBus(B, M, rounds=1, seed=2, burst_loss=0.3)
+    for _ in range(5):
+        dense = a.exchange(0, msgs, np.ones((B, M, M), bool))[1]
+        _, edges, senders = b.exchange_lists(0, msgs, nbr, np.ones((B, M, 2), bool))
+        assert (np.take_along_axis(dense, senders, axis=2) == edges).all()
+    with pytest.raises(DeployError, match="burst loss must be in"):
+        MessageBus(B, M, rounds=1, burst_loss=1.0)
+
+
 def test_manifest_hashes_checker_single_file(emp):
     _, directory = emp
     with open(os.path.join(directory, "manifest.json")) as f:

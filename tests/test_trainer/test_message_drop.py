@@ -105,3 +105,63 @@ def test_a_sender_in_a_burst_reaches_nobody():
     mask = torch.ones(E, M, K, dtype=torch.bool)
     drop_senders({"nbr": nbr, "nbr_mask": mask}, bad)
     assert (mask[0] == (nbr[0] != 1)).all() and mask[1].all()
+
+
+def test_drops_per_round_store_a_graph_per_round():
+    """drop_per_round: each round of a step loses its own messages (as `swarm execute --drop`)."""
+    from taichi_swarm import make, runtime
+    from trainer.model import ModelConfig, SwarmPolicy
+    from trainer.ppo import RewardScaler, Rollout, collect_rollout
+
+    runtime.init("cpu")
+    torch.manual_seed(0)
+    env = make("coverage", num_envs=16, num_agents=4, comm="uc", seed=3)
+    obs = env.reset()
+    p = PRESETS["fast"]
+    buf = Rollout.for_env(8, env, rounds=3)
+    assert buf.adj.shape == (8, 16, 3, 4, 4)
+    policy = SwarmPolicy(ModelConfig(hidden=16))
+    collect_rollout(policy, env, obs, buf, RewardScaler(16, p.gamma, p.reward_clip), p, "cpu", message_drop=0.8)
+    assert buf.adj.diagonal(dim1=-2, dim2=-1).all()
+    assert 0.45 < buf.adj.float().mean().item() < 0.9
+    assert (buf.adj[:, :, 0] != buf.adj[:, :, 1]).any()  # the rounds lost different messages
+    with pytest.raises(ValueError, match="drop_per_round draws independent losses"):
+        TrainConfig(drop_per_round=True).validate()
+    with pytest.raises(ValueError, match="drop_per_round draws independent losses"):
+        TrainConfig(drop_per_round=True, message_drop=0.3, message_burst=4.0).validate()
+    TrainConfig(drop_per_round=True, message_drop=0.3).validate()
+
+
+@pytest.mark.parametrize("lists", [False, True])
+def test_a_graph_per_round_is_the_network_of_each_rounds_graph(lists):
+    """The fused forward and the per-agent reference agree on a graph per round; the same graph
+    in every round is the shared graph; and each round hears its own (round 0 alone dropped
+    changes the output)."""
+    from trainer.model import ModelConfig, SwarmPolicy
+
+    torch.manual_seed(4)
+    N, M, L, K = 3, 6, 6, 4
+    policy = SwarmPolicy(ModelConfig(hidden=16, edge_position="relative"))
+    torch.nn.init.normal_(policy.edge_key.weight)
+    torch.nn.init.normal_(policy.edge_value.weight)
+    self_obs, entities = torch.randn(N, M, 4), torch.randn(N, M, L, 2)
+    if lists:
+        nbr = torch.stack([torch.randperm(M)[:K] for _ in range(N * M)]).view(N, M, K).int()
+        shared = torch.rand(N, M, K) < 0.8
+        graph = {"nbr": nbr, "nbr_mask": shared}
+        per_round = {"nbr": nbr, "nbr_mask": shared.unsqueeze(1).repeat(1, 3, 1, 1)}
+        key = "nbr_mask"
+    else:
+        shared = (torch.rand(N, M, M) < 0.7) | torch.eye(M, dtype=torch.bool)
+        graph, per_round, key = {"adj": shared}, {"adj": shared.unsqueeze(1).repeat(1, 3, 1, 1)}, "adj"
+    base = policy(self_obs, entities, **graph)[0]
+    torch.testing.assert_close(policy(self_obs, entities, **per_round)[0], base)
+    torch.testing.assert_close(policy.forward_reference(self_obs, entities, **per_round)[0], base, atol=1e-5, rtol=1e-5)
+    cut = per_round[key].clone()
+    cut[:, 0] &= torch.eye(M, dtype=torch.bool) if not lists else False  # round 0 hears only itself
+    fused = policy(self_obs, entities, **{**per_round, key: cut})[0]
+    ref = policy.forward_reference(self_obs, entities, **{**per_round, key: cut})[0]
+    torch.testing.assert_close(fused, ref, atol=1e-5, rtol=1e-5)
+    assert not torch.allclose(fused, base)
+    with pytest.raises(ValueError, match="per round"):
+        policy(self_obs, entities, **{**per_round, key: per_round[key][:, :2]})
