@@ -153,7 +153,8 @@ def build() -> list[dict]:
         rows = {r["agents"]: r for r in _result(root, cell, 0)["rows"]}
         agents = stage or cell.run.agents
         trained_on = [m for m in cell.run.sizes if m <= agents] if stage else [agents]
-        entry = _entry(cell, 0, agents, rows[agents], _rel(os.path.join(ROOT, policy_path(root, cell, 0, stage))), {}, trained_on)
+        weights = _rel(os.path.join(ROOT, policy_path(root, cell, 0, stage)))
+        entry = _entry(cell, 0, agents, rows[agents], weights, {}, trained_on)
         entries.append({"name": name, **entry, "summary": summary})
     return entries
 

@@ -317,7 +317,9 @@ class TrainConfig:
         if self.message_burst and not (1 <= self.message_burst < float("inf") and self.message_drop > 0):
             raise ValueError(f"message_burst must be 0 or >= 1 step, with message_drop > 0, got {self.message_burst}")
         if self.drop_per_round and not (self.message_drop > 0 and not self.message_burst):
-            raise ValueError("drop_per_round draws independent losses per round: set message_drop > 0, without message_burst")
+            raise ValueError(
+                "drop_per_round draws independent losses per round: set message_drop > 0, without message_burst"
+            )
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
         if self.comm_radius < 0:

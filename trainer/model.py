@@ -380,10 +380,12 @@ class SwarmPolicy(nn.Module):
         per_round = mask.dim() == 4
         if adj is not None:
             if adj.shape not in ((N, M, M), (N, R, M, M)):
-                raise ValueError(f"adj must be [N, M, M] = {(N, M, M)} or per round {(N, R, M, M)}, got {tuple(adj.shape)}")
+                want = f"[N, M, M] = {(N, M, M)} or per round {(N, R, M, M)}"
+                raise ValueError(f"adj must be {want}, got {tuple(adj.shape)}")
             return [adj[:, r] if per_round else adj for r in range(R)], None
         if nbr.shape[:2] != (N, M) or (per_round and nbr_mask.shape[1] != R):
-            raise ValueError(f"nbr must be [N, M, K] with N, M = {N}, {M} (nbr_mask per round [N, {R}, M, K]), got {tuple(nbr.shape)}")
+            want = f"[N, M, K] with N, M = {N}, {M} (nbr_mask per round [N, {R}, M, K])"
+            raise ValueError(f"nbr must be {want}, got {tuple(nbr.shape)}")
         if not per_round:
             slots, listed = neighbour_slots(nbr, nbr_mask)
             return [listed] * R, slots
