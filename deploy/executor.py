@@ -19,6 +19,12 @@ the same radio, O(K) per agent, with no M x M graph anywhere. With landmark list
 (``obs["entity_mask"]``) an agent encodes only the landmarks it senses ("emp"; the
 same function as masking them) or zeroes the others' slots ("padded").
 
+With relative edges (manifest edge_position "relative") each round also takes the offsets
+p_j - p_i of the senders heard, which the executor computes from the observation's true
+positions (self_obs[..., 2:4], whatever self_position zeroes in the encoder's input), as
+the batched policy does (``SwarmPolicy.edge_offsets``), for exactly the messages delivered;
+a delayed message gets the offset of the step it is used in (the receiver measures it).
+
 An agent always hears itself: it adds its own current
 message to what it heard (local memory, never dropped or delayed), so a round
 gets n >= 1 messages even when the bus delivers none; the round graphs also
@@ -46,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 import onnxruntime as ort
 
-from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, validate
+from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, edge_position, validate
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 
 
@@ -85,6 +91,7 @@ class ExportedModel:
         self.rounds: int = int(manifest["rounds"])
         self.hidden: int = int(manifest["hidden"])
         self.entity_mode: str = manifest["entity_mode"]
+        self.edge_position: str = edge_position(manifest)
         self.task: dict = manifest["task"]
         self.models: dict[str, bytes] = {}
         files = {name: os.path.join(directory, entry["file"]) for name, entry in manifest["files"].items()}
@@ -138,6 +145,7 @@ class Pieces:
 
     def __init__(self, model: ExportedModel, threads: int = 1):
         self.rounds = model.rounds
+        self.relative = model.edge_position == "relative"
         opts = session_options(threads)
 
         def session(name):
@@ -153,16 +161,20 @@ class Pieces:
         """self_obs [4], entities [L, 2] -> (h [H], the first message [2, H])."""
         return self._encode.run(self._encode_out, {"self_obs": self_obs, "entities": entities})
 
-    def round(self, h: np.ndarray, heard: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """A round that is not the last: h [H], heard [n, 2, H] (from others) -> (h, next message [2, H])."""
-        return self._round.run(self._round_out, {"h": h, "heard": heard})
+    def _heard(self, h, heard, offsets) -> dict:
+        return {"h": h, "heard": heard, "offsets": offsets} if self.relative else {"h": h, "heard": heard}
 
-    def decide(self, h: np.ndarray, heard: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    def round(self, h: np.ndarray, heard: np.ndarray, offsets: np.ndarray | None = None):
+        """A round that is not the last: h [H], heard [n, 2, H] (from others; relative edges: their
+        senders' offsets [n, 2]) -> (h, next message [2, H])."""
+        return self._round.run(self._round_out, self._heard(h, heard, offsets))
+
+    def decide(self, h: np.ndarray, heard: np.ndarray | None, offsets: np.ndarray | None = None):
         """The last round and the heads -> (logits [5], attention weights [n + 1], own first)."""
         if self.rounds == 0:
             logits, _ = self._final.run(None, {"h": h})
             return logits, np.ones(1, np.float32)
-        logits, weights = self._final.run(["logits", "weights"], {"h": h, "heard": heard})
+        logits, weights = self._final.run(["logits", "weights"], self._heard(h, heard, offsets))
         return logits, weights
 
 
@@ -297,6 +309,7 @@ class Executor:
             for i in range(M):
                 own = entities[b, i] if sensed is None else np.ascontiguousarray(entities[b, i][sensed[b, i]])
                 h[b, i], messages[b, i] = pieces.encode(self_obs[b, i], own)
+        pos = self_obs[..., 2:4] if self.model.edge_position == "relative" else None  # true positions [B, M, 2]
         logits = np.empty((B, M, 5), np.float32)
         K = nbr.shape[-1] if lists else 0
         # lists: slot 0 is the agent itself, slot 1 + k its k-th listed neighbour
@@ -318,8 +331,12 @@ class Executor:
                     slots = np.flatnonzero(edges[b, i])
                     senders = listed[b, i, slots] if lists else slots
                     heard = arrived[b, senders]  # [n, 2, H]: only what reached agent i
+                    # p_j - p_i of exactly the senders heard; for a delayed message, at this step (receive
+                    # time): E_k r_ij is what the receiver measures of j when it attends over j's message
+                    # (ModelConfig.edge_position), as a range sensor would, not where j was when it sent
+                    offsets = None if pos is None else pos[b, senders] - pos[b, i]
                     if last:
-                        logits[b, i], w = pieces.decide(h[b, i], heard)
+                        logits[b, i], w = pieces.decide(h[b, i], heard, offsets)
                         if lists:
                             attention[b, i, 0] = w[0]
                             attention[b, i, 1 + slots] = w[1:]
@@ -327,7 +344,7 @@ class Executor:
                             attention[b, i, i] = w[0]
                             attention[b, i, senders] = w[1:]
                     else:
-                        h[b, i], nxt[b, i] = pieces.round(h[b, i], heard)
+                        h[b, i], nxt[b, i] = pieces.round(h[b, i], heard, offsets)
             messages = nxt
         return logits, logits.argmax(-1).astype(np.int64), attention
 

@@ -7,6 +7,9 @@ Pieces (one agent, no batch axis; H hidden, L landmarks, n messages heard):
     round.onnx        h [H], heard [n, 2, H]         -> h [H], message [2, H], weights [n + 1]
     heads.onnx        h [H]                          -> logits [5], value []
     round_heads.onnx  h [H], heard [n, 2, H]         -> logits [5], value [], weights [n + 1], h [H]
+With edge_position "relative" both round pieces also take offsets [n, 2]: p_j - p_i of
+each sender j of heard, as the receiver i measures it (row k of offsets goes with row k
+of heard; the agent's own message gets offset 0 inside the graph).
 ``round_heads`` is the last round fused with the heads (one call fewer per step);
 ``heads`` alone serves K = 0 and anyone who wants the pieces unfused.
 
@@ -38,6 +41,11 @@ from trainer.model import NUM_ACTIONS, PADDED_SLOTS, SELF_DIM, SwarmPolicy
 from trainer.zoo import file_sha256
 
 OPSET = 18
+EDGE_DOC = (
+    "edge_position relative: offsets [n, 2] (float32, world units, world frame) is p_j - p_i for "
+    "each sender j of heard, in the same order: where receiver i measures j, at the step it uses j's "
+    "message (also for a delayed one); the true positions, whatever self_position"
+)
 
 
 class EncodePiece(nn.Module):
@@ -56,12 +64,15 @@ class EncodePiece(nn.Module):
         return h, torch.stack(self.policy.message(h))
 
 
-def _round(policy: SwarmPolicy, h: torch.Tensor, heard: torch.Tensor):
+def round_update(policy: SwarmPolicy, h: torch.Tensor, heard: torch.Tensor, offsets: torch.Tensor | None):
     """h [H] attends over its own message (recomputed from h: an agent always hears itself) and the
-    n messages heard [n, 2, H] -> (new h [H], weights [n + 1], own first)."""
+    n messages heard [n, 2, H] (and their senders' offsets [n, 2], relative edges)
+    -> (new h [H], weights [n + 1], own first)."""
     own = torch.stack(policy.message(h))  # [2, H]
     msgs = torch.cat([own[None], heard], dim=0)  # [n + 1, 2, H]
-    h_new, weights = policy.update(h[None], msgs[:, 0], msgs[:, 1], None)  # [1, H], [1, n + 1]
+    if offsets is not None:  # [1, n + 1, 2]: its own offset p_i - p_i = 0, as the model's self edge
+        offsets = torch.cat([offsets.new_zeros(1, 2), offsets], dim=0)[None]
+    h_new, weights = policy.update(h[None], msgs[:, 0], msgs[:, 1], None, offsets)  # [1, H], [1, n + 1]
     return h_new[0], weights[0]
 
 
@@ -72,8 +83,8 @@ class RoundPiece(nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, h: torch.Tensor, heard: torch.Tensor):
-        h_new, weights = _round(self.policy, h, heard)
+    def forward(self, h: torch.Tensor, heard: torch.Tensor, offsets: torch.Tensor | None = None):
+        h_new, weights = round_update(self.policy, h, heard, offsets)
         return h_new, torch.stack(self.policy.message(h_new)), weights
 
 
@@ -95,8 +106,8 @@ class RoundHeadsPiece(nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, h: torch.Tensor, heard: torch.Tensor):
-        h_new, weights = _round(self.policy, h, heard)
+    def forward(self, h: torch.Tensor, heard: torch.Tensor, offsets: torch.Tensor | None = None):
+        h_new, weights = round_update(self.policy, h, heard, offsets)
         logits, value = self.policy.heads(h_new)
         return logits, value, weights, h_new
 
@@ -108,6 +119,12 @@ PIECES = {
     "heads": (HeadsPiece, ("h",), ("logits", "value")),
     "round_heads": (RoundHeadsPiece, ("h", "heard"), ("logits", "value", "weights", "h_out")),
 }
+
+
+def piece_inputs(name: str, cfg) -> tuple[str, ...]:
+    """The input names of piece ``name``: with relative edges the rounds take ``offsets`` too."""
+    inputs = PIECES[name][1]
+    return (*inputs, "offsets") if cfg.edge_position == "relative" and "heard" in inputs else inputs
 
 
 def _example_inputs(name: str, policy: SwarmPolicy) -> tuple[tuple[torch.Tensor, ...], dict]:
@@ -124,12 +141,16 @@ def _example_inputs(name: str, policy: SwarmPolicy) -> tuple[tuple[torch.Tensor,
         return (torch.randn(SELF_DIM), torch.randn(L_ex, 2)), {"self_obs": None, "entities": {0: dyn} if dyn else None}
     if name == "heads":
         return (torch.randn(H),), {"h": None}
-    return (torch.randn(H), torch.randn(3, 2, H)), {"h": None, "heard": {0: n}}
+    args, dynamic = (torch.randn(H), torch.randn(3, 2, H)), {"h": None, "heard": {0: n}}
+    if cfg.edge_position == "relative":
+        args, dynamic = (*args, torch.randn(3, 2)), {**dynamic, "offsets": {0: n}}
+    return args, dynamic
 
 
 def export_piece(name: str, policy: SwarmPolicy, path: str) -> None:
     """Export one piece to a single self-contained .onnx file (no external data)."""
-    cls, input_names, output_names = PIECES[name]
+    cls, _, output_names = PIECES[name]
+    input_names = piece_inputs(name, policy.config)
     module = cls(policy).eval()
     args, dynamic_shapes = _example_inputs(name, policy)
     with torch.no_grad(), warnings.catch_warnings():
@@ -198,26 +219,23 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     except ValueError as exc:
         raise CheckpointError(str(exc)) from None
     _check_landmarks_fit(cfg, setting)
-    if cfg.edge_position != "none":
-        # its round pieces would take the heard senders' offsets, which neither the executor
-        # nor the agent protocol carries yet (docs/SWARM.md)
-        raise CheckpointError(f"{checkpoint}: edge_position {cfg.edge_position!r} policies do not export yet")
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise FileExistsError(f"--out {out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)
 
     files = {}
-    for name, (_, inputs, outputs) in PIECES.items():
+    for name, (_, _, outputs) in PIECES.items():
         path = os.path.join(out_dir, f"{name}.onnx")
         export_piece(name, policy, path)
         onnx.checker.check_model(path, full_check=True)
         files[name] = {
             "file": f"{name}.onnx",
             "sha256": file_sha256(path),
-            "inputs": list(inputs),
+            "inputs": list(piece_inputs(name, cfg)),
             "outputs": list(outputs),
         }
     H = cfg.hidden
+    edge = ["offsets [n, 2]"] if cfg.edge_position == "relative" else []
     manifest = {
         "format": FORMAT,
         "version": VERSION,
@@ -226,6 +244,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
         "rounds": cfg.rounds,
         "hidden": H,
         "entity_mode": cfg.entity_mode,
+        "edge_position": cfg.edge_position,
         "num_landmarks": cfg.num_landmarks if cfg.entity_mode == "concat" else None,
         "max_landmarks": PADDED_SLOTS if cfg.entity_mode == "padded" else None,
         "observation": {
@@ -251,10 +270,11 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
             "calls_per_step": 1 + max(cfg.rounds, 1),
             "inputs": {
                 "encode": ["self_obs [4]", "entities [L, 2]"],
-                "round": ["h [H]", "heard [n, 2, H]"],
-                "round_heads": ["h [H]", "heard [n, 2, H]"],
+                "round": ["h [H]", "heard [n, 2, H]", *edge],
+                "round_heads": ["h [H]", "heard [n, 2, H]", *edge],
                 "heads": ["h [H]"],
             },
+            **({"offsets": EDGE_DOC} if edge else {}),
         },
         "contract": {**integrator_contract(setting.to_dict(), cfg.rounds, H), **swarm_contract(payload)},
         "action_meanings": list(ACTION_MEANINGS),

@@ -7,6 +7,8 @@ it and when the executor reads it (no torch here).
   that key, so an edited field (``rounds: 2``) is refused like an edited .onnx file.
 - ONNX: each file's graph inputs and outputs must be the ones the manifest lists, and
   the width of the hidden state the graphs take must be the manifest's ``hidden``.
+- edge_position ("none" | "relative"; absent in manifests older than it: "none"): the
+  round pieces take ``offsets`` exactly when it is "relative".
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import json
 import jsonschema
 
 from taichi_swarm import COMMS, TASKS
-from taichi_swarm.layout import ENTITY_MODES
+from taichi_swarm.layout import EDGE_POSITIONS, ENTITY_MODES
 
 MANIFEST = "manifest.json"
 FORMAT = "taichi-swarm-onnx"
@@ -62,12 +64,13 @@ SCHEMA = {
                 "entity_mode": {"enum": list(ENTITY_MODES)},
                 "num_landmarks": {"type": "integer", "minimum": 0},
                 "self_position": {"enum": ["absolute", "none"]},
-                "edge_position": {"enum": ["none"]},  # "relative" does not export yet
+                "edge_position": {"enum": list(EDGE_POSITIONS)},
             },
         },
         "rounds": {"type": "integer", "minimum": 0, "maximum": 64},
         "hidden": _POSITIVE_INT,
         "entity_mode": {"enum": list(ENTITY_MODES)},
+        "edge_position": {"enum": list(EDGE_POSITIONS)},
         "num_landmarks": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
         "max_landmarks": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
         "num_actions": _POSITIVE_INT,
@@ -163,12 +166,25 @@ def validate(manifest, where: str = MANIFEST) -> None:
         raise ManifestError(
             f"{where} was changed after export (its manifest_sha256 does not match its content): export again"
         )
-    mc = manifest["model_config"]
-    for key in ("rounds", "hidden", "entity_mode"):
-        if manifest[key] != mc[key]:
-            raise ManifestError(f"{where}: {key} {manifest[key]!r} differs from model_config.{key} {mc[key]!r}")
+    own = {**manifest, "edge_position": edge_position(manifest)}
+    mc = {"edge_position": "none", **manifest["model_config"]}  # configs older than it: "none"
+    for key in ("rounds", "hidden", "entity_mode", "edge_position"):
+        if own[key] != mc[key]:
+            raise ManifestError(f"{where}: {key} {own[key]!r} differs from model_config.{key} {mc[key]!r}")
+    for name in ("round", "round_heads"):
+        takes = "offsets" in manifest["files"][name]["inputs"]
+        if takes != (own["edge_position"] == "relative"):
+            raise ManifestError(
+                f"{where}: edge_position {own['edge_position']!r}, but files.{name} "
+                f"{'takes' if takes else 'does not take'} offsets (the senders' p_j - p_i)"
+            )
     if manifest["entity_mode"] == "concat" and not manifest.get("num_landmarks"):
         raise ManifestError(f"{where}: entity_mode 'concat' needs num_landmarks")
+
+
+def edge_position(manifest: dict) -> str:
+    """The manifest's edge_position, "none" | "relative" ("none" in manifests older than the field)."""
+    return manifest.get("edge_position", "none")
 
 
 def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:

@@ -63,7 +63,7 @@ def run(
     import torch
 
     from deploy.executor import ExportedModel, Pieces
-    from deploy.export import export
+    from deploy.export import export, round_update
     from trainer import checkpoint as ckpt
     from trainer.model import ModelConfig, SwarmPolicy
 
@@ -96,27 +96,25 @@ def run(
     self_obs = rng.normal(size=4).astype(np.float32)  # [4]
     entities = rng.normal(size=(L, 2)).astype(np.float32)  # [L, 2]
     heard = rng.normal(size=(n, 2, H)).astype(np.float32)  # [n, 2, H]: key, value of each neighbour
+    # relative edges: the senders' offsets p_j - p_i [n, 2], an input of every round
+    offsets = rng.normal(size=(n, 2)).astype(np.float32) if cfg.edge_position == "relative" else None
 
     pieces = Pieces(model, threads=1)
 
     def onnx_step():
         h, _ = pieces.encode(self_obs, entities)
         for _ in range(K - 1):
-            h, _ = pieces.round(h, heard)
-        return pieces.decide(h, heard)[0]
+            h, _ = pieces.round(h, heard, offsets)
+        return pieces.decide(h, heard, offsets)[0]
 
-    t_obs, t_ent = torch.from_numpy(self_obs), torch.from_numpy(entities)
-    t_keys, t_values = torch.from_numpy(heard[:, 0].copy()), torch.from_numpy(heard[:, 1].copy())
+    t_obs, t_ent, t_heard = torch.from_numpy(self_obs), torch.from_numpy(entities), torch.from_numpy(heard)
+    t_offsets = None if offsets is None else torch.from_numpy(offsets)
 
     @torch.no_grad()
     def torch_step():
         h = policy.encode(t_obs, t_ent)  # [H]
         for _ in range(K):
-            key, value = policy.message(h)
-            keys = torch.cat([key[None], t_keys])  # [n + 1, H], own first
-            values = torch.cat([value[None], t_values])
-            h, _ = policy.update(h[None], keys, values, None)
-            h = h[0]
+            h, _ = round_update(policy, h, t_heard, t_offsets)  # the round pieces' torch code, eager
         return policy.heads(h)[0]
 
     np.testing.assert_allclose(onnx_step(), torch_step().numpy(), atol=1e-4)  # same computation

@@ -146,12 +146,13 @@ def _slow(text: str) -> tuple[int, float]:
 def agent_main(argv: list[str]) -> int:
     args = parse(AgentOptions, argv, "swarm agent")
     from deploy.executor import DeployError, ExportedModel
-    from deploy.net.agent import NetAgent
+    from deploy.net.agent import NetAgent, check_wire
     from deploy.net.transport import Endpoint, TransportError, open_session
 
     try:
         spec = args.faults
         model = ExportedModel(args.directory)
+        check_wire(model)
         session = open_session("peer", [args.listen], [args.connect])
         endpoint = Endpoint(session, args.ns)
     except (DeployError, TransportError, ValueError) as exc:
@@ -179,6 +180,7 @@ def world_main(argv: list[str]) -> int:
 
     args = parse(WorldOptions, argv, "swarm world")
     from deploy.executor import DeployError, ExportedModel, resolve_settings
+    from deploy.net.agent import check_wire
     from deploy.net.transport import Endpoint, TransportError, check_endpoint, check_namespace, open_session
     from deploy.net.world import AgentProcesses, NetSettings, World, format_net
 
@@ -192,6 +194,7 @@ def world_main(argv: list[str]) -> int:
         check_namespace(args.ns)
         spec = args.faults
         model = ExportedModel(args.export)
+        check_wire(model)
         s = resolve_settings(
             model, args.task, args.agents, args.comm, args.comm_radius, episodes=args.episodes, seed=args.seed
         )

@@ -30,6 +30,7 @@ SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write ex
 # how the network takes the landmark inputs (trainer.model.ModelConfig.entity_mode; deploy/ and
 # reproduce/ read it here, without torch): EMP, concatenated (fixed L), or 10 zero-padded slots
 ENTITY_MODES = ("emp", "concat", "padded")
+EDGE_POSITIONS = ("none", "relative")  # ModelConfig.edge_position, likewise
 
 
 @dataclass(frozen=True)

@@ -30,13 +30,13 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from taichi_swarm.layout import ENTITY_MODES, SELF_DIM  # the observation layout and the actions are defined once, there
+# the observation layout and the actions are defined once, there
+from taichi_swarm.layout import EDGE_POSITIONS, ENTITY_MODES, SELF_DIM
 from taichi_swarm.physics import NUM_ACTIONS
 
 PADDED_SLOTS = 10  # the paper's "without EMP" baseline: 10 landmarks x 2 = 20 inputs
 MASK_FILL = -1e9  # finite: an all-masked row must not turn into NaN (and exports cleanly)
 SELF_POSITIONS = ("absolute", "none")
-EDGE_POSITIONS = ("none", "relative")
 
 # the simulator's observation keys -> the forward's arguments (``policy_inputs``)
 OBS_INPUTS = {

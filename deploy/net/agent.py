@@ -35,6 +35,15 @@ from deploy.net.transport import Endpoint
 HELLO_EVERY_S = 0.25
 
 
+def check_wire(model: ExportedModel) -> None:
+    """Refuse an export the wire format cannot feed (``swarm agent``, ``swarm world``, before any session)."""
+    if model.edge_position != "none":  # its rounds need each sender's p_j - p_i; protocol.py OBS has only its own
+        raise DeployError(
+            f"{model.directory}: edge_position {model.edge_position!r} needs the position of every agent heard, "
+            "which the OBS packet does not carry: the networked agents cannot run it (`swarm execute` can)"
+        )
+
+
 class NetAgent:
     def __init__(
         self,
@@ -53,6 +62,7 @@ class NetAgent:
             raise DeployError(f"--round-deadline must be > 0 seconds, got {round_deadline}")
         if slow_ms < 0:
             raise DeployError(f"--slow-ms must be >= 0, got {slow_ms}")
+        check_wire(model)
         self.id = agent_id
         self.model = model
         self.pieces = Pieces(model, threads)
