@@ -34,10 +34,10 @@ BEYOND_ROOT = "results/reproduce-beyond"
 TRANSFER = ("x-coverage-uc-m34", 7, "x-zs-coverage-uc-m34")
 # single cells published as they are: (zoo name, spec, its results, cell, stage M of a curriculum)
 SINGLES = (
-    ("coverage-rc-m5-bursty", "recipe", RECIPE_ROOT, "f-coverage-rc-m5-bursty", 0,
-     "coverage RC M = 5: the zoo's, trained on through bursty message loss (f-coverage-rc-m5-bursty)"),
-    ("coverage-rc-swarm-m5", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m5", 5,
-     "coverage RC on neighbour lists, density-scaled, relative inputs: the M = 5 stage (s-coverage-rc-rel-m5)"),
+    ("coverage-rc-m5-robust", "recipe", RECIPE_ROOT, "f-coverage-rc-m5-rounds", 0,
+     "coverage RC M = 5: the zoo's, trained on through message losses per round (f-coverage-rc-m5-rounds)"),
+    ("coverage-rc-m5-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m5", 5,
+     "coverage RC on neighbour lists, density-scaled, relative inputs and edges (s-coverage-rc-rel-m5)"),
 )  # fmt: skip
 
 

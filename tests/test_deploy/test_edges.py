@@ -60,7 +60,7 @@ def _graph_inputs(model: ExportedModel, name: str) -> list[str]:
     return [i.name for i in onnx.load_from_string(model.models[name]).graph.input]
 
 
-@pytest.mark.parametrize("M", [1, 2, 5, 8])
+@pytest.mark.parametrize("M", [1, 5])
 def test_relative_export_matches_torch_dense(relative, M):
     policy, model = relative
     assert model.edge_position == "relative" and _graph_inputs(model, "round") == ["h", "heard", "offsets"]
@@ -70,7 +70,7 @@ def test_relative_export_matches_torch_dense(relative, M):
         _assert_parity(policy, executor, _uc(obs))  # uc (M = 1: n = 0, offsets [0, 2])
 
 
-@pytest.mark.parametrize("M,K", [(6, 3), (12, 2)])
+@pytest.mark.parametrize("M,K", [(12, 2)])
 def test_relative_export_matches_torch_on_lists(relative, M, K):
     """K < M - 1: the lists are cut to the K nearest, the offsets those of the listed."""
     policy, model = relative
