@@ -113,7 +113,11 @@ def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> 
 
     policy, _ = load_policy(policy_path)
     run = cell.run
-    r = evaluate(policy, run.task, agents, run.comm, run.comm_radius, run.final_episodes, run.eval_seed, arch=arch)
+    config = getattr(run, "config", None)  # the lists / density scaling a run trained on, as its evaluations
+    swarm = config.swarm_options() if hasattr(config, "swarm_options") else None
+    r = evaluate(
+        policy, run.task, agents, run.comm, run.comm_radius, run.final_episodes, run.eval_seed, arch=arch, swarm=swarm
+    )
     return {k: r[k] for k in ("agents", "success_rate", "mean_length", "dist", "episodes", "seed")}
 
 

@@ -87,9 +87,10 @@ def test_shipped_recipe_spec_is_the_paper_spec_with_our_recipes():
     to M = 4 and 6."""
     paper, recipe = load_spec("paper"), load_spec("recipe")
     ours = [c for c in paper.cells if c.kind != "baseline"]
-    assert sorted(c.id for c in recipe.cells) == sorted(c.id for c in ours)
+    # (and beyond the paper, table 11: policies trained on from the zoo's through a lossy radio)
+    assert sorted(c.id for c in recipe.cells if c.table != 11) == sorted(c.id for c in ours)
     assert all(recipe.cell(c.id).paper == c.paper for c in ours)
-    trained = [c for c in recipe.cells if c.kind in ("train", "curriculum")]
+    trained = [c for c in recipe.cells if c.kind in ("train", "curriculum") and c.table != 11]
     # with the never-reset return line UC M = 6 read 0-1% in 1550 updates
     reset = {"t1-line-uc-m6", "t1-line-rc-m6"}
     fast = PRESETS["fast"]
@@ -282,7 +283,7 @@ def test_a_cell_trains_on_several_team_sizes_at_once(tmp_path, capsys):
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
-    with pytest.raises(SpecError, match=r"\(beyond, paper, quick, recipe, smoke\)"):
+    with pytest.raises(SpecError, match=r"\(beyond, paper, quick, recipe, smoke, swarm\)"):
         load_spec("no-such-spec")
 
 
