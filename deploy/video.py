@@ -104,7 +104,8 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
     w = min(1.0, math.sqrt(MAX_TRAILS / max(num_agents, 1)))
     cols = math.ceil(math.sqrt(D))
     rows = math.ceil(D / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.2 * rows), squeeze=False)
+    panel = 3.2 if num_agents <= 100 else 6.4  # inches; a swarm's points need the pixels
+    fig, axes = plt.subplots(rows, cols, figsize=(panel * cols, panel * rows), squeeze=False)
     colors = PALETTE[np.arange(num_agents) % len(PALETTE)] / 255.0
     last_live = [0] * D  # the frame each panel froze on
 

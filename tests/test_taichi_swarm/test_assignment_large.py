@@ -54,11 +54,11 @@ def test_auction_is_eps_optimal_like_scipy(M, scale):
             _check_eps_optimal(env, b, s["pos"][b], env.targets[b])
 
 
-@pytest.mark.parametrize("task", ["formation", "line"])
-def test_auction_follows_moving_and_fixed_targets(task):
-    """Formation's targets move every step (re-anchored), line's are fixed per episode."""
+def test_auction_follows_moving_targets():
+    """Formation's targets move every step (re-anchored). (Targets fixed per episode, as line's,
+    are coverage's above; a kernel variant per task costs a compile of about 30 s.)"""
     B, M = 3, 30
-    env = taichi_swarm.make(task, B, M, neighbours=4, assignment="auction", seed=1, array="numpy", max_steps=8)
+    env = taichi_swarm.make("formation", B, M, neighbours=4, assignment="auction", seed=1, array="numpy", max_steps=8)
     env.reset()
     rng = np.random.default_rng(0)
     for _ in range(12):  # an episode end included
