@@ -33,6 +33,7 @@ INF = 1e30
 RING_LIMIT = 3  # rings of cells searched before every point is scanned
 SCAN_BELOW = 32  # below this many points, scan them all (cheaper than the 9 cells' bookkeeping)
 SAFE = 0.999  # a ring's distance bound, shrunk for float32 rounding of the cell coordinates
+PAD = 1e-3  # a cell's sides, pushed out by this many cells for the same rounding
 
 
 @ti.func
@@ -68,8 +69,8 @@ def nearest(
 ) -> ti.f32:
     """The distance from (px, py) to the nearest of the n points f[P + 2k], f[P + 2k + 1],
     through their cell grid (side h, G buckets at S, I, CELL: neighbours.build). Exact: a
-    ring at Chebyshev distance rho holds no point nearer than (rho - 1) h, and past
-    RING_LIMIT rings every point is scanned."""
+    ring at Chebyshev distance rho holds no point nearer than (rho - 1) h, a cell farther
+    than the nearest so far is skipped, and past RING_LIMIT rings every point is scanned."""
     best = INF  # squared
     finished = False
     if n >= SCAN_BELOW:
@@ -82,6 +83,11 @@ def nearest(
             if rho <= RING_LIMIT:
                 for t in range(ti.max(8 * rho, 1)):
                     q = ring_cell(c, rho, t)
+                    # the cell's distance from (px, py), its sides pushed out by PAD cells (rounding)
+                    ex = ti.max(ti.max(q[0] * h - px, px - (q[0] + 1) * h) - PAD * h, 0.0)
+                    ey = ti.max(ti.max(q[1] * h - py, py - (q[1] + 1) * h) - PAD * h, 0.0)
+                    if ex * ex + ey * ey >= best:  # no point of it is nearer than the nearest so far
+                        continue
                     g = bucket(q[0], q[1], G)
                     for s in range(ib[S + g], ib[S + g + 1]):
                         j = ib[I + s]

@@ -12,7 +12,7 @@ cached; ``--cold`` compiles into a fresh cache directory).
     python tools/bench_swarm.py            # about 2-5 minutes on 2 CPU cores
     python tools/bench_swarm.py --cold --seconds 1
     python tools/bench_swarm.py --arch cuda       # the GPU (torch tensors on the device)
-    python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" --skip-10k
+    python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
 """
 
 from __future__ import annotations
@@ -30,6 +30,11 @@ LAYOUTS = (
     ("lists K=16", {"neighbours": 16}),
     ("lists K=16 auction", {"neighbours": 16, "assignment": "auction"}),
     ("lists K=16 nearest", {"neighbours": 16, "assignment": "nearest"}),
+    # landmark lists too: no [M, L] entities block, every observation O(K) per agent
+    (
+        "lists KL=16 nearest",
+        {"neighbours": 16, "landmark_neighbours": 16, "sense_radius": 1.0, "assignment": "nearest"},
+    ),
 )
 
 
