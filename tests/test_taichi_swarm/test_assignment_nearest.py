@@ -112,6 +112,22 @@ def test_far_agents_scan_every_agent():
     assert (env.assignment == -1).all()
 
 
+def test_small_cells_under_uc():
+    """Under "uc" the agents' cells are the contact reach (0.12): the searches walk several
+    rings and often end in the full scan."""
+    M, B = 200, 2
+    env = taichi_swarm.make(
+        "coverage", B, M, comm="uc", neighbours=16, assignment="nearest", scale="density", seed=2, array="numpy"
+    )
+    env.reset()
+    rng = np.random.default_rng(2)
+    lmk = env.get_state()["landmarks"]
+    env.set_state(pos=lmk + rng.normal(0, 0.06, size=lmk.shape))
+    for _ in range(3):
+        env.step(rng.integers(0, 5, size=(B, M)))
+        _check_step(env, env.get_state()["pos"], env.targets)
+
+
 def _lattice(M, spacing=0.6):
     side = int(np.ceil(np.sqrt(M)))
     k = np.arange(M)
