@@ -139,7 +139,9 @@ def _log(rec, traj, task: str, M: int, D: int, spec) -> None:
                 strips = a["pos"][lo : t + 1, b].transpose(1, 0, 2)  # [M, S, 2]: the last TRAIL positions
                 rec.log(f"{p}/trails", rr.LineStrips2D(list(strips), colors=colors, radii=0.003))
             if "assignment" in a:
-                lines = np.stack([pos[b], targets[b][a["assignment"][t, b]]], axis=1)  # agent -> its target
+                j = a["assignment"][t, b]
+                on = j >= 0  # assignment="nearest": -1 where an agent holds no target
+                lines = np.stack([pos[b][on], targets[b][j[on]]], axis=1)  # agent -> its target
                 rec.log(f"{p}/assignment", rr.LineStrips2D(lines, colors=(40, 40, 40, 120), radii=0.002))
             if "matched_dist" in a:
                 rec.log(f"{p}/matched_dist_mean", rr.Scalars(float(a["matched_dist"][t, b].mean())))

@@ -146,7 +146,9 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
             ax.scatter(*f["landmarks"][b].T, s=60 * w**2, color="0.55", zorder=2)
             ax.scatter(*f["targets"][b].T, s=25 * w**2, marker="x", color="k", lw=w, zorder=3)
             if f["assignment"] is not None:
-                links = np.stack([pos, f["targets"][b][f["assignment"][b]]], 1)
+                j = f["assignment"][b]
+                on = j >= 0  # assignment="nearest": -1 where an agent holds no target
+                links = np.stack([pos[on], f["targets"][b][j[on]]], 1)
                 ax.add_collection(LineCollection(links, colors="0.3", lw=0.4 * w, linestyles=":", zorder=2))
             if num_agents <= MAX_TRAILS:  # a swarm reads better as points
                 lo = max(0, last_live[b] - TRAIL)

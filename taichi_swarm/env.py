@@ -15,7 +15,8 @@ Shapes: B environments, M agents, L landmarks.
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
-    info["agent_reward"] float32 [B, M]    each agent's own reward terms (their mean: reward)
+    info["agent_reward"] float32 [B, M]    each agent's own reward terms (their mean: reward,
+                                           except with assignment="nearest")
     done             bool    [B]           the episode ended at this step
 Every returned array is a zero-copy view of the env's preallocated buffers and
 is overwritten by the next ``step``/``reset``: copy what you keep.
@@ -53,7 +54,7 @@ from .tasks import COMMON_PARAMS, TASK_SPECS
 COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
-ASSIGNMENTS = ("exact", "auction")
+ASSIGNMENTS = ("exact", "auction", "nearest")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -156,6 +157,11 @@ class SwarmEnv:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
             raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
+        if assignment == "nearest" and self.neighbours is None:
+            raise ValueError(
+                "assignment='nearest' needs neighbours=K: it finds each target's nearest agent through the "
+                "agents' cell grid the neighbour lists build"
+            )
         self.assignment_method = assignment
         # the auction's eps: the total matched distance is within num_agents * eps of the optimum
         self.assignment_eps = auction.EPS if assignment == "auction" else 0.0
@@ -168,6 +174,7 @@ class SwarmEnv:
             (kernels.AGENT_LISTS if self.neighbours is not None else 0)
             | (kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0)
             | (kernels.AUCTION if auctioned else 0)
+            | (kernels.NEAREST if assignment == "nearest" else 0)
         )
 
         self.arch = runtime.init(arch)
@@ -219,7 +226,7 @@ class SwarmEnv:
         if self.landmark_neighbours is not None:
             L = self.num_landmarks
             dims.update(LE=self.landmark_neighbours, KL=self.landmark_neighbours, LN=L, GL1=neighbours.buckets(L) + 1)
-        if self.assignment_method == "auction":  # a grid of the targets instead of the M x M costs
+        if self.assignment_method in ("auction", "nearest"):  # a grid of the targets instead of the M x M costs
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
         return dims
 
@@ -269,7 +276,7 @@ class SwarmEnv:
                 "truncated": v("ep_truncated", bool),  # hit the time limit
                 "length": v("ep_length"),
                 "return": v("ep_return"),
-                "matched_dist": v("ep_matched_dist"),  # [B, M] final d*_i
+                "matched_dist": v("ep_matched_dist"),  # [B, M] final d*_i (assignment="nearest": d_t per target)
                 "dist": v("ep_dist"),  # DIST: mean target -> closest agent distance
                 "covered": v("ep_covered"),  # fraction of targets matched within success_threshold
             },
@@ -286,6 +293,8 @@ class SwarmEnv:
             }
         # current state extras (targets for drawing, d*_i, who is matched to what)
         self.targets = v("targets")  # [B, M, 2]
+        # assignment="nearest": matched_dist[b, t] = d_t, target t's distance to its nearest agent, and
+        # assignment[b, i] = agent i's target in the maximum matching within success_threshold, -1 if none
         self.matched_dist = v("matched_dist")  # [B, M]
         self.assignment = v("assignment")  # [B, M] target index of agent i
 
@@ -655,7 +664,11 @@ def make(
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
     (eps-optimal: the total matched distance within M * 1e-3 of the optimum; no M x M
-    block, which M = 10,000 needs: auction.py).
+    block, which M = 10,000 needs: auction.py) or "nearest" (needs neighbours; every per-step
+    quantity local and exact: the team reward from each target's nearest-agent distance d_t, as
+    in MPE's simple_spread, in matched_dist [B, M] per target; success and covered from a maximum
+    matching within success_threshold, in assignment [B, M], -1 where unmatched; each agent's
+    reward from its nearest target: nearest.py, docs/SWARM.md).
     """
     return SwarmEnv(
         task,

@@ -14,7 +14,8 @@ communication graph.
 Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (size of the dense
 physics' per-thread force array and of the small-M assignment's work arrays; 0 with
 neighbour lists: no per-M stack arrays), ``lists`` (AGENT_LISTS | LANDMARK_LISTS: neighbour
-and landmark lists through cell grids instead of the dense adjacency, neighbours.py),
+and landmark lists through cell grids instead of the dense adjacency, neighbours.py; AUCTION
+or NEAREST: the assignment, auction.py or nearest.py),
 ``sm`` (M itself for M <= layout.STATIC_M_MAX, so the loops over agents unroll; else 0
 and M is read from the header) and ``parallel`` (serial env loop for small batches, see
 env.py).
@@ -22,7 +23,7 @@ env.py).
 
 import taichi as ti
 
-from . import assignment, auction, neighbours, physics, tasks
+from . import assignment, auction, nearest, neighbours, physics, tasks
 from .layout import (
     H_B,
     H_COMM_RC,
@@ -41,8 +42,9 @@ from .layout import (
     team_size,
 )
 
-# bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment
-AGENT_LISTS, LANDMARK_LISTS, AUCTION = 1, 2, 4
+# bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment,
+# nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS)
+AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST = 1, 2, 4, 8
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -60,9 +62,17 @@ def match(
     ib: ti.template(),
     b: ti.i32,
 ):
-    """Targets, optimal (or, with AUCTION, eps-optimal) assignment and matched distances d*_i of env b."""
+    """Targets, optimal (or, with AUCTION, eps-optimal) assignment and matched distances d*_i of env b;
+    with NEAREST, each target's nearest-agent distance d_t, each agent's nearest-target distance and
+    the maximum threshold matching (nearest.py), the agents' grid built here for them (and for the
+    observations and the next step's contacts: every caller writes the observations next)."""
     tasks.place_targets(task, sm, f, ib, b)
-    if ti.static(lists & AUCTION):
+    if ti.static(lists & NEAREST):
+        P0 = blocks.pos.env(ib, b)
+        GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
+        neighbours.build(f, ib, team_size(sm, ib), P0, f[P_CELL], ib[H_G], GS, GI, GC)
+        nearest.solve(f, ib, b)
+    elif ti.static(lists & AUCTION):
         auction.solve(f, ib, b)
     else:
         assignment.solve(cap, sm, f, ib, b)
@@ -102,7 +112,7 @@ def write_team_obs(
                 d = lmk.get2(f, ib, LM, l) - p
                 f[e + 2 * l], f[e + 2 * l + 1] = d[0], d[1]
     if ti.static(lists & AGENT_LISTS):
-        agent_lists(sm, f, ib, u8, b, M, term)
+        agent_lists(sm, lists, f, ib, u8, b, M, term)
     else:
         adj = blocks.term_adj if ti.static(term) else blocks.adj
         A = adj.env(ib, b)
@@ -122,19 +132,27 @@ def write_team_obs(
 
 @ti.func
 def agent_lists(
-    sm: ti.template(), f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32, M: ti.i32, term: ti.template()
+    sm: ti.template(),
+    lists: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    u8: ti.template(),
+    b: ti.i32,
+    M: ti.i32,
+    term: ti.template(),
 ):
     """The cell grid of env b's agents (kept for the next step's contacts), then each
     agent's K nearest heard agents (itself excluded), nearest first: nbr [M, K] (padded
     with the agent's own index), nbr_mask [M, K], in_range [M] and dropped (the env's
-    heard-but-not-listed count)."""
+    heard-but-not-listed count). With NEAREST, ``match`` has just built the grid."""
     K, G = ib[H_K], ib[H_G]
     nbr = blocks.term_nbr if ti.static(term) else blocks.nbr
     mask = blocks.term_nbr_mask if ti.static(term) else blocks.nbr_mask
     P0 = blocks.pos.env(ib, b)
     GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
     h = f[P_CELL]
-    neighbours.build(f, ib, M, P0, h, G, GS, GI, GC)
+    if ti.static(not (lists & NEAREST)):
+        neighbours.build(f, ib, M, P0, h, G, GS, GI, GC)
     NB, MK, D2, IR = nbr.env(ib, b), mask.env(ib, b), blocks.nbr_d2.env(ib, b), blocks.in_range.env(ib, b)
     restricted = ib[H_COMM_RC] != 0
     r2 = f[P_COMM_RADIUS] * f[P_COMM_RADIUS]
@@ -400,14 +418,24 @@ def step_env(
     ib[blocks.step.env(ib, b)] = t
     match(task, cap, sm, lists, f, ib, b)
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
-    for i in range(M):
-        d = f[blocks.matched_dist.at(ib, b, i)]
-        f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, d)
-        sum_d += d
-        sum_clipped += ti.math.clamp(d, 0.0, 2.0)
-        within = d < f[P_SUCCESS]
-        success = success and within
-        covered += ti.cast(within, ti.i32)
+    if ti.static(lists & NEAREST):  # d_t per target; agent i's own d: its nearest target (lap_dist)
+        MD, ND, A = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b), blocks.assignment.env(ib, b)
+        for i in range(M):
+            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f[ND + i])
+            covered += ti.cast(ib[A + i] >= 0, ti.i32)  # the threshold matching's size
+            d = f[MD + i]
+            sum_d += d
+            sum_clipped += ti.math.clamp(d, 0.0, 2.0)
+        success = covered == M
+    else:
+        for i in range(M):
+            d = f[blocks.matched_dist.at(ib, b, i)]
+            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, d)
+            sum_d += d
+            sum_clipped += ti.math.clamp(d, 0.0, 2.0)
+            within = d < f[P_SUCCESS]
+            success = success and within
+            covered += ti.cast(within, ti.i32)
     r = tasks.reward(task, sum_d / M, sum_clipped / M)
     f[blocks.reward.env(ib, b)] = r
     ret = f[blocks.return_acc.env(ib, b)] + r
@@ -419,7 +447,10 @@ def step_env(
         u8[blocks.ep_truncated.env(ib, b)] = ti.cast(not success, ti.u8)
         ib[blocks.ep_length.env(ib, b)] = t
         f[blocks.ep_return.env(ib, b)] = ret
-        f[blocks.ep_dist.env(ib, b)] = target_dist(sm, f, ib, b)
+        if ti.static(lists & NEAREST):  # DIST is the mean of the d_t just computed
+            f[blocks.ep_dist.env(ib, b)] = sum_d / M
+        else:
+            f[blocks.ep_dist.env(ib, b)] = target_dist(sm, f, ib, b)
         f[blocks.ep_covered.env(ib, b)] = covered / M
         for i in range(M):
             f[blocks.ep_matched_dist.at(ib, b, i)] = f[blocks.matched_dist.at(ib, b, i)]

@@ -2,15 +2,17 @@
 
 B x M = 10,000 agents (B = 1000 x M = 10, 100 x 100, 10 x 1000), coverage under "rc" with
 the density-scaled arena (scale="density": the agents per unit area of M = 10), random
-actions; the dense layout against neighbour lists (K = 16), with the exact assignment and
-with the auction; then M = 10,000 in one environment (lists and the auction: the dense
-layout and the exact solver need M x M blocks). Prints ns per agent-step, the ratio to
+actions; the dense layout against neighbour lists (K = 16), with the exact assignment, the
+auction and the nearest-agent rewards (assignment="nearest"); then M = 10,000 in one
+environment (lists with the auction and with "nearest": the dense layout and the exact
+solver need M x M blocks); ``--layouts`` picks some. Prints ns per agent-step, the ratio to
 M = 10 of the same layout, and the first call (make + reset + one step: compiling, unless
 cached; ``--cold`` compiles into a fresh cache directory).
 
     python tools/bench_swarm.py            # about 2-5 minutes on 2 CPU cores
     python tools/bench_swarm.py --cold --seconds 1
     python tools/bench_swarm.py --arch cuda       # the GPU (torch tensors on the device)
+    python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
 """
 
 from __future__ import annotations
@@ -27,6 +29,12 @@ LAYOUTS = (
     ("dense", {}),
     ("lists K=16", {"neighbours": 16}),
     ("lists K=16 auction", {"neighbours": 16, "assignment": "auction"}),
+    ("lists K=16 nearest", {"neighbours": 16, "assignment": "nearest"}),
+    # landmark lists too: no [M, L] entities block, every observation O(K) per agent
+    (
+        "lists KL=16 nearest",
+        {"neighbours": 16, "landmark_neighbours": 16, "sense_radius": 1.0, "assignment": "nearest"},
+    ),
 )
 
 
@@ -78,6 +86,8 @@ def main() -> None:
     parser.add_argument("--skip-dense-large", action="store_true", help="no dense layout at M = 1000")
     parser.add_argument("--skip-10k", action="store_true", help="no M = 10,000 run")
     parser.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
+    names = [name for name, _ in LAYOUTS]
+    parser.add_argument("--layouts", nargs="+", choices=names, default=names, metavar="NAME", help=f"of {names}")
     args = parser.parse_args()
     if args.seconds <= 0 or args.comm_radius <= 0:
         parser.error("--seconds and --comm-radius must be > 0")
@@ -92,6 +102,8 @@ def main() -> None:
     print(head)
     print("-" * len(head))
     for name, options in LAYOUTS:
+        if name not in args.layouts:
+            continue
         base = None
         for B, M in SIZES:
             if name == "dense" and M >= 1000 and args.skip_dense_large:
@@ -104,8 +116,9 @@ def main() -> None:
                 f"{r['ns'] / base:>7.2f}",
                 flush=True,
             )
-    if not args.skip_10k:
-        name, options = LAYOUTS[2]
+    for name, options in LAYOUTS[2:]:  # no M x M block: the auction and "nearest"
+        if args.skip_10k or name not in args.layouts:
+            continue
         r = measure(1, 10_000, options, args.seconds, args.comm_radius, args.arch, min_steps=3)
         print(
             f"{name:<20} {1:>5} {10_000:>6} {r['first_s']:>12.1f} {r['step_ms']:>9.2f} {r['ns']:>14.0f}"

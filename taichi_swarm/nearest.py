@@ -1,0 +1,182 @@
+"""Local, exact per-step quantities for large teams (``make(..., assignment="nearest")``).
+
+The min-sum assignment behind the exact and auction rewards is not local (the W1 dual
+potential has slope 1 along transport rays, so no bounded search settles it). This mode
+computes instead, per env and step, only quantities that are local and exact:
+
+- d_t = min_i |p_i - t_t|, the distance from each target to its nearest agent (MPE
+  simple_spread's reward), found through the agents' cell grid (neighbours.py, side h):
+  rings of cells round the target's cell, stopping once the nearest found is no farther
+  than the nearest point of the next ring; past RING_LIMIT rings (or below SCAN_BELOW
+  agents) every agent is scanned. Written to matched_dist [M] (per target t).
+- the distance from each agent to its nearest target, the same search through the
+  targets' cell grid (the one the auction builds), into lap_dist [M] (per agent i): the
+  per-agent reward's d.
+- a maximum bipartite matching of agents to targets over the edges |p_i - t_t| <
+  success_threshold (strict, as the success rule): augmenting paths by breadth-first
+  search from each free target (Kuhn), warm-started from the last step's matching (the
+  pairs that are still edges). A free target with no augmenting path keeps none after
+  later augmentations, so one search per free target gives a maximum matching. Edges are
+  found through the agents' grid (within ceil(threshold / h) rings of the target's cell).
+  assignment [M]: agent i's matched target, -1 where unmatched.
+
+Work arrays: lap_y (target -> agent), lap_cols (the search's queue of targets), lap_pred
+(the target an agent was reached from), lap_x (the root whose search last visited the agent).
+"""
+
+import taichi as ti
+
+from .layout import H_G, H_GT, H_M, P_CELL, P_SUCCESS, P_TCELL, blocks
+from .neighbours import bucket, build, cell_of
+
+INF = 1e30
+RING_LIMIT = 3  # rings of cells searched before every point is scanned
+SCAN_BELOW = 32  # below this many points, scan them all (cheaper than the 9 cells' bookkeeping)
+SAFE = 0.999  # a ring's distance bound, shrunk for float32 rounding of the cell coordinates
+PAD = 1e-3  # a cell's sides, pushed out by this many cells for the same rounding
+
+
+@ti.func
+def ring_cell(c: ti.math.ivec2, rho: ti.i32, t: ti.i32) -> ti.math.ivec2:
+    """Cell t of the ring at Chebyshev distance rho round cell c (8 rho cells; 1 at rho = 0)."""
+    qx, qy = c[0], c[1]
+    if rho > 0:  # the ring's perimeter, each cell once: four edges of 2 rho cells
+        e, s = t // (2 * rho), t % (2 * rho)
+        if e == 0:
+            qx, qy = c[0] - rho + s, c[1] - rho
+        elif e == 1:
+            qx, qy = c[0] + rho, c[1] - rho + s
+        elif e == 2:
+            qx, qy = c[0] + rho - s, c[1] + rho
+        else:
+            qx, qy = c[0] - rho, c[1] + rho - s
+    return ti.math.ivec2(qx, qy)
+
+
+@ti.func
+def nearest(
+    f: ti.template(),
+    ib: ti.template(),
+    px: ti.f32,
+    py: ti.f32,
+    P: ti.i32,
+    n: ti.i32,
+    h: ti.f32,
+    G: ti.i32,
+    S: ti.i32,
+    I: ti.i32,
+    CELL: ti.i32,
+) -> ti.f32:
+    """The distance from (px, py) to the nearest of the n points f[P + 2k], f[P + 2k + 1],
+    through their cell grid (side h, G buckets at S, I, CELL: neighbours.build). Exact: a
+    ring at Chebyshev distance rho holds no point nearer than (rho - 1) h, a cell farther
+    than the nearest so far is skipped, and past RING_LIMIT rings every point is scanned."""
+    best = INF  # squared
+    finished = False
+    if n >= SCAN_BELOW:
+        c = cell_of(px, py, h)
+        for rho in range(RING_LIMIT + 2):
+            bound = (rho - 1) * h * SAFE
+            if rho >= 1 and best <= bound * bound:  # nothing from this ring on is nearer
+                finished = True
+                break
+            if rho <= RING_LIMIT:
+                for t in range(ti.max(8 * rho, 1)):
+                    q = ring_cell(c, rho, t)
+                    # the cell's distance from (px, py), its sides pushed out by PAD cells (rounding)
+                    ex = ti.max(ti.max(q[0] * h - px, px - (q[0] + 1) * h) - PAD * h, 0.0)
+                    ey = ti.max(ti.max(q[1] * h - py, py - (q[1] + 1) * h) - PAD * h, 0.0)
+                    if ex * ex + ey * ey >= best:  # no point of it is nearer than the nearest so far
+                        continue
+                    g = bucket(q[0], q[1], G)
+                    for s in range(ib[S + g], ib[S + g + 1]):
+                        j = ib[I + s]
+                        if ib[CELL + 2 * j] == q[0] and ib[CELL + 2 * j + 1] == q[1]:
+                            dx, dy = f[P + 2 * j] - px, f[P + 2 * j + 1] - py
+                            best = ti.min(best, dx * dx + dy * dy)
+    if not finished:  # few points, or none near: every point
+        best = INF
+        for j in range(n):
+            dx, dy = f[P + 2 * j] - px, f[P + 2 * j + 1] - py
+            best = ti.min(best, dx * dx + dy * dy)
+    return ti.sqrt(best)
+
+
+@ti.func
+def _dist(f: ti.template(), ib: ti.template(), P0: ti.i32, i: ti.i32, T0: ti.i32, t: ti.i32) -> ti.f32:
+    """|p_i - t_t|, computed as the other assignments compute it."""
+    dx, dy = blocks.pos.get2(f, ib, P0, i) - blocks.targets.get2(f, ib, T0, t)
+    return ti.sqrt(dx * dx + dy * dy)
+
+
+@ti.func
+def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Env b's d_t (matched_dist), each agent's nearest-target distance (lap_dist) and the
+    maximum threshold matching (assignment). The agents' grid must hold the current
+    positions (kernels.match builds it just before)."""
+    M = ib[H_M]
+    P0, T0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b)
+    G, h = ib[H_G], f[P_CELL]
+    GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
+    GT, ht = ib[H_GT], f[P_TCELL]
+    TS, TI, TC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
+    build(f, ib, M, T0, ht, GT, TS, TI, TC)
+    MD, ND = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b)
+    for t in range(M):  # each target's nearest agent
+        tp = blocks.targets.get2(f, ib, T0, t)
+        f[MD + t] = nearest(f, ib, tp[0], tp[1], P0, M, h, G, GS, GI, GC)
+    for i in range(M):  # each agent's nearest target
+        p = blocks.pos.get2(f, ib, P0, i)
+        f[ND + i] = nearest(f, ib, p[0], p[1], T0, M, ht, GT, TS, TI, TC)
+
+    thr = f[P_SUCCESS]
+    A, Y = blocks.assignment.env(ib, b), blocks.lap_y.env(ib, b)
+    Q, PR, ST = blocks.lap_cols.env(ib, b), blocks.lap_pred.env(ib, b), blocks.lap_x.env(ib, b)
+    for t in range(M):
+        ib[Y + t] = -1
+    for i in range(M):  # warm start: last step's pairs that are still edges (read defensively)
+        j = ib[A + i]
+        ib[ST + i] = -1
+        keep = False
+        if 0 <= j < M:
+            if ib[Y + j] < 0 and f[MD + j] < thr:
+                keep = _dist(f, ib, P0, i, T0, j) < thr
+        if keep:
+            ib[Y + j] = i
+        else:
+            ib[A + i] = -1
+    rings = ti.max(1, ti.cast(ti.ceil(thr / h * 1.001), ti.i32))  # an edge is within this many rings
+    side = 2 * rings + 1
+    for root in range(M):  # one breadth-first search per free target with an edge
+        if ib[Y + root] >= 0 or f[MD + root] >= thr:
+            continue
+        head, tail, found = 0, 1, -1
+        ib[Q] = root
+        while head < tail and found < 0:
+            u = ib[Q + head]
+            head += 1
+            tp = blocks.targets.get2(f, ib, T0, u)
+            c = cell_of(tp[0], tp[1], h)
+            for q in range(side * side):
+                if found >= 0:
+                    break
+                qx, qy = c[0] + q % side - rings, c[1] + q // side - rings
+                g = bucket(qx, qy, G)
+                for s in range(ib[GS + g], ib[GS + g + 1]):
+                    i = ib[GI + s]
+                    if ib[ST + i] != root and ib[GC + 2 * i] == qx and ib[GC + 2 * i + 1] == qy:
+                        if _dist(f, ib, P0, i, T0, u) < thr:
+                            ib[ST + i] = root
+                            ib[PR + i] = u
+                            if ib[A + i] < 0:
+                                found = i
+                                break
+                            ib[Q + tail] = ib[A + i]
+                            tail += 1
+        i = found
+        while i >= 0:  # flip the path: each agent on it takes the target it was reached from
+            u = ib[PR + i]
+            prev = ib[Y + u]
+            ib[Y + u] = i
+            ib[A + i] = u
+            i = prev
