@@ -152,6 +152,8 @@ class SwarmOptions:
     """landmark sensing radius of --landmark-neighbours"""
     scale: Annotated[Literal["density"] | None, Default("the paper's geometry")] = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10"""
+    assignment: Annotated[Literal["exact", "auction", "nearest"] | None, Default(OWN)] = None
+    """targets to agents for the reward and success: exact, auction or nearest (local; needs --neighbours)"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")
@@ -166,6 +168,7 @@ class SwarmOptions:
                 ("landmark_neighbours", self.landmark_neighbours),
                 ("sense_radius", self.sense_radius),
                 ("scale", self.scale),
+                ("assignment", self.assignment),
             )
             if v is not None
         }

@@ -31,7 +31,7 @@ GROUPS = {
     ),
     "large teams": (
         "neighbour lists and density scaling (docs/SWARM.md)",
-        "neighbours landmark_neighbours sense_radius scale",
+        "neighbours landmark_neighbours sense_radius scale assignment",
     ),
     "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst drop_per_round"),
     "training": (
@@ -194,10 +194,10 @@ def swarm_setting(opts, payload: dict) -> dict:
     """The neighbour lists / density scaling the policy was trained on (its "swarm"
     record), with the command's --neighbours / --landmark-neighbours / --sense-radius /
     --scale over them."""
-    from trainer.evaluate import swarm_options
+    from trainer.evaluate import SWARM_KEYS, swarm_options
 
     saved = payload.get("swarm") or {}
-    if not isinstance(saved, dict) or set(saved) - {"neighbours", "landmark_neighbours", "sense_radius", "scale"}:
+    if not isinstance(saved, dict) or set(saved) - set(SWARM_KEYS):
         raise ValueError(f"the checkpoint's swarm setting is not one of make()'s list options: {saved!r}")
     return swarm_options(**{**saved, **opts.swarm_kwargs()})
 

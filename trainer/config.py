@@ -166,6 +166,11 @@ class TrainConfig:
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
+    assignment: Literal["exact", "auction", "nearest"] | None = None
+    """How targets are matched to agents for the reward: exact (the paper's min-sum matching,
+    the default), auction (eps-optimal) or nearest (with neighbour lists: each target's nearest
+    agent, local and flat in cost per agent; success from the exact matching within the
+    threshold). docs/SWARM.md."""
     message_drop: float = 0.0
     """Train through a lossy radio: every rollout draws, per environment, a drop rate uniformly
     from [0, message_drop], and every step drops each message (an edge of the communication
@@ -360,7 +365,7 @@ class TrainConfig:
         """The simulator's neighbour-list and density options that are set (``make()`` keywords)."""
         from trainer.evaluate import swarm_options
 
-        return swarm_options(self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale)
+        return swarm_options(self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment)
 
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""

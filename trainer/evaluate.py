@@ -5,17 +5,21 @@ from __future__ import annotations
 import torch
 
 import taichi_swarm
+from taichi_swarm.env import ASSIGNMENTS
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 
 ACTION_MODES = ("greedy", "sampled")
-SWARM_KEYS = ("neighbours", "landmark_neighbours", "sense_radius", "scale")
+SWARM_KEYS = ("neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment")
 
 
-def swarm_options(neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None) -> dict:
-    """The simulator's neighbour-list and scaling options that are set, as ``make()`` keywords
-    (none set: the dense layout and the paper's geometry)."""
-    given = dict(neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale)
+def swarm_options(neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None) -> dict:
+    """The simulator's neighbour-list, scaling and assignment options that are set, as ``make()``
+    keywords (none set: the dense layout, the paper's geometry, the exact assignment)."""
+    given = dict(
+        neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale,
+        assignment=assignment,
+    )  # fmt: skip
     for key in ("neighbours", "landmark_neighbours"):
         v = given[key]
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
@@ -25,6 +29,12 @@ def swarm_options(neighbours=None, landmark_neighbours=None, sense_radius=None, 
         raise ValueError(f"sense_radius must be a positive finite number, got {r!r}")
     if scale is not None and scale != "density":
         raise ValueError(f"scale must be 'density' (or unset: the paper's geometry), got {scale!r}")
+    if assignment is not None and assignment not in ASSIGNMENTS:
+        raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
+    if assignment == "nearest" and neighbours is None:
+        raise ValueError("assignment 'nearest' needs neighbour lists: set neighbours (--neighbours K)")
+    if assignment == "exact":  # the default: recorded as unset, so the exact runs' records stay as they were
+        given["assignment"] = None
     return {k: v for k, v in given.items() if v is not None}
 
 
