@@ -222,10 +222,15 @@ class SwarmEnv:
         """The layout's named dimensions (layout.DIMS) for the lists this env keeps."""
         M, dims = self.num_agents, {}
         if self.neighbours is not None:
-            dims.update(MA=0, K=self.neighbours, N=M, G1=neighbours.buckets(M) + 1)
+            dims.update(MA=0, K=self.neighbours, N=M, G1=neighbours.buckets(M, neighbours.SPLIT) + 1)
         if self.landmark_neighbours is not None:
             L = self.num_landmarks
-            dims.update(LE=self.landmark_neighbours, KL=self.landmark_neighbours, LN=L, GL1=neighbours.buckets(L) + 1)
+            dims.update(
+                LE=self.landmark_neighbours,
+                KL=self.landmark_neighbours,
+                LN=L,
+                GL1=neighbours.buckets(L, neighbours.SPLIT) + 1,
+            )
         if self.assignment_method in ("auction", "nearest"):  # a grid of the targets instead of the M x M costs
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
         return dims
@@ -324,9 +329,9 @@ class SwarmEnv:
         # the agents' grid: cells hold everything an agent hears ("rc") and touches
         contact_reach = 2.0 * spec.agent_radius + CUTOFF_MARGINS * CONTACT_MARGIN
         heard = self.comm_radius if self.comm == "rc" else 0.0
-        fparams[P_CELL] = neighbours.cell_side(max(heard, contact_reach))
+        fparams[P_CELL] = max(neighbours.cell_side(heard, neighbours.SPLIT), neighbours.cell_side(contact_reach))
         fparams[P_SENSE] = self.sense_radius or 0.0
-        fparams[P_LCELL] = neighbours.cell_side(self.sense_radius or 1.0)
+        fparams[P_LCELL] = neighbours.cell_side(self.sense_radius or 1.0, neighbours.SPLIT)
         fparams[P_ARENA] = self.arena
         fparams[P_TCELL] = auction.target_cell(self.num_agents, self.arena)
         fparams[P_EPS] = self.assignment_eps

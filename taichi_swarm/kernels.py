@@ -361,17 +361,22 @@ def physics_step_grid(
         else:
             force = physics.action_force(ib[blocks.actions.row(ib, A0, i)])
         p = pos.get2(f, ib, P0, i)
-        # one pass over the 3 x 3 cells keeps the CONTACT_SLOTS smallest touching indices,
+        # one pass over the cells that meet the reach's disc keeps the CONTACT_SLOTS smallest touching indices,
         # sorted; past that many (a pile-up) the rest are walked in increasing index
         touching = ti.Vector([M] * CONTACT_SLOTS, dt=ti.i32)
         count = 0
-        cell = blocks.grid_cell.get2(ib, ib, GC, i)
-        for q in range(9):
-            qx, qy = cell[0] + q % 3 - 1, cell[1] + q // 3 - 1
-            g = neighbours.bucket(qx, qy, G)
-            for s in range(ib[GS + g], ib[GS + g + 1]):
+        rp = neighbours.padded(reach)
+        span_y = neighbours.rows(p[1], rp, h)
+        for qy in range(span_y[0], span_y[1] + 1):
+            span_x = neighbours.columns(p[0], p[1], rp, qy, h)
+            run = neighbours.row_run(ib, span_x, qy, G, GS)
+            for t in range(run[1]):
+                s = run[0] + t
+                if s >= run[2]:
+                    s -= run[2]
                 j = ib[GI + s]
-                if j != i and ib[GC + 2 * j] == qx and ib[GC + 2 * j + 1] == qy:
+                cx = ib[GC + 2 * j]
+                if j != i and ib[GC + 2 * j + 1] == qy and span_x[0] <= cx and cx <= span_x[1]:
                     d = pos.get2(f, ib, P0, j) - p
                     d2 = d[0] * d[0] + d[1] * d[1]
                     if d2 > 0.0 and d2 < reach * reach:
