@@ -13,6 +13,7 @@ cached; ``--cold`` compiles into a fresh cache directory).
     python tools/bench_swarm.py --cold --seconds 1
     python tools/bench_swarm.py --arch cuda       # the GPU (torch tensors on the device)
     python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
+    python tools/bench_swarm.py --layouts "lists KL=16 nearest" --skip-10k --vmas 10 100   # pip install vmas
 """
 
 from __future__ import annotations
@@ -78,6 +79,26 @@ def measure(
     }
 
 
+def measure_vmas(B: int, M: int) -> float:
+    """ns per agent-step of VMAS's simple_spread (random discrete actions, torch on 1 thread):
+    one step untimed, one timed (its step is seconds at M = 100: its reward and collision
+    penalty loop over agent pairs in Python)."""
+    import torch
+    import vmas
+
+    torch.set_num_threads(1)
+    env = vmas.make_env(
+        scenario="simple_spread", num_envs=B, device="cpu", continuous_actions=False, n_agents=M, seed=0
+    )
+    env.reset()
+    gen = torch.Generator().manual_seed(0)
+    actions = [torch.randint(0, env.action_space[0].n, (B, 1), generator=gen) for _ in range(M)]
+    env.step(actions)
+    t = time.perf_counter()
+    env.step(actions)
+    return 1e9 * (time.perf_counter() - t) / (B * M)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="timed stepping per configuration")
@@ -88,7 +109,16 @@ def main() -> None:
     parser.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
     names = [name for name, _ in LAYOUTS]
     parser.add_argument("--layouts", nargs="+", choices=names, default=names, metavar="NAME", help=f"of {names}")
+    parser.add_argument(
+        "--vmas", type=int, nargs="*", metavar="M", default=None,
+        help="also time VMAS simple_spread at these team sizes of the table (default with the flag: 10 100; "
+        "1000 takes minutes a step) and print the first layout's speed-up over it",
+    )  # fmt: skip
     args = parser.parse_args()
+    if args.vmas == []:
+        args.vmas = [10, 100]
+    if args.vmas and set(args.vmas) - {M for _, M in SIZES}:
+        parser.error(f"--vmas sizes must be among {[M for _, M in SIZES]}, got {args.vmas}")
     if args.seconds <= 0 or args.comm_radius <= 0:
         parser.error("--seconds and --comm-radius must be > 0")
     if args.cold:
@@ -116,6 +146,15 @@ def main() -> None:
                 f"{r['ns'] / base:>7.2f}",
                 flush=True,
             )
+    if args.vmas:
+        first = next(r for r in rows)[0]
+        print(f"\nVMAS simple_spread (1 timed step, torch 1 thread) against {first!r}:")
+        for B, M in SIZES:
+            if M not in args.vmas:
+                continue
+            ns = measure_vmas(B, M)
+            ours = next(r["ns"] for name, b, m, r in rows if name == first and m == M)
+            print(f"vmas {B:>5} x {M:>5}: {ns:>12.0f} ns/agent-step; {first} is {ns / ours:.0f}x faster", flush=True)
     for name, options in LAYOUTS[2:]:  # no M x M block: the auction and "nearest"
         if args.skip_10k or name not in args.layouts:
             continue
