@@ -32,7 +32,7 @@ from .layout import (
     P_TCELL,
     blocks,
 )
-from .neighbours import bucket, build, cell_of
+from .neighbours import bucket, build, cell_of, ring_cell
 
 INF = 1e30
 EPS = 1e-3  # default eps: the total matched distance is within M * EPS of the optimum
@@ -79,21 +79,11 @@ def best_two(f: ti.template(), ib: ti.template(), i: ti.i32, b: ti.i32, M: ti.i3
             break
         cells = ti.max(8 * rho, 1)
         for t in range(cells):
-            qx, qy = c[0], c[1]
-            if rho > 0:  # the ring's perimeter, each cell once: four edges of 2 rho cells
-                e, s = t // (2 * rho), t % (2 * rho)
-                if e == 0:
-                    qx, qy = c[0] - rho + s, c[1] - rho
-                elif e == 1:
-                    qx, qy = c[0] + rho, c[1] - rho + s
-                elif e == 2:
-                    qx, qy = c[0] + rho - s, c[1] + rho
-                else:
-                    qx, qy = c[0] - rho, c[1] + rho - s
-            g = bucket(qx, qy, G)
+            q = ring_cell(c, rho, t)
+            g = bucket(q[0], q[1], G)
             for k in range(ib[GS + g], ib[GS + g + 1]):
                 j = ib[GI + k]
-                if ib[GC + 2 * j] == qx and ib[GC + 2 * j + 1] == qy:
+                if ib[GC + 2 * j] == q[0] and ib[GC + 2 * j + 1] == q[1]:
                     dx, dy = p - blocks.targets.get2(f, ib, T0, j)
                     best = _consider(ti.sqrt(dx * dx + dy * dy) + f[V + j], j, best)
     if not finished:  # past RING_LIMIT rings (or fewer than two targets): look at them all

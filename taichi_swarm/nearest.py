@@ -27,30 +27,13 @@ Work arrays: lap_y (target -> agent), lap_cols (the search's queue of targets), 
 import taichi as ti
 
 from .layout import H_G, H_GT, H_M, P_CELL, P_SUCCESS, P_TCELL, blocks
-from .neighbours import bucket, build, cell_of
+from .neighbours import bucket, build, cell_of, ring_cell
 
 INF = 1e30
 RING_LIMIT = 3  # rings of cells searched before every point is scanned
 SCAN_BELOW = 32  # below this many points, scan them all (cheaper than the 9 cells' bookkeeping)
 SAFE = 0.999  # a ring's distance bound, shrunk for float32 rounding of the cell coordinates
 PAD = 1e-3  # a cell's sides, pushed out by this many cells for the same rounding
-
-
-@ti.func
-def ring_cell(c: ti.math.ivec2, rho: ti.i32, t: ti.i32) -> ti.math.ivec2:
-    """Cell t of the ring at Chebyshev distance rho round cell c (8 rho cells; 1 at rho = 0)."""
-    qx, qy = c[0], c[1]
-    if rho > 0:  # the ring's perimeter, each cell once: four edges of 2 rho cells
-        e, s = t // (2 * rho), t % (2 * rho)
-        if e == 0:
-            qx, qy = c[0] - rho + s, c[1] - rho
-        elif e == 1:
-            qx, qy = c[0] + rho, c[1] - rho + s
-        elif e == 2:
-            qx, qy = c[0] + rho - s, c[1] + rho
-        else:
-            qx, qy = c[0] - rho, c[1] + rho - s
-    return ti.math.ivec2(qx, qy)
 
 
 @ti.func

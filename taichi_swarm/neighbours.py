@@ -90,6 +90,23 @@ def columns(px: ti.f32, py: ti.f32, rp: ti.f32, qy: ti.i32, h: ti.f32) -> ti.mat
 
 
 @ti.func
+def ring_cell(c: ti.math.ivec2, rho: ti.i32, t: ti.i32) -> ti.math.ivec2:
+    """Cell t of the ring at Chebyshev distance rho round cell c (8 rho cells; 1 at rho = 0)."""
+    qx, qy = c[0], c[1]
+    if rho > 0:  # the ring's perimeter, each cell once: four edges of 2 rho cells
+        e, s = t // (2 * rho), t % (2 * rho)
+        if e == 0:
+            qx, qy = c[0] - rho + s, c[1] - rho
+        elif e == 1:
+            qx, qy = c[0] + rho, c[1] - rho + s
+        elif e == 2:
+            qx, qy = c[0] + rho - s, c[1] + rho
+        else:
+            qx, qy = c[0] - rho, c[1] + rho - s
+    return ti.math.ivec2(qx, qy)
+
+
+@ti.func
 def bucket(cx: ti.i32, cy: ti.i32, G: ti.i32) -> ti.i32:
     """Cell (cx, cy)'s bucket: the row's hash (MurmurHash3's finalizer of cy * HASH_Y,
     spread over all 32 bits) plus cx, so that a row's consecutive cells lie in consecutive
