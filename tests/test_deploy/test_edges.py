@@ -24,6 +24,14 @@ from trainer import checkpoint
 from trainer.model import ModelConfig, SwarmPolicy
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def _export(d, **config) -> tuple[SwarmPolicy, ExportedModel]:
     torch.manual_seed(0)
     policy = SwarmPolicy(ModelConfig(hidden=32, rounds=2, **config)).eval()

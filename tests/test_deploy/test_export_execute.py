@@ -30,6 +30,15 @@ from trainer.model import ModelConfig, SwarmPolicy
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    """Small torch ops stall with 2 threads on a busy 2-core machine (stack notes)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def _save(path: str, policy: SwarmPolicy, task: str, agents: int) -> str:
     checkpoint.save(
         path,

@@ -17,6 +17,14 @@ from trainer import checkpoint
 from trainer.model import ModelConfig, SwarmPolicy
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_torch_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def _export(tmp_path_factory, mode: str, task: str, seed: int):
     torch.manual_seed(seed)
     policy = SwarmPolicy(ModelConfig(hidden=32, rounds=2, entity_mode=mode)).eval()
