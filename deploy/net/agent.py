@@ -90,7 +90,11 @@ class NetAgent:
         self._warned: set[str] = set()
         endpoint.subscribe("obs", agent_id)
         endpoint.subscribe("msg", "*")
+        # after msg, on the same session: hearing a teammate's hello shows the routes from it exist
+        # (the world starts once every agent has heard every other, protocol.py HELLO)
+        endpoint.subscribe("hello", "*")
         endpoint.subscribe("stop")
+        self.peers: set[int] = set()  # the agents whose hellos this one has heard
 
     # ------------------------------------------------------------------ receiving
     def _drop(self, counter: str, why: str, n: int = 1) -> None:
@@ -110,6 +114,10 @@ class NetAgent:
                 self._on_obs(P.decode_obs(data), t)
             elif topic == "msg":
                 self._on_msg(*P.decode_msg(data, self.H), t)
+            elif topic == "hello":
+                h = P.decode_hello(data)[0]
+                if h.sender != self.id:
+                    self.peers.add(h.sender)
         except P.VersionError as exc:
             self._drop("version", str(exc))
         except P.PacketError as exc:
@@ -286,7 +294,7 @@ class NetAgent:
                 continue
             now = time.perf_counter()
             if self.run is None and now - last_hello >= HELLO_EVERY_S:
-                self.ep.publish(P.hello_packet(0, self.id, self.sha), "hello", self.id)
+                self.ep.publish(P.hello_packet(0, self.id, self.sha, self.peers), "hello", self.id)
                 last_hello = now
             if idle_timeout is not None and now - last_seen > idle_timeout:
                 return "idle"

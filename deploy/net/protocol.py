@@ -1,4 +1,4 @@
-"""The wire format between the world and the agent processes (schema version 1).
+"""The wire format between the world and the agent processes (schema version 2).
 
 Every packet is one little-endian header followed by a kind-specific body:
 
@@ -13,7 +13,9 @@ Every packet is one little-endian header followed by a kind-specific body:
                               (hears[b, j] = 1: agent i hears j in world b this step; row i of the graph only)
     MSG   agent -> neighbours message f32 [B, 2, H]  (the sender's attention key and value, manifest "message")
     ACT   agent -> world      M u16, actions u8 [B], attention f32 [B, M], then the agent's stats f32 [len(STATS)]
-    HELLO agent -> world      export manifest sha256 (64 ascii hex): an agent of another export is refused
+    HELLO agent -> all        export manifest sha256 (64 ascii hex): an agent of another export is refused;
+                              then n u16 and the n agent ids whose hellos it has heard (its routes from
+                              them exist: the world starts once every agent hears every other)
     STOP  world -> agents     empty: the run is over
 
 ``decode`` raises ``PacketError`` (one line naming what is wrong) on anything else; receivers
@@ -27,13 +29,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: HELLO carries the agents heard
 MAGIC = b"TSWM"
 OBS, MSG, ACT, HELLO, STOP = 1, 2, 3, 4, 5
 KINDS = {OBS: "obs", MSG: "msg", ACT: "act", HELLO: "hello", STOP: "stop"}
 _HEADER = struct.Struct("<4sBBIIHBBH")
 HEADER_BYTES = _HEADER.size
 _MEL = struct.Struct("<HH")
+_N = struct.Struct("<H")
 # what an agent reports with every action (cumulative since it started, except latency)
 STATS = (
     "decision_s",  # obs received -> action sent, this step
@@ -133,8 +136,16 @@ def act_packet(run: int, step: int, sender: int, actions: np.ndarray, attention:
     )
 
 
-def hello_packet(run: int, sender: int, manifest_sha256: str) -> bytes:
-    return header_bytes(HELLO, run, 0, 0, 0, sender) + manifest_sha256.encode("ascii")
+def hello_packet(run: int, sender: int, manifest_sha256: str, heard=()) -> bytes:
+    heard = np.asarray(sorted(heard), "<u2")
+    return b"".join(
+        (
+            header_bytes(HELLO, run, 0, 0, 0, sender),
+            manifest_sha256.encode("ascii"),
+            _N.pack(len(heard)),
+            heard.tobytes(),
+        )
+    )
 
 
 def stop_packet(run: int) -> bytes:
@@ -197,12 +208,15 @@ def decode_act(data: bytes):
 
 
 def decode_hello(data: bytes):
-    """-> (header, manifest sha256)."""
+    """-> (header, manifest sha256, the agent ids it has heard: frozenset)."""
     h = read_header(data)
-    body = data[HEADER_BYTES:]
-    if h.kind != HELLO or len(body) != 64:
-        raise PacketError("hello packet must carry a 64-character manifest sha256")
+    if h.kind != HELLO or len(data) < HEADER_BYTES + 64 + _N.size:
+        raise PacketError("hello packet must carry a 64-character manifest sha256 and the agents heard")
     try:
-        return h, body.decode("ascii")
+        sha = data[HEADER_BYTES : HEADER_BYTES + 64].decode("ascii")
     except UnicodeDecodeError:
         raise PacketError("hello packet's manifest sha256 is not ascii") from None
+    (n,) = _N.unpack_from(data, HEADER_BYTES + 64)
+    heard, off = _array(data, HEADER_BYTES + 64 + _N.size, np.dtype("<u2"), (n,))
+    _exact(data, off, "hello")
+    return h, sha, frozenset(heard.tolist())

@@ -93,6 +93,7 @@ class World:
         self.reports = [AgentReport() for _ in range(self.M)]
         self.refused: set[int] = set()  # agents of another export
         self.heard: set[int] = set()
+        self.peers: dict[int, frozenset] = {}  # agent -> the agents whose hellos it has heard
         self.dropped = dict.fromkeys(("malformed", "version", "foreign"), 0)
         self._warned: set[str] = set()
         self.step = 0
@@ -119,7 +120,7 @@ class World:
         topic = key[len(self.ep.ns) + 1 :].split("/")[0]
         try:
             if topic == "hello":
-                h, sha = P.decode_hello(data)
+                h, sha, peers = P.decode_hello(data)
                 if h.sender >= self.M:
                     return self._drop("foreign", f"agent {h.sender} announced itself in a team of {self.M}")
                 if sha != self.sha:
@@ -132,6 +133,7 @@ class World:
                     return
                 self.refused.discard(h.sender)
                 self.heard.add(h.sender)
+                self.peers[h.sender] = peers
             elif topic == "act":
                 h, a, att, stats = P.decode_act(data)
                 if h.run != self.run or h.sender >= self.M or h.envs != self.B or att.shape[1] != self.M:
@@ -155,17 +157,27 @@ class World:
             self._drop("malformed", f"{topic} on {key}: {exc}")
 
     def wait_for_agents(self, expected) -> set[int]:
-        """Wait up to start_timeout for the hello of every agent in ``expected``; returns who was heard."""
+        """Wait up to start_timeout for the hello of every agent in ``expected``, each saying it has
+        heard every other's: a first step sent before the agents' routes to each other exist would
+        lose its messages (a busy machine takes seconds). Returns who was heard."""
         expected = set(expected)
+
+        def deaf() -> dict[int, list[int]]:  # agent -> the expected ones it has not heard yet
+            gaps = {i: sorted(expected - {i} - self.peers.get(i, frozenset())) for i in expected & self.heard}
+            return {i: g for i, g in gaps.items() if g}
+
         until = time.perf_counter() + self.net.start_timeout
-        while not expected <= self.heard and time.perf_counter() < until:
+        while not (expected <= self.heard and not deaf()) and time.perf_counter() < until:
             item = self.ep.get(until - time.perf_counter())
             if item is not None:
                 self._on_packet(*item)
         missing = sorted(expected - self.heard)
         if missing:
             self._say(f"agents {missing} not heard within {self.net.start_timeout:g} s: their actions are no-ops")
-        time.sleep(0.3)  # let the agents' routes to each other settle before the first messages
+        for i, gap in deaf().items():
+            self._say(
+                f"agent {i} has not heard agents {gap} within {self.net.start_timeout:g} s: it starts without them"
+            )
         return set(self.heard)
 
     def decide(self, obs):
