@@ -371,12 +371,8 @@ def physics_step_grid(
             span_x = neighbours.columns(p[0], p[1], rp, qy, h)
             run = neighbours.row_run(ib, span_x, qy, G, GS)
             for t in range(run[1]):
-                s = run[0] + t
-                if s >= run[2]:
-                    s -= run[2]
-                j = ib[GI + s]
-                cx = ib[GC + 2 * j]
-                if j != i and ib[GC + 2 * j + 1] == qy and span_x[0] <= cx and cx <= span_x[1]:
+                j = neighbours.run_item(ib, run, t, span_x, qy, GI, GC)
+                if j >= 0 and j != i:
                     d = pos.get2(f, ib, P0, j) - p
                     d2 = d[0] * d[0] + d[1] * d[1]
                     if d2 > 0.0 and d2 < reach * reach:

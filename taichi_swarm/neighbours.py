@@ -138,6 +138,22 @@ def row_run(ib: ti.template(), span: ti.math.ivec2, qy: ti.i32, G: ti.i32, S: ti
 
 
 @ti.func
+def run_item(
+    ib: ti.template(), run: ti.math.ivec3, t: ti.i32, span: ti.math.ivec2, qy: ti.i32, I: ti.i32, CELL: ti.i32
+) -> ti.i32:
+    """Item t of a row run (``row_run``), or -1 where it lies in another cell hashed to the
+    same buckets (not in row qy's span): the one walk every grid query shares."""
+    s = run[0] + t
+    if s >= run[2]:
+        s -= run[2]
+    j = ib[I + s]
+    cx = ib[CELL + 2 * j]
+    if ib[CELL + 2 * j + 1] != qy or cx < span[0] or cx > span[1]:
+        j = -1
+    return j
+
+
+@ti.func
 def build(
     f: ti.template(), ib: ti.template(), n: ti.i32, P: ti.i32, h: ti.f32, G: ti.i32, S: ti.i32, I: ti.i32, CELL: ti.i32
 ):
@@ -221,12 +237,8 @@ def nearest_in_grid(
         span_x = columns(px, py, rp, qy, h)
         run = row_run(ib, span_x, qy, G, S)
         for t in range(run[1]):
-            s = run[0] + t
-            if s >= run[2]:
-                s -= run[2]
-            j = ib[I + s]
-            cx = ib[CELL + 2 * j]
-            if j != skip and ib[CELL + 2 * j + 1] == qy and span_x[0] <= cx and cx <= span_x[1]:
+            j = run_item(ib, run, t, span_x, qy, I, CELL)
+            if j >= 0 and j != skip:
                 dx, dy = f[P + 2 * j] - px, f[P + 2 * j + 1] - py
                 d2 = dx * dx + dy * dy
                 if d2 <= r2:
@@ -261,12 +273,8 @@ def next_contact(
         span_x = columns(px, py, rp, qy, h)
         run = row_run(ib, span_x, qy, G, S)
         for t in range(run[1]):
-            s = run[0] + t
-            if s >= run[2]:
-                s -= run[2]
-            j = ib[I + s]
-            cx = ib[CELL + 2 * j]
-            if j > last and j < best and j != i and ib[CELL + 2 * j + 1] == qy and span_x[0] <= cx and cx <= span_x[1]:
+            j = run_item(ib, run, t, span_x, qy, I, CELL)
+            if j >= 0 and j > last and j < best and j != i:
                 dx, dy = f[P + 2 * j] - px, f[P + 2 * j + 1] - py
                 d2 = dx * dx + dy * dy
                 if d2 > 0.0 and d2 < reach2:
