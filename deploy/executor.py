@@ -39,6 +39,14 @@ Imperfect communication (both seeded, both per env):
              ago, plus its own fresh one; in the first k steps of an episode it
              hears only itself. Messages in flight are discarded when an episode
              ends (they belong to the previous episode).
+
+A receiver may hold what it last heard (``hold`` A >= 1, ``swarm execute --hold A``): when the
+round-r message of a neighbour in the step's graph is lost, the agent attends over that
+neighbour's last round-r message it did hear, if that is at most A steps old, as a robot keeps
+its teammates' last broadcasts. It knows who is in range the way it measures their offsets
+(relative edges): by sensing them, not from the lost message. A held message is a late one,
+which the policies carry far better than a missing one (docs/DEPLOY.md's fault table). Hold
+acts on losses only, so it is refused with a delay, where every message is late by design.
 """
 
 from __future__ import annotations
@@ -183,7 +191,7 @@ class MessageBus:
 
     def __init__(
         self, num_envs: int, num_agents: int, rounds: int, drop: float = 0.0, delay: int = 0, seed: int = 0,
-        burst_loss: float = 0.0, burst_len: float = 4.0,
+        burst_loss: float = 0.0, burst_len: float = 4.0, hold: int = 0,
     ):  # fmt: skip
         if not 0.0 <= drop <= 1.0:
             raise DeployError(f"drop probability must be in [0, 1], got {drop}")
@@ -191,7 +199,9 @@ class MessageBus:
             raise DeployError(f"delay must be >= 0 steps, got {delay}")
         if not 0.0 <= burst_loss < 1.0 or not burst_len >= 1.0:
             raise DeployError(f"burst loss must be in [0, 1) and burst length >= 1, got {burst_loss}, {burst_len}")
-        self.drop, self.delay = float(drop), int(delay)
+        if hold < 0 or (hold and delay):
+            raise DeployError(f"hold must be >= 0 steps and acts on lost messages only (no delay), got {hold}")
+        self.drop, self.delay, self.hold = float(drop), int(delay), int(hold)
         self._rng = np.random.default_rng(seed)
         # Gilbert-Elliott loss, the networked agents' --burst-loss (deploy/net/faults.py): one
         # chain per link (receiver i, sender j) stepping once per message, bursts of burst_len
@@ -203,6 +213,13 @@ class MessageBus:
         self._queues: list[deque] = [deque() for _ in range(rounds)]
         self.sent = 0
         self.delivered = 0
+        self.held = 0  # lost messages replaced by the last one heard (hold)
+        if self.hold:
+            # per round: the last hold + 1 steps' messages by sender, in slot step % (hold + 1),
+            # and the step at which i last heard j ([B, M, M]; far in the past: never)
+            self._step = [0] * rounds
+            self._ring: list[np.ndarray | None] = [None] * rounds
+            self._heard_at = np.full((rounds, num_envs, num_agents, num_agents), -(1 << 30), np.int64)
 
     def exchange(self, r: int, messages: np.ndarray, adj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Send round-r ``messages`` [B, M, 2, H] along ``adj`` [B, M, M] (i hears j); return what
@@ -220,8 +237,17 @@ class MessageBus:
         edges = np.asarray(nbr_mask, dtype=bool) & (nbr != np.arange(M)[None, :, None]) & (nbr >= 0) & (nbr < M)
         return self._send(r, messages, edges, nbr)
 
+    def gather(self, r: int, arrived: np.ndarray, b: int, i: int, senders: np.ndarray) -> np.ndarray:
+        """What agent i of env b heard in round r from ``senders`` [n] (the senders of the edges an
+        exchange returned): [n, 2, H], each sender's fresh message or, with hold, its held one."""
+        if not self.hold:
+            return arrived[b, senders]
+        slot = self._heard_at[r, b, i, senders] % (self.hold + 1)
+        return self._ring[r][slot, b, senders]
+
     def _send(self, r, messages, edges, senders):
         self.sent += int(edges.sum())
+        graph = edges
         if self.drop > 0.0:
             edges = edges & (self._rng.random(edges.shape) >= self.drop)
         if self.burst_loss > 0.0:
@@ -233,6 +259,8 @@ class MessageBus:
                 self._bad = np.where(self._bad, u >= self._to_good, u < to_bad)
             bad = self._bad if senders is None else np.take_along_axis(self._bad, np.clip(senders, 0, None), axis=2)
             edges = edges & ~bad
+        if self.hold:
+            return self._hold(r, messages, graph, edges, senders)
         queue = self._queues[r]
         queue.append((messages.copy() if self.delay else messages, edges, senders))
         if len(queue) <= self.delay:
@@ -241,11 +269,32 @@ class MessageBus:
         self.delivered += int(arrived_edges.sum())
         return arrived, arrived_edges, arrived_senders
 
+    def _hold(self, r, messages, graph, edges, senders):
+        """Deliver ``edges`` (what got through) and, for the other edges of ``graph``, the last
+        message heard from that sender within ``hold`` steps (no delay here: refused with hold)."""
+        t, A = self._step[r], self.hold
+        self._step[r] += 1
+        if self._ring[r] is None:
+            self._ring[r] = np.zeros((A + 1, *messages.shape), np.float32)
+        self._ring[r][t % (A + 1)] = messages
+        heard_at = self._heard_at[r]  # [B, M, M]
+        b, i, k = np.nonzero(edges)
+        j = k if senders is None else senders[b, i, k]
+        heard_at[b, i, j] = t
+        last = heard_at if senders is None else np.take_along_axis(heard_at, np.clip(senders, 0, None), axis=2)
+        kept = graph & (t - last <= A)
+        self.delivered += int(edges.sum())
+        self.held += int(kept.sum()) - int(edges.sum())
+        return messages, kept, senders
+
     def reset_envs(self, mask: np.ndarray) -> None:
-        """Discard messages in flight of the envs in ``mask`` [B] (their episode ended)."""
+        """Discard messages in flight of the envs in ``mask`` [B] (their episode ended), and what
+        their agents hold."""
         for queue in self._queues:
             for _, edges, _ in queue:
                 edges[mask] = False
+        if self.hold:
+            self._heard_at[:, mask] = -(1 << 30)
 
 
 class Executor:
@@ -265,6 +314,7 @@ class Executor:
         seed: int = 0,
         threads: int = 1,
         burst: tuple[float, float] = (0.0, 4.0),
+        hold: int = 0,
     ):
         if num_agents < 1:
             raise DeployError(f"agents must be >= 1, got {num_agents}")
@@ -273,7 +323,7 @@ class Executor:
         self.model = model
         self.B, self.M, self.K = num_envs, num_agents, model.rounds
         self.pieces = Pieces(model, threads)
-        self.bus = MessageBus(num_envs, num_agents, self.K, drop, delay, seed, *burst)
+        self.bus = MessageBus(num_envs, num_agents, self.K, drop, delay, seed, *burst, hold)
 
     def decide(
         self,
@@ -330,7 +380,7 @@ class Executor:
                 for i in range(M):
                     slots = np.flatnonzero(edges[b, i])
                     senders = listed[b, i, slots] if lists else slots
-                    heard = arrived[b, senders]  # [n, 2, H]: only what reached agent i
+                    heard = self.bus.gather(r, arrived, b, i, senders)  # [n, 2, H]: only what reached agent i
                     # p_j - p_i of exactly the senders heard; for a delayed message, at this step (receive
                     # time): E_k r_ij is what the receiver measures of j when it attends over j's message
                     # (ModelConfig.edge_position), as a range sensor would, not where j was when it sent
@@ -363,6 +413,8 @@ class ExecuteSettings:
     """Gilbert-Elliott loss on every link: the mean loss (MessageBus)"""
     burst_len: float = 4.0
     """its mean burst length, in messages"""
+    hold: int = 0
+    """a lost message is replaced by the sender's last one heard, up to this many steps old (MessageBus)"""
     swarm: dict | None = None
     """the simulator's neighbour lists / density scaling (``make()`` keywords; None: dense)"""
 
@@ -371,7 +423,7 @@ class ExecuteSettings:
         from taichi_swarm import TaskSetting
 
         TaskSetting(self.task, self.agents, self.comm, self.comm_radius)  # task, team size, comm
-        for name, low in (("episodes", 1), ("delay", 0)):
+        for name, low in (("episodes", 1), ("delay", 0), ("hold", 0)):
             if getattr(self, name) < low:
                 raise DeployError(f"--{name} must be >= {low}, got {getattr(self, name)}")
         if not 0.0 <= self.drop <= 1.0:
@@ -380,6 +432,8 @@ class ExecuteSettings:
             raise DeployError(f"--burst-loss must be in [0, 1), got {self.burst_loss}")
         if not self.burst_len >= 1.0:
             raise DeployError(f"--burst-len must be >= 1 message, got {self.burst_len}")
+        if self.hold and self.delay:
+            raise DeployError("--hold replaces lost messages; with --delay every message is late already: not both")
 
 
 def resolve_settings(
@@ -425,7 +479,9 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy",
         **swarm,
     )  # fmt: skip
-    executor = Executor(model, s.episodes, s.agents, s.drop, s.delay, s.seed, threads, (s.burst_loss, s.burst_len))
+    executor = Executor(
+        model, s.episodes, s.agents, s.drop, s.delay, s.seed, threads, (s.burst_loss, s.burst_len), s.hold
+    )
     drawn = getattr(recorder, "drawn", s.episodes)
 
     def decide(obs):
@@ -444,6 +500,7 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         "drop": s.drop,
         "delay": s.delay,
         **({"burst_loss": s.burst_loss, "burst_len": s.burst_len} if s.burst_loss else {}),
+        **({"hold": s.hold, "messages_held": executor.bus.held} if s.hold else {}),
         "messages_sent": executor.bus.sent,
         "messages_delivered": executor.bus.delivered,
         **tally.summary(s.task),
@@ -468,4 +525,5 @@ def format_table(rows: list[dict]) -> str:
     fraction of landmarks covered, where every row has it)."""
     covered = ("covered",) if rows and all(r.get("covered") is not None for r in rows) else ()
     burst = ("burst_loss",) if any(r.get("burst_loss") for r in rows) else ()
-    return format_results(rows, extra=("drop", "delay", *burst, *covered))
+    hold = ("hold",) if any(r.get("hold") for r in rows) else ()
+    return format_results(rows, extra=("drop", "delay", *burst, *hold, *covered))

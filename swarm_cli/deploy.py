@@ -62,7 +62,7 @@ def execute_main(argv: list[str]) -> int:
             resolve_settings(
                 model, args.task, args.agents, args.comm, args.comm_radius,
                 episodes=args.episodes, drop=p, delay=args.delay, seed=args.seed, swarm=args.swarm_kwargs(),
-                burst_loss=args.burst_loss, burst_len=args.burst_len,
+                burst_loss=args.burst_loss, burst_len=args.burst_len, hold=args.hold,
             )
             for p in args.drop
         ]  # fmt: skip

@@ -58,12 +58,15 @@ class AgentOptions(FaultOptions):
     """leave after this many seconds without an observation"""
     threads: int = 1
     """onnxruntime intra-op threads per session"""
+    hold: int = 0
+    """a neighbour's lost message is replaced by its last one heard, if at most N steps old (0: off)"""
     quiet: bool = False
     """no line on stderr for dropped packets (they are still counted)"""
 
     def __post_init__(self):
         at_least(self.id, 0, "id")
         at_least(self.threads, 1, "threads")
+        at_least(self.hold, 0, "hold")
         if not self.round_deadline > 0:
             raise OptionError(f"--round-deadline must be > 0 seconds, got {self.round_deadline}")
         if self.idle_timeout is not None and not self.idle_timeout > 0:
@@ -106,6 +109,8 @@ class WorldOptions(SettingOptions, OutputOptions, FaultOptions):
     """with --spawn-agents: I:MS makes agent I sleep MS ms before each decision"""
     agent_logs: str | None = None
     """with --spawn-agents: write each agent's output to DIR/agent-I.log"""
+    hold: int = 0
+    """with --spawn-agents: the agents' --hold (a lost message replaced by the last one heard, up to N steps old)"""
     json: str | None = None
     """also write the result row to this JSON file"""
 
@@ -113,8 +118,9 @@ class WorldOptions(SettingOptions, OutputOptions, FaultOptions):
         SettingOptions.__post_init__(self)
         OutputOptions.__post_init__(self)
         at_least(self.episodes, 1, "episodes")
-        if not self.spawn_agents and (self.absent or self.kill or self.slow or self.agent_logs):
-            raise OptionError("--absent, --kill, --slow and --agent-logs need --spawn-agents")
+        at_least(self.hold, 0, "hold")
+        if not self.spawn_agents and (self.absent or self.kill or self.slow or self.agent_logs or self.hold):
+            raise OptionError("--absent, --kill, --slow, --agent-logs and --hold need --spawn-agents")
         self.kill_plan = [_kill(k) for k in self.kill or ()]
         self.slow_plan = dict(_slow(x) for x in self.slow or ())
 
@@ -158,7 +164,9 @@ def agent_main(argv: list[str]) -> int:
     except (DeployError, TransportError, ValueError) as exc:
         return fail("swarm agent", exc)
     try:
-        agent = NetAgent(model, args.id, endpoint, args.round_deadline, spec, args.slow_ms, args.threads, args.quiet)
+        agent = NetAgent(
+            model, args.id, endpoint, args.round_deadline, spec, args.slow_ms, args.threads, args.quiet, args.hold
+        )
         how = agent.serve(idle_timeout=args.idle_timeout)
     except (DeployError, ValueError) as exc:
         return fail("swarm agent", exc)
@@ -215,7 +223,15 @@ def world_main(argv: list[str]) -> int:
         present = set(range(s.agents)) - set(args.absent or ())
         if args.spawn_agents:
             procs = AgentProcesses(
-                args.export, s.agents, args.listen, args.ns, args.round_deadline, spec, args.slow_plan, args.agent_logs
+                args.export,
+                s.agents,
+                args.listen,
+                args.ns,
+                args.round_deadline,
+                spec,
+                args.slow_plan,
+                args.agent_logs,
+                hold=args.hold,
             )
             for i in sorted(present):
                 procs.start(i)

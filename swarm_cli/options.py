@@ -330,6 +330,8 @@ class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
     """Gilbert-Elliott bursty loss on every link, as `swarm agent --burst-loss`: mean loss Q"""
     burst_len: float = 4.0
     """mean length of a loss burst, in messages (with --burst-loss)"""
+    hold: int = 0
+    """a lost message is replaced by the sender's last one heard, if at most N steps old (0: off; not with --delay)"""
     seed: int = 12345
     """seed of the episodes and of the drops"""
     threads: int = 1

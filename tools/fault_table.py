@@ -3,9 +3,13 @@ are judged on, with `swarm execute`'s executor (deploy.executor.run_episodes), 5
 cell at seed 4242, one JSON per policy under results/faults/.
 
     python tools/fault_table.py coverage-rc-m5 coverage-rc-m5-rounds   # run (or reuse) and print
+    python tools/fault_table.py --hold 3 line-rc-m10                    # its agents holding lost messages
     python tools/fault_table.py --render                                # the table from the files
 
-A policy is a zoo name or a policy.pt; a cell already in its file is not run again.
+A policy is a zoo name or a policy.pt; a cell already in its file is not run again. With
+``--hold N`` (``swarm execute --hold``) a lost message is replaced by the sender's last one heard
+up to N steps old; the row is ``NAME hold N``. Hold acts on losses only, so its delay cell is
+run without it (the policy's own, as in its plain row).
 """
 
 from __future__ import annotations
@@ -29,18 +33,19 @@ CELLS = {
 }
 
 
-def measure(policy: str, episodes: int, seed: int) -> dict:
+def measure(policy: str, episodes: int, seed: int, hold: int = 0) -> dict:
     from deploy.executor import ExportedModel, resolve_settings, run_episodes
     from deploy.export import export
     from taichi_swarm.files import atomic_write_json
 
     name = os.path.basename(os.path.dirname(os.path.dirname(policy))) if policy.endswith(".pt") else policy
-    path = os.path.join(OUT, f"{name}.json")
-    data = {"policy": policy, "episodes": episodes, "seed": seed, "cells": {}}
+    name += f" hold {hold}" if hold else ""
+    path = os.path.join(OUT, f"{name.replace(' ', '-')}.json")
+    data = {"policy": policy, "episodes": episodes, "seed": seed, "cells": {}, **({"hold": hold} if hold else {})}
     if os.path.exists(path):
         with open(path) as f:
             old = json.load(f)
-        if (old["policy"], old["episodes"], old["seed"]) == (policy, episodes, seed):
+        if (old["policy"], old["episodes"], old["seed"], old.get("hold", 0)) == (policy, episodes, seed, hold):
             data = old
     with tempfile.TemporaryDirectory() as tmp:
         for cell, faults in CELLS.items():
@@ -49,7 +54,8 @@ def measure(policy: str, episodes: int, seed: int) -> dict:
             if not os.path.exists(os.path.join(tmp, "manifest.json")):
                 export(policy, tmp)
             model = ExportedModel(tmp)
-            row = run_episodes(model, resolve_settings(model, episodes=episodes, seed=seed, **faults))
+            held = {"hold": hold} if hold and "delay" not in faults else {}
+            row = run_episodes(model, resolve_settings(model, episodes=episodes, seed=seed, **faults, **held))
             data["cells"][cell] = {k: row[k] for k in ("success_rate", "mean_length", "dist", "covered")}
             print(f"{name}: {cell}: S% {100 * row['success_rate']:.1f}", flush=True)
             os.makedirs(OUT, exist_ok=True)
@@ -72,7 +78,9 @@ def render() -> str:
                 shown.append(f"{100 * c['success_rate']:.1f}")
             else:
                 shown.append(f"{100 * c['success_rate']:.1f} ({100 * (c['success_rate'] - base):+.1f})")
-        lines.append(f"| `{os.path.basename(path)[:-5]}` | " + " | ".join(shown) + " |")
+        name, hold = os.path.basename(path)[:-5], data.get("hold", 0)
+        label = f"`{name.removesuffix(f'-hold-{hold}')}` hold {hold}" if hold else f"`{name}`"
+        lines.append(f"| {label} | " + " | ".join(shown) + " |")
     return "\n".join(lines)
 
 
@@ -81,6 +89,7 @@ def main(argv=None) -> int:
     parser.add_argument("policies", nargs="*", help="zoo names or policy.pt files")
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--seed", type=int, default=4242)
+    parser.add_argument("--hold", type=int, default=0, help="the agents hold lost messages up to N steps (0: off)")
     parser.add_argument("--render", action="store_true", help="print the table from results/faults/ only")
     args = parser.parse_args(argv)
     if not args.render:
@@ -88,7 +97,7 @@ def main(argv=None) -> int:
 
         runtime.init("cpu")
         for policy in args.policies:
-            measure(policy, args.episodes, args.seed)
+            measure(policy, args.episodes, args.seed, args.hold)
     print(render())
     return 0
 

@@ -2,12 +2,15 @@
 in-process executor (``swarm execute``) at the same drop rate.
 
     python tools/net_faults.py --export runs/net/coverage-rc-m5 --episodes 20 --out runs/net/faults-m5.json
+    python tools/net_faults.py --export runs/net/line-rc-m10 --hold 3 --cells none "bursty 0.3 (len 4)"
     python tools/net_faults.py --plot docs/media/net-faults.png "M = 5=runs/net/faults-m5.json"
 
 Each cell starts the M agents as `swarm agent` processes on 127.0.0.1 with one fault, runs
 the episodes side by side at the control period, and reports S% / T with the agents' decision
 latency (p50 / p99 over agents and steps), messages and bytes sent per second per agent, CPU
-per agent process (fraction of one core) and the actions that missed their deadline.
+per agent process (fraction of one core) and the actions that missed their deadline. With
+``--hold N`` the agents (``swarm agent --hold``) and the in-process reference hold lost
+messages up to N steps.
 """
 
 from __future__ import annotations
@@ -30,12 +33,12 @@ from deploy.net.transport import Endpoint, open_session  # noqa: E402
 from deploy.net.world import AgentProcesses, NetSettings, World  # noqa: E402
 
 # name -> (fault spec kwargs, launcher faults {"kill": (agent, step, restart_s), "absent": agent, "slow": (agent, ms)},
-#          the executor's drop for the reference column or None)
+#          the in-process executor's faults for the reference column or None)
 CELLS = {
-    "none": ({}, {}, 0.0),
-    "drop 0.1": ({"drop": 0.1}, {}, 0.1),
-    "drop 0.3": ({"drop": 0.3}, {}, 0.3),
-    "bursty 0.3 (len 4)": ({"burst_loss": 0.3, "burst_len": 4.0}, {}, 0.3),
+    "none": ({}, {}, {}),
+    "drop 0.1": ({"drop": 0.1}, {}, {"drop": 0.1}),
+    "drop 0.3": ({"drop": 0.3}, {}, {"drop": 0.3}),
+    "bursty 0.3 (len 4)": ({"burst_loss": 0.3, "burst_len": 4.0}, {}, {"burst_loss": 0.3, "burst_len": 4.0}),
     "latency 10 ms +- 5": ({"latency_ms": 10.0, "jitter_ms": 5.0}, {}, None),
     "latency 25 ms +- 10": ({"latency_ms": 25.0, "jitter_ms": 10.0}, {}, None),
     "late round 0": ({"late_round": 0}, {}, None),
@@ -52,7 +55,7 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-def run_cell(export_dir, settings, net, fault_kwargs, launcher, seed) -> dict:
+def run_cell(export_dir, settings, net, fault_kwargs, launcher, seed, hold=0) -> dict:
     model = ExportedModel(export_dir)
     port = _port()
     endpoint = Endpoint(open_session("router", [f"tcp/127.0.0.1:{port}"], []), f"faults{port}")
@@ -60,7 +63,7 @@ def run_cell(export_dir, settings, net, fault_kwargs, launcher, seed) -> dict:
     spec = FaultSpec(**fault_kwargs, seed=seed)
     slow = dict([launcher["slow"]]) if "slow" in launcher else None
     procs = AgentProcesses(
-        export_dir, settings.agents, f"tcp/127.0.0.1:{port}", endpoint.ns, net.round_deadline, spec, slow
+        export_dir, settings.agents, f"tcp/127.0.0.1:{port}", endpoint.ns, net.round_deadline, spec, slow, hold=hold
     )
     present = [i for i in range(settings.agents) if i != launcher.get("absent")]
     restart = []
@@ -155,6 +158,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=4242, help="seed of the episodes and of the faults")
     p.add_argument("--period", type=float, default=0.1, help="control period, s")
     p.add_argument("--round-deadline", type=float, default=0.03, help="communication round deadline, s")
+    p.add_argument("--hold", type=int, default=0, help="the agents hold lost messages up to N steps (0: off)")
     p.add_argument("--cells", nargs="+", default=None, help=f"a subset of the cells: {', '.join(CELLS)}")
     p.add_argument("--out", default=None, help="write the rows to this JSON file")
     p.add_argument(
@@ -181,13 +185,14 @@ def main(argv=None) -> int:
     net = NetSettings(period=args.period, round_deadline=args.round_deadline)
     rows = {}
     for name in cells:
-        fault_kwargs, launcher, drop = CELLS[name]
+        fault_kwargs, launcher, reference = CELLS[name]
         t0 = time.perf_counter()
-        r = run_cell(args.export, s, net, fault_kwargs, launcher, args.seed)
+        r = run_cell(args.export, s, net, fault_kwargs, launcher, args.seed, args.hold)
         r["executor"] = None
-        if drop is not None:
+        if reference is not None:
+            held = {"hold": args.hold} if args.hold and reference else {}
             ref = resolve_settings(
-                model, None, args.agents, None, None, episodes=args.episodes, seed=args.seed, drop=drop
+                model, None, args.agents, None, None, episodes=args.episodes, seed=args.seed, **reference, **held
             )
             r["executor"] = run_episodes(model, ref)["success_rate"]
         rows[name] = r

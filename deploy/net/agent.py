@@ -11,6 +11,11 @@ worlds the packet covers (B = 1 on a robot):
         -> logits, action = argmax)
     publish ACT(t): actions [B], attention [B, M], this agent's counters
 
+With ``hold`` A >= 1 (``swarm agent --hold A``), a neighbour the OBS packet says it hears but
+whose round-r message did not come by the deadline is attended over with the last round-r
+message this agent did get from it, if at most A steps old: the in-process executor's
+``MessageBus`` hold (deploy/executor.py), so a lost message counts as a late one.
+
 What arrives after its round closed, of an older step, or of another run is dropped and
 counted (late, foreign); a packet that does not decode is dropped and counted (malformed,
 version), with one line on stderr the first time, and never stops the agent. A newer OBS
@@ -24,6 +29,7 @@ from __future__ import annotations
 import heapq
 import sys
 import time
+from collections import deque
 
 import numpy as np
 
@@ -33,6 +39,7 @@ from deploy.net.faults import FaultSpec, LinkFaults
 from deploy.net.transport import Endpoint
 
 HELLO_EVERY_S = 0.25
+EARLY_KEPT = 4096  # messages of a run not yet observed, kept at most (the oldest go first)
 
 
 def check_wire(model: ExportedModel) -> None:
@@ -55,9 +62,12 @@ class NetAgent:
         slow_ms: float = 0.0,
         threads: int = 1,
         quiet: bool = False,
+        hold: int = 0,
     ):
         if agent_id < 0:
             raise DeployError(f"--id must be >= 0, got {agent_id}")
+        if hold < 0:
+            raise DeployError(f"--hold must be >= 0 steps, got {hold}")
         if not round_deadline > 0:
             raise DeployError(f"--round-deadline must be > 0 seconds, got {round_deadline}")
         if slow_ms < 0:
@@ -73,7 +83,12 @@ class NetAgent:
         self.faults = LinkFaults(faults or FaultSpec(), agent_id, self.round_deadline)
         self.slow_s = slow_ms / 1e3
         self.quiet = quiet
+        self.hold = int(hold)
+        self._kept: dict[tuple[int, int, int], tuple[int, np.ndarray]] = {}  # (world, round, sender) -> (step, message)
         self.run: int | None = None
+        # messages of a run this agent has no observation of yet: a teammate that got its OBS
+        # first already sent round 0 (the world's OBS packets leave together, arrive apart)
+        self._early: deque = deque(maxlen=EARLY_KEPT)
         self.step = -1
         self.round = 0  # the round being collected; messages of earlier rounds of this step are late
         self.B = self.M = None
@@ -139,10 +154,8 @@ class NetAgent:
     def _on_msg(self, h: P.Header, message: np.ndarray, t: float) -> None:
         if h.sender == self.id:
             return  # our own publication, delivered back by the session
-        if self.run is None:
-            return  # not in a run yet (just started or restarted): nothing to use it for
         if h.run != self.run:
-            return self._drop("foreign", f"a message of run {h.run:08x}, this agent is in run {self.run:08x}")
+            return self._early.append((h, message, t))  # used, or dropped as foreign, at the next OBS
         if (self.M is not None and h.sender >= self.M) or (self.B is not None and h.envs != self.B):
             return self._drop("foreign", f"a message from agent {h.sender} for {h.envs} worlds")
         if h.round >= max(self.K, 1):
@@ -215,9 +228,16 @@ class NetAgent:
         h, self_obs, entities, hears, t0 = obs
         if self.run != h.run:
             self.box.clear()
+            self._kept.clear()
         self.run, self.step, self.round = h.run, h.step, 0
         B, M = h.envs, hears.shape[1]
         self.B, self.M = B, M
+        early, self._early = self._early, deque(maxlen=EARLY_KEPT)
+        for eh, message, t in early:
+            if eh.run != h.run:
+                self._drop("foreign", f"a message of run {eh.run:08x}, this agent is in run {h.run:08x}")
+            elif eh.step >= h.step:  # (a restarted agent's messages of earlier steps are no loss)
+                self._on_msg(eh, message, t)
         try:
             self.model.check_landmarks(self.model.task.get("task"), entities.shape[1])
         except DeployError as exc:
@@ -261,6 +281,9 @@ class NetAgent:
                 senders = sorted(j for j in got if expected[b, j])
                 self.stats["msgs_heard"] += len(senders)
                 self.stats["missed"] += len(need[b]) - len(senders)
+                if self.hold:
+                    got = self._hold(b, r, h.step, need[b], {j: got[j] for j in senders})
+                    senders = sorted(got)
                 heard = np.stack([got[j] for j in senders]) if senders else np.zeros((0, 2, H), np.float32)
                 if last:
                     logits, w = pieces.decide(hs[b], heard)
@@ -279,6 +302,18 @@ class NetAgent:
         stats = [self.stats[k] for k in P.STATS]
         self.ep.publish(P.act_packet(h.run, h.step, self.id, actions, attention, stats), "act", self.id)
         self.steps += 1
+
+    def _hold(self, b: int, r: int, step: int, need: set[int], fresh: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """``fresh`` and, for each neighbour in ``need`` not in it, its last round-r message if at most
+        ``hold`` steps old; remembers the fresh ones."""
+        for j, vec in fresh.items():
+            self._kept[(b, r, j)] = (step, vec)
+        out = dict(fresh)
+        for j in need - fresh.keys():
+            kept = self._kept.get((b, r, j))
+            if kept is not None and step - kept[0] <= self.hold:
+                out[j] = kept[1]
+        return out
 
     def serve(self, idle_timeout: float | None = None) -> str:
         """Run until the world says stop (-> "stopped") or nothing arrives for ``idle_timeout`` s (-> "idle")."""

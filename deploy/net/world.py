@@ -292,7 +292,9 @@ class AgentProcesses:
         slow: dict[int, float] | None = None,
         log_dir: str | None = None,
         command: list[str] | None = None,
+        hold: int = 0,
     ):
+        self.hold = hold
         self.export_dir, self.M, self.connect, self.ns = export_dir, agents, connect, ns
         self.round_deadline = round_deadline
         self.faults = faults or FaultSpec()
@@ -309,6 +311,8 @@ class AgentProcesses:
         ]  # fmt: skip
         if self.slow.get(i):
             argv += ["--slow-ms", str(self.slow[i])]
+        if self.hold:
+            argv += ["--hold", str(self.hold)]
         out = subprocess.DEVNULL
         if self.log_dir:
             os.makedirs(self.log_dir, exist_ok=True)

@@ -243,6 +243,48 @@ def test_message_bus_bursty_loss_has_its_rate_and_burst_length():
         MessageBus(B, M, rounds=1, burst_loss=1.0)
 
 
+def test_message_bus_hold_replaces_a_lost_message_by_the_last_heard_for_hold_steps():
+    """hold A: an edge of this step's graph whose message is lost delivers the sender's last
+    message of that round heard at most A steps ago, dense and on lists alike; never one older,
+    never along an edge not in the graph, and nothing across an episode's end."""
+    B, M, H, A = 1, 3, 4, 2
+    nbr, mask = np.array([[[1, 2], [0, 2], [0, 1]]]), np.ones((B, M, 2), bool)
+    everyone, offdiag = np.ones((B, M, M), bool), ~np.eye(M, dtype=bool)[None]
+    for lists in (False, True):
+        bus = MessageBus(B, M, rounds=1, hold=A)
+
+        def step(t, drop, adj=everyone, bus=bus, lists=lists):
+            bus.drop = drop
+            msgs = np.full((B, M, 2, H), float(t), np.float32) + np.arange(M, dtype=np.float32)[None, :, None, None]
+            if lists:
+                arrived, edges, senders = bus.exchange_lists(0, msgs, nbr, mask & np.take_along_axis(adj, nbr, 2))
+                dense = np.zeros((B, M, M), bool)
+                np.put_along_axis(dense, senders, edges, 2)
+                edges = dense
+            else:
+                arrived, edges = bus.exchange(0, msgs, adj)
+            # what agent 0 hears from 1 and 2: the step each message was sent (value - sender)
+            heard = [
+                bus.gather(0, arrived, 0, 0, np.array([j]))[0, 0, 0] - j if edges[0, 0, j] else None for j in (1, 2)
+            ]
+            return edges, heard
+
+        edges, heard = step(0, 0.0)
+        assert (edges == offdiag).all() and heard == [0, 0]
+        assert step(1, 1.0)[1] == [0, 0] and step(2, 1.0)[1] == [0, 0]  # held: 1 and 2 steps old
+        assert step(3, 1.0)[1] == [None, None]  # 3 steps old: gone
+        assert step(4, 0.0)[1] == [4, 4]
+        only_1 = np.zeros((B, M, M), bool)
+        only_1[0, 0, 1] = True
+        edges, heard = step(5, 1.0, only_1)
+        assert heard == [4, None] and edges.sum() == 1  # 2 is out of the graph: not held
+        bus.reset_envs(np.ones(B, bool))
+        assert step(6, 1.0)[1] == [None, None]  # an ended episode holds nothing
+        assert bus.held == 6 + 6 + 1
+    with pytest.raises(DeployError, match="hold must be >= 0 steps"):
+        MessageBus(B, M, rounds=1, delay=1, hold=1)
+
+
 def test_manifest_hashes_checker_single_file(emp):
     _, directory = emp
     with open(os.path.join(directory, "manifest.json")) as f:

@@ -274,7 +274,6 @@ def test_agent_drops_and_counts_what_it_cannot_use(emp_dir, capsys):
     cases = [
         ("swarm/msg/1", b"\x00" * 3, "malformed"),
         ("swarm/msg/1", P.header_bytes(P.MSG, 5, 3, 1, 0, 1)[:4] + bytes([7]) + bytes(40), "version"),
-        ("swarm/msg/1", P.msg_packet(6, 3, 0, 1, good), "foreign"),  # another run
         ("swarm/msg/1", P.msg_packet(5, 3, 0, 9, good), "foreign"),  # a sender outside the team
         ("swarm/msg/1", P.msg_packet(5, 2, 0, 1, good), "late"),  # an older step
         ("swarm/msg/1", P.msg_packet(5, 3, 0, 1, np.zeros((1, 2, 16), np.float32)), "malformed"),  # other H
@@ -288,6 +287,36 @@ def test_agent_drops_and_counts_what_it_cannot_use(emp_dir, capsys):
     assert 1 in agent.box[(3, 1)][0]
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 4 and all(line.startswith("swarm agent 0: dropped a packet") for line in lines)
+
+
+def test_agent_uses_what_came_before_its_observation_and_drops_other_runs(emp_dir):
+    """A teammate that got its OBS first has sent round 0 before this agent knows the run: that
+    message is kept and used once the OBS comes; a message of another run is counted as foreign
+    then (until the OBS, it could have been of the run about to start)."""
+    agent = NetAgent(ExportedModel(emp_dir), 0, _FakeEndpoint(), round_deadline=0.01, quiet=True)
+    good = np.zeros((1, 2, 32), np.float32)
+    agent._on_packet("swarm/msg/1", P.msg_packet(5, 0, 0, 1, good), 0.0)  # before any OBS
+    agent._on_packet("swarm/msg/2", P.msg_packet(6, 0, 0, 2, good), 0.0)  # of another run
+    assert agent.stats["foreign"] == 0
+    hears = np.array([[True, True, False]])  # agent 0 hears agent 1
+    obs = P.decode_obs(P.obs_packet(5, 0, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), hears))
+    agent._decide((*obs, 0.0))
+    assert agent.stats["msgs_heard"] == 1 and agent.stats["missed"] == agent.K - 1  # round 0 heard
+    assert agent.stats["foreign"] == 1
+
+
+def test_agent_hold_attends_over_a_lost_neighbours_last_message(emp_dir):
+    """--hold A: a neighbour the OBS row names whose message is missing is replaced by its last
+    message of that round, if at most A steps old (the in-process MessageBus hold)."""
+    agent = NetAgent(ExportedModel(emp_dir), 0, _FakeEndpoint(), round_deadline=0.01, hold=2)
+    m = {j: np.full((2, 32), j, np.float32) for j in (1, 2)}
+    assert sorted(agent._hold(0, 1, 10, {1, 2}, m)) == [1, 2]
+    got = agent._hold(0, 1, 12, {1, 2}, {2: m[2] + 10})  # 1 lost: its message of step 10 is held
+    assert float(got[1][0, 0]) == 1.0 and float(got[2][0, 0]) == 12.0
+    assert sorted(agent._hold(0, 1, 13, {1, 2}, {})) == [2]  # 1's is 3 steps old now
+    assert agent._hold(0, 0, 13, {1, 2}, {}) == {}  # another round holds its own messages
+    with pytest.raises(DeployError, match="--hold must be >= 0"):
+        NetAgent(ExportedModel(emp_dir), 0, _FakeEndpoint(), hold=-1)
 
 
 def test_world_refuses_an_agent_of_another_export(emp_dir):
@@ -366,6 +395,7 @@ def test_world_refuses_an_export_that_does_not_fit_its_task(tmp_path):
         (["agent", "{d}", "--id", "-1"], "--id must be >= 0"),
         (["agent", "{d}", "--id", "0", "--connect", "127.0.0.1"], "not a Zenoh endpoint"),
         (["agent", "{d}", "--id", "0", "--drop", "2"], "--drop must be a probability"),
+        (["agent", "{d}", "--id", "0", "--hold", "-1"], "--hold must be >= 0"),
         (["world", "--export", "{d}", "--spawn-agents", "--kill", "1@x"], "expected I@STEP"),
         (["world", "--export", "{d}", "--kill", "1@3"], "need --spawn-agents"),
         (["world", "--export", "{d}", "--spawn-agents", "--absent", "7"], "not in a team of 3"),

@@ -29,7 +29,17 @@ def test_measure_reuses_its_cells_and_renders(tmp_path, monkeypatch, capsys):
     assert "| `coverage-uc-m3` | " in table
 
 
+def test_hold_is_its_own_row_and_file(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(fault_table, "OUT", str(tmp_path))
+    assert fault_table.main(["coverage-uc-m3", "--episodes", "4", "--hold", "2"]) == 0
+    data = json.loads((tmp_path / "coverage-uc-m3-hold-2.json").read_text())
+    assert data["hold"] == 2 and list(data["cells"]) == list(fault_table.CELLS)
+    assert "| `coverage-uc-m3` hold 2 | " in capsys.readouterr().out
+
+
 def test_the_committed_fault_table_renders(capsys):
     assert fault_table.main(["--render"]) == 0
     out = capsys.readouterr().out
     assert "| `coverage-rc-m5` | 94.6 | 86.0 (-8.6) | 83.4 (-11.2) | 90.0 (-4.6) |" in out
+    with open(os.path.join(ROOT, "docs", "DEPLOY.md")) as f:
+        assert out.strip() in f.read(), "docs/DEPLOY.md's fault table is not tools/fault_table.py --render's"
