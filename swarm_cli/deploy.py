@@ -48,15 +48,7 @@ def execute_main(argv: list[str]) -> int:
     from deploy.executor import DeployError, ExportedModel, format_table, resolve_settings, run_episodes
 
     try:
-        from taichi_swarm.files import ensure_writable
-
-        for out, what in ((args.json, "--json"), (args.record, "--record")):
-            if out:
-                ensure_writable(out, what)
-        if args.video:
-            from deploy.video import check_video_path
-
-            check_video_path(args.video)  # before any episode runs
+        args.check_outputs()
         model = ExportedModel(args.directory)
         settings = [  # every setting checked (ExecuteSettings) before any episode runs
             resolve_settings(

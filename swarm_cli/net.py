@@ -193,11 +193,7 @@ def world_main(argv: list[str]) -> int:
     from deploy.net.world import AgentProcesses, NetSettings, World, format_net
 
     try:
-        from taichi_swarm.files import ensure_writable
-
-        for out, what in ((args.json, "--json"), (args.record, "--record")):
-            if out:
-                ensure_writable(out, what)
+        args.check_outputs()
         check_endpoint(args.listen, "--listen")
         check_namespace(args.ns)
         spec = args.faults

@@ -190,6 +190,19 @@ class OutputOptions(VideoOption):
     def __post_init__(self):
         at_least(self.record_envs, 1, "record-envs")
 
+    def check_outputs(self) -> None:
+        """--json, --record and --video writable, checked before any episode runs (a command
+        that fails on its last write would have wasted the run, or left half its files)."""
+        from taichi_swarm.files import ensure_writable
+
+        for out, what in ((getattr(self, "json", None), "--json"), (self.record, "--record")):
+            if out:
+                ensure_writable(out, what)
+        if self.video:
+            from deploy.video import check_video_path
+
+            check_video_path(self.video)
+
 
 # ----------------------------------------------------------------------------- trainer commands
 @dataclass(kw_only=True)

@@ -213,9 +213,7 @@ def eval_main(argv: list[str]) -> int:
     from trainer.evaluate import evaluate, format_table
 
     try:
-        for out, what in ((opts.json, "--json"), (opts.record, "--record")):
-            if out:
-                ensure_writable(out, what)
+        opts.check_outputs()
         torch.set_num_threads(1)
         policy, payload = load_policy(opts.checkpoint, trust_unsigned=opts.trust_unsigned)
         s = _eval_settings(opts, payload, opts.agents)

@@ -99,7 +99,31 @@ class NaNActionsError(ValueError):
 
 
 class SwarmEnv:
-    """B environments of one task; build it with ``taichi_swarm.make``."""
+    """A batch of ``num_envs`` teams of ``num_agents`` agents for ``task`` (``taichi_swarm.make``).
+
+    task: one of ``TASKS`` (coverage, formation, line). comm: "uc" (every
+    agent hears every agent) or "rc" (within ``comm_radius``). arch: "cpu",
+    "cuda"/"gpu" or "auto". array: "torch" or "numpy" outputs (numpy needs no
+    torch). action_space: "discrete" (the paper's 5 actions, int64 [B, M]) or
+    "continuous" (MPE's continuous mode: float32 [B, M, 2], force 5 clip(u, -1, 1)
+    per axis). task_params: ``max_steps`` (50) and ``success_threshold`` for all
+    tasks; ``formation_radius`` (formation); ``line_length`` (line).
+
+    neighbours: K, each agent's K nearest heard agents as index lists (obs["nbr"],
+    obs["nbr_mask"]) found through a cell grid, which also finds the contacts; no M x M
+    adjacency. "rc": those within comm_radius; "uc": the K nearest of all.
+    landmark_neighbours (coverage) with sense_radius: each agent's KL nearest landmarks
+    within sense_radius (obs["entities"] [B, M, KL, 2], obs["entity_mask"]).
+    scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
+    sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
+    assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
+    (eps-optimal: the total matched distance within M * 1e-3 of the optimum; no M x M
+    block, which M = 10,000 needs: auction.py) or "nearest" (needs neighbours; every per-step
+    quantity local and exact: the team reward from each target's nearest-agent distance d_t, as
+    in MPE's simple_spread, in matched_dist [B, M] per target; success and covered from a maximum
+    matching within success_threshold, in assignment [B, M], -1 where unmatched; each agent's
+    reward from its nearest target: nearest.py, docs/SWARM.md).
+    """
 
     def __init__(
         self,
@@ -633,62 +657,5 @@ def _to_numpy(value, name: str) -> np.ndarray:
         raise ValueError(f"{name} must be array-like") from exc
 
 
-def make(
-    task: str,
-    num_envs: int,
-    num_agents: int,
-    comm: str = "uc",
-    comm_radius: float = 1.0,
-    arch: str = "cpu",
-    seed: int | None = None,
-    array: str = "torch",
-    action_space: str = "discrete",
-    neighbours: int | None = None,
-    landmark_neighbours: int | None = None,
-    sense_radius: float | None = None,
-    scale: str | None = None,
-    assignment: str = "exact",
-    **task_params,
-) -> SwarmEnv:
-    """Build a batch of ``num_envs`` teams of ``num_agents`` agents for ``task``.
-
-    task: one of ``TASKS`` (coverage, formation, line). comm: "uc" (every
-    agent hears every agent) or "rc" (within ``comm_radius``). arch: "cpu",
-    "cuda"/"gpu" or "auto". array: "torch" or "numpy" outputs (numpy needs no
-    torch). action_space: "discrete" (the paper's 5 actions, int64 [B, M]) or
-    "continuous" (MPE's continuous mode: float32 [B, M, 2], force 5 clip(u, -1, 1)
-    per axis). task_params: ``max_steps`` (50) and ``success_threshold`` for all
-    tasks; ``formation_radius`` (formation); ``line_length`` (line).
-
-    neighbours: K, each agent's K nearest heard agents as index lists (obs["nbr"],
-    obs["nbr_mask"]) found through a cell grid, which also finds the contacts; no M x M
-    adjacency. "rc": those within comm_radius; "uc": the K nearest of all.
-    landmark_neighbours (coverage) with sense_radius: each agent's KL nearest landmarks
-    within sense_radius (obs["entities"] [B, M, KL, 2], obs["entity_mask"]).
-    scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
-    sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
-    assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
-    (eps-optimal: the total matched distance within M * 1e-3 of the optimum; no M x M
-    block, which M = 10,000 needs: auction.py) or "nearest" (needs neighbours; every per-step
-    quantity local and exact: the team reward from each target's nearest-agent distance d_t, as
-    in MPE's simple_spread, in matched_dist [B, M] per target; success and covered from a maximum
-    matching within success_threshold, in assignment [B, M], -1 where unmatched; each agent's
-    reward from its nearest target: nearest.py, docs/SWARM.md).
-    """
-    return SwarmEnv(
-        task,
-        num_envs,
-        num_agents,
-        comm,
-        comm_radius,
-        arch,
-        seed,
-        array,
-        action_space,
-        neighbours,
-        landmark_neighbours,
-        sense_radius,
-        scale,
-        assignment,
-        **task_params,
-    )
+# the gym-style entry point: taichi_swarm.make("coverage", 1024, 3) builds a SwarmEnv
+make = SwarmEnv
