@@ -38,6 +38,8 @@ SINGLES = (
      "coverage RC M = 5: the zoo's, trained on through message losses per round (f-coverage-rc-m5-rounds)"),
     ("coverage-rc-m5-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m5", 5,
      "coverage RC on neighbour lists, density-scaled, relative inputs and edges (s-coverage-rc-rel-m5)"),
+    ("coverage-rc-m10-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m10-cut", 10,
+     "the same at M = 10 from coverage-rc-m5-swarm, on lists cut to K = 4, KL = 5 (s-coverage-rc-rel-m10-cut)"),
 )  # fmt: skip
 
 
