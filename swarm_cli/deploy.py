@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 
 from swarm_cli.options import ExecuteOptions, ExportOptions, ReplayOptions, fail, parse
 
@@ -15,10 +16,7 @@ def export_main(argv: list[str]) -> int:
 
     if not os.path.exists(args.checkpoint) and not looks_like_name(args.checkpoint):  # a zoo name loads below
         return fail("swarm export", f"checkpoint {args.checkpoint} does not exist")
-    import logging
-
-    for name in ("torch.onnx", "torch.onnx._internal.exporter._registration"):
-        logging.getLogger(name).setLevel(logging.ERROR)  # "torchvision is not installed" noise
+    _quiet_exporter()
     from deploy.export import export
     from trainer.checkpoint import CheckpointError
 
@@ -40,16 +38,44 @@ def export_main(argv: list[str]) -> int:
     return 0
 
 
+def _quiet_exporter() -> None:
+    import logging
+
+    for name in ("torch.onnx", "torch.onnx._internal.exporter._registration"):
+        logging.getLogger(name).setLevel(logging.ERROR)  # "torchvision is not installed" noise
+
+
 # ----------------------------------------------------------------------------- execute
+def _export_dir(source: str, tmp: str) -> str:
+    """``source`` if it is an export directory; a zoo name or a checkpoint (file or run
+    directory) is exported into ``tmp`` first, which needs torch (an export directory does not)."""
+    from trainer.zoo import looks_like_name
+
+    run_dir = any(os.path.isfile(os.path.join(source, f)) for f in ("policy.pt", "checkpoint.pt"))
+    if not (os.path.isfile(source) or run_dir or (looks_like_name(source) and not os.path.exists(source))):
+        return source  # an export directory, or ExportedModel names what is missing
+    _quiet_exporter()
+    from deploy.executor import DeployError
+    from deploy.export import export
+    from trainer.checkpoint import CheckpointError
+
+    try:
+        export(source, tmp)
+    except CheckpointError as exc:
+        raise DeployError(str(exc)) from None
+    return tmp
+
+
 def execute_main(argv: list[str]) -> int:
     from deploy.video import open_recorders
 
     args = parse(ExecuteOptions, argv, "swarm execute")
     from deploy.executor import DeployError, ExportedModel, format_table, resolve_settings, run_episodes
 
+    tmp = tempfile.TemporaryDirectory(prefix="swarm-execute-")
     try:
         args.check_outputs()
-        model = ExportedModel(args.directory)
+        model = ExportedModel(_export_dir(args.directory, tmp.name))
         settings = [  # every setting checked (ExecuteSettings) before any episode runs
             resolve_settings(
                 model, args.task, args.agents, args.comm, args.comm_radius,
@@ -72,6 +98,8 @@ def execute_main(argv: list[str]) -> int:
                 recorder.report()
     except (DeployError, ValueError, OSError) as exc:
         return fail("swarm execute", exc)
+    finally:
+        tmp.cleanup()
     print(format_table(rows))
     if args.json:
         from taichi_swarm.files import atomic_write_json

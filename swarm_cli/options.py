@@ -330,7 +330,7 @@ class ExecuteOptions(SettingOptions, SwarmOptions, OutputOptions):
     along the communication graph; prints S%, T, DIST per drop rate."""
 
     directory: Annotated[str, Positional, tyro.conf.arg(metavar="DIRECTORY")]
-    """directory written by `swarm export`"""
+    """directory written by `swarm export`; a zoo name or a checkpoint is exported first (that step needs torch)"""
     agents: Annotated[int | None, Default("the manifest's")] = None
     """team size M"""
     episodes: int = 10

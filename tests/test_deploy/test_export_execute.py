@@ -13,6 +13,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 
 import numpy as np
@@ -320,6 +321,15 @@ def test_missing_directory(capsys, tmp_path):
     assert code == 2 and "swarm execute: error:" in err and "does not exist" in err and "Traceback" not in err
     code, err = _run(execute_main, [str(tmp_path), "--task", "coverage"], capsys)
     assert code == 2 and "manifest.json" in err
+
+
+def test_execute_takes_a_zoo_name_and_leaves_no_export_behind(capsys, monkeypatch, tmp_path):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    code, err = _run(execute_main, ["coverage-uc-m3", "--episodes", "2"], capsys)
+    assert code == 0, err
+    assert not list(tmp_path.glob("swarm-execute-*"))  # the export went to a temporary directory, removed
+    code, err = _run(execute_main, ["coverage-uc-m33", "--episodes", "2"], capsys)
+    assert code == 2 and "not a file, a run directory or a model zoo name" in err
 
 
 def test_corrupted_file_is_refused(emp, tmp_path, capsys):
