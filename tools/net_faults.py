@@ -190,7 +190,7 @@ def main(argv=None) -> int:
         r = run_cell(args.export, s, net, fault_kwargs, launcher, args.seed, args.hold)
         r["executor"] = None
         if reference is not None:
-            held = {"hold": args.hold} if args.hold and reference else {}
+            held = {"hold": args.hold} if args.hold else {}
             ref = resolve_settings(
                 model, None, args.agents, None, None, episodes=args.episodes, seed=args.seed, **reference, **held
             )

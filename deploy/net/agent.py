@@ -232,8 +232,8 @@ class NetAgent:
         self.run, self.step, self.round = h.run, h.step, 0
         B, M = h.envs, hears.shape[1]
         self.B, self.M = B, M
-        early, self._early = self._early, deque(maxlen=EARLY_KEPT)
-        for eh, message, t in early:
+        while self._early:
+            eh, message, t = self._early.popleft()
             if eh.run != h.run:
                 self._drop("foreign", f"a message of run {eh.run:08x}, this agent is in run {h.run:08x}")
             elif eh.step >= h.step:  # (a restarted agent's messages of earlier steps are no loss)
