@@ -1,6 +1,7 @@
-"""Zero-shot curves over team size: the `swarm zero-shot --json` files of results/swarm/ as
-one plot (log M axis: S% and the fraction of targets covered, per task) and as the markdown
-table docs/SWARM.md shows.
+"""Zero-shot curves over team size: the `swarm zero-shot --json` files of results/swarm/ (and
+the hand-written controllers' reference-*.json of tools/coverage_reference.py, dashed) as one
+plot (log M axis: S% and the fraction of targets covered, per task) and as the markdown table
+docs/SWARM.md shows.
 
     python tools/swarm_curves.py                       # table to stdout, plot to docs/media/
     python tools/swarm_curves.py results/swarm/*.json --out /tmp/curves.png
@@ -15,7 +16,7 @@ import os
 import sys
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
-DEFAULT_GLOB = os.path.join(ROOT, "results", "swarm", "zero-shot-*.json")
+DEFAULT_GLOBS = [os.path.join(ROOT, "results", "swarm", f"{kind}-*.json") for kind in ("zero-shot", "reference")]
 DEFAULT_OUT = os.path.join(ROOT, "docs", "media", "swarm-zero-shot.png")
 
 
@@ -29,7 +30,7 @@ def read(path: str) -> dict:
             r["agents"], r["success_rate"], r["covered"]  # noqa: B018 (the keys the curves need)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SystemExit(f"swarm_curves: {path} is not a `swarm zero-shot --json` file ({exc!r})") from None
-    return {"name": data.get("checkpoint", os.path.basename(path)), "rows": rows}
+    return {"name": data.get("checkpoint", os.path.basename(path)), "rows": rows, "reference": "controller" in data}
 
 
 def table(curves: list[dict]) -> str:
@@ -56,12 +57,13 @@ def plot(curves: list[dict], out: str) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
     for c in curves:
         m = [r["agents"] for r in c["rows"]]
-        axes[0].plot(m, [100 * r["success_rate"] for r in c["rows"]], "o-", label=c["name"])
+        style = "s--" if c.get("reference") else "o-"
+        axes[0].plot(m, [100 * r["success_rate"] for r in c["rows"]], style, label=c["name"])
         covered = [float("nan") if r["covered"] is None else r["covered"] for r in c["rows"]]
-        axes[1].plot(m, covered, "o-", label=c["name"])
+        axes[1].plot(m, covered, style, label=c["name"])
     for ax, label in zip(axes, ("S% (every target within the threshold)", "fraction of targets covered"), strict=True):
         ax.set_xscale("log")
-        ax.set_xlabel("team size M (density-scaled arena, rc, neighbour lists K = 16)")
+        ax.set_xlabel("team size M (density-scaled arena, rc, neighbour lists)")
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)
     axes[1].legend(fontsize=8)
@@ -74,13 +76,13 @@ def plot(curves: list[dict], out: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("files", nargs="*", help=f"zero-shot JSON files (default: {os.path.relpath(DEFAULT_GLOB)})")
+    ap.add_argument("files", nargs="*", help="JSON files (default: results/swarm/zero-shot-*.json, reference-*.json)")
     ap.add_argument("--out", default=DEFAULT_OUT, help="the plot (PNG)")
     ap.add_argument("--no-plot", action="store_true", help="print the table only")
     args = ap.parse_args(argv)
-    files = args.files or sorted(glob.glob(DEFAULT_GLOB))
+    files = args.files or [p for g in DEFAULT_GLOBS for p in sorted(glob.glob(g))]
     if not files:
-        print(f"swarm_curves: no zero-shot files ({DEFAULT_GLOB})", file=sys.stderr)
+        print("swarm_curves: no zero-shot files in results/swarm/", file=sys.stderr)
         return 2
     curves = [read(p) for p in files]
     print(table(curves))

@@ -1,0 +1,54 @@
+"""tools/coverage_reference.py: the hand-written coverage controllers docs/SWARM.md compares the
+learned policies with. The steering hovers within the success radius of a goal that lies
+between the lattice points an agent can park on, and the central plan covers at small M."""
+
+import importlib.util
+import os
+
+import numpy as np
+
+from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY
+
+ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
+PATH = os.path.join(ROOT, "tools", "coverage_reference.py")
+spec = importlib.util.spec_from_file_location("coverage_reference", PATH)
+ref = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(ref)
+
+
+def test_steering_hovers_within_the_success_radius_between_lattice_points():
+    # from rest an agent parks only on a lattice of side 0.2; (0.1, 0.1) is the farthest point
+    # from it (0.141 > 0.1): a controller that only parks stays out of reach there
+    rng = np.random.default_rng(0)
+    goals = np.concatenate([[[0.1, 0.1], [0.1, -0.1], [0.3, 0.1]], rng.uniform(-0.6, 0.6, (40, 2))]).astype(np.float32)
+    pos, vel = np.zeros_like(goals), np.zeros_like(goals)
+    worst = []
+    for t in range(40):
+        a = ref.steer(pos, vel, goals)
+        vel = vel * (1 - DAMPING) + ref.DIRECTIONS[a] * (SENSITIVITY / MASS) * DT
+        pos = pos + vel * DT
+        if t >= 30:
+            worst.append(np.linalg.norm(pos - goals, axis=-1).max())
+    assert max(worst) < 0.1, worst
+
+
+def test_the_central_plan_covers_small_teams_and_the_greedy_one_runs():
+    planned = ref.run("planned", agents=5, episodes=10, seed=777, batch=10)
+    assert planned["episodes"] == 10 and planned["success_rate"] >= 0.7 and planned["covered"] >= 0.9, planned
+    greedy = ref.run("greedy", agents=5, episodes=10, seed=777, batch=10)
+    assert greedy["episodes"] == 10 and 0.0 < greedy["covered"] <= 1.0 and greedy["dist"] > 0, greedy
+
+
+def test_save_merges_rows_by_size_and_refuses_another_seed(tmp_path):
+    import json
+
+    import pytest
+
+    row = dict(controller="greedy", agents=10, episodes=5, success_rate=0.2, covered=0.7, dist=0.1, length=50.0)
+    ref.save([row, dict(row, agents=20)], seed=777, directory=str(tmp_path))
+    ref.save([dict(row, agents=10, covered=0.8)], seed=777, directory=str(tmp_path))
+    data = json.loads((tmp_path / "reference-greedy.json").read_text())
+    assert [(r["agents"], r["covered"]) for r in data["results"]] == [(10, 0.8), (20, 0.7)]
+    assert data["controller"] == "greedy" and data["checkpoint"] == "reference: greedy"
+    with pytest.raises(SystemExit, match="seed 777, not 1"):
+        ref.save([row], seed=1, directory=str(tmp_path))

@@ -1,0 +1,212 @@
+"""Hand-written controllers for density-scaled coverage, as references for the learned policies
+(docs/SWARM.md, "What a hand-written controller reaches"). Same setting as the swarm spec's
+policies: rc within 1, lists of K = 4 teammates and KL = 5 landmarks within 1, scale="density",
+the 50-step limit, the exact assignment's S%, covered and DIST.
+
+- planned: the min-sum matching of agents to landmarks at the episode's start (scipy), known to
+  every agent (a central plan, not decentralised); each agent then drives to its landmark.
+  What the dynamics allow in 50 steps: the ceiling.
+- greedy: decentralised, from what the agent's lists hold and 3 rounds of messages. It drives
+  to the nearest landmark it senses that no teammate it hears heads for from nearer; when it
+  has given up every landmark it senses (or senses none), it moves away from the teammates it
+  hears, to find others.
+
+    python tools/coverage_reference.py --sizes 10 100 1000 --episodes 100 --save
+
+--save merges the rows into results/swarm/reference-<controller>.json (a size run again
+replaces its row), which tools/swarm_curves.py draws beside the policies' zero-shot curves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+RESULTS = os.path.join(ROOT, "results", "swarm")
+sys.path.insert(0, ROOT)
+
+import taichi_swarm  # noqa: E402
+from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY  # noqa: E402
+
+CONTROLLERS = ("planned", "greedy")
+# unit force direction of each discrete action: no-op, -x, +x, -y, +y
+DIRECTIONS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], np.float32)
+
+
+def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray) -> np.ndarray:
+    """[N, 2] each -> int64 [N]: the first action of the two-action sequence that brings the
+    next two positions and the stopping point after them (where the agent comes to rest if it
+    coasts from there on) nearest its goal.
+    From rest an agent's stopping points lie on a lattice of side 0.2 (each impulse adds
+    SENSITIVITY / MASS * DT * DT / DAMPING = 0.2 to it), wider than the 0.1 of success, so a
+    controller that only parks misses a goal between lattice points (up to 0.141 away); this
+    one alternates impulses and hovers there: within 0.056 of 4000 random goals over the last
+    10 of 50 steps (one step of lookahead: 6% of them out of 0.1)."""
+    accel = DIRECTIONS * (SENSITIVITY / MASS) * DT  # [5, 2] velocity change of each action
+    v1 = vel[:, None, :] * (1.0 - DAMPING) + accel[None]  # [N, 5, 2]
+    p1 = pos[:, None, :] + v1 * DT
+    v2 = v1[:, :, None, :] * (1.0 - DAMPING) + accel[None, None]  # [N, 5, 5, 2]
+    p2 = p1[:, :, None, :] + v2 * DT
+    stop = p2 + v2 * DT * (1.0 - DAMPING) / DAMPING
+    g = goal[:, None, None, :]
+    cost = ((p1[:, :, None] - g) ** 2).sum(-1) + ((p2 - g) ** 2).sum(-1) + ((stop - g) ** 2).sum(-1)  # [N, 5, 5]
+    return (np.argmin(cost.reshape(len(pos), -1), axis=1) // len(DIRECTIONS)).astype(np.int64)
+
+
+def planned_goals(state: dict) -> np.ndarray:
+    """[B, M, 2]: every agent's landmark in the min-sum matching of the current positions."""
+    from scipy.optimize import linear_sum_assignment
+
+    pos, lmk = state["pos"], state["landmarks"]
+    goals = np.empty_like(pos)
+    for b in range(pos.shape[0]):
+        cost = np.linalg.norm(pos[b][:, None, :] - lmk[b][None, :, :], axis=-1)
+        rows, cols = linear_sum_assignment(cost)
+        goals[b, rows] = lmk[b, cols]
+    return goals
+
+
+def greedy_goals(state: dict, obs: dict, rounds: int = 3) -> np.ndarray:
+    """[B, M, 2] from each agent's own lists and 3 rounds of messages, as the network has:
+    obs["entities"] (offsets to its KL nearest sensed landmarks, nearest first), obs["nbr"] /
+    obs["nbr_mask"] (the teammates it hears). Each round every agent tells the teammates that
+    hear it which landmark it is heading for and how far it is; an agent gives a landmark up to
+    a teammate that heads for it and is nearer, and takes its next nearest. (Landmarks are
+    compared by position here, which a message would carry as an offset.)"""
+    pos = state["pos"]  # [B, M, 2]
+    ent, emask = np.asarray(obs["entities"]), np.asarray(obs["entity_mask"])  # [B, M, KL, 2], [B, M, KL]
+    nbr, nmask = np.asarray(obs["nbr"]), np.asarray(obs["nbr_mask"])  # [B, M, K]
+    B, M, KL = emask.shape
+    b_idx = np.arange(B)[:, None, None]
+    lmk = pos[:, :, None, :] + ent  # [B, M, KL, 2]
+    mine = np.where(emask, np.linalg.norm(ent, axis=-1), np.inf)  # [B, M, KL]
+    given_up = ~emask
+    for _ in range(rounds):
+        free = ~given_up
+        choice = np.argmax(free, axis=-1)  # nearest landmark not given up
+        has = free.any(-1)
+        goal = np.take_along_axis(lmk, choice[..., None, None].repeat(2, -1), axis=2)[:, :, 0]  # [B, M, 2]
+        dist = np.where(has, np.take_along_axis(mine, choice[..., None], axis=2)[..., 0], np.inf)
+        # what each heard teammate heads for, and how far it is from it
+        their_goal, their_dist = goal[b_idx, nbr], dist[b_idx, nbr]  # [B, M, K, 2], [B, M, K]
+        same = (np.abs(their_goal[:, :, None] - lmk[:, :, :, None]).max(-1) < 1e-5) & nmask[:, :, None, :]
+        beaten = (same & (their_dist[:, :, None, :] < mine[..., None])).any(-1)  # [B, M, KL]
+        given_up = given_up | beaten
+    free = ~given_up
+    has = free.any(-1)
+    choice = np.argmax(free, axis=-1)
+    goal_free = np.take_along_axis(lmk, choice[..., None, None].repeat(2, -1), axis=2)[:, :, 0]
+    # nothing left: one unit away from the centroid of the teammates heard (stay if none heard)
+    mates = pos[b_idx, nbr]
+    n_heard = nmask.sum(-1, keepdims=True)
+    centroid = (mates * nmask[..., None]).sum(2) / np.maximum(n_heard, 1)
+    away = pos - centroid
+    away = away / np.maximum(np.linalg.norm(away, axis=-1, keepdims=True), 1e-6)
+    goal_explore = np.where(n_heard > 0, pos + away, pos)
+    return np.where(has[..., None], goal_free, goal_explore)
+
+
+def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10) -> dict:
+    """One controller at one team size: S%, covered and DIST over ``episodes`` episodes."""
+    success, covered, dist, length = [], [], [], []
+    env = taichi_swarm.make(
+        "coverage",
+        num_envs=min(batch, episodes),
+        num_agents=agents,
+        comm="rc",
+        comm_radius=1.0,
+        neighbours=4,
+        landmark_neighbours=5,
+        sense_radius=1.0,
+        scale="density",
+        array="numpy",
+    )
+    for first in range(0, episodes, env.num_envs):
+        obs = env.reset(seed=seed + first)
+        goals = planned_goals(env.get_state()) if controller == "planned" else None
+        finished = np.zeros(env.num_envs, bool)
+        while not finished.all():
+            state = env.get_state()
+            g = goals if controller == "planned" else greedy_goals(state, obs)
+            actions = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), g.reshape(-1, 2))
+            obs, _, done, info = env.step(actions.reshape(env.num_envs, agents))
+            ep = info["episode"]
+            for b in np.flatnonzero(done & ~finished):
+                success.append(bool(ep["success"][b]))
+                covered.append(float(ep["covered"][b]))
+                dist.append(float(ep["dist"][b]))
+                length.append(int(ep["length"][b]))
+            finished |= done
+    n = min(episodes, len(success))
+    return {
+        "controller": controller,
+        "agents": agents,
+        "episodes": n,
+        "success_rate": float(np.mean(success[:n])),
+        "covered": float(np.mean(covered[:n])),
+        "dist": float(np.mean(dist[:n])),
+        "length": float(np.mean(length[:n])),
+    }
+
+
+def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
+    """Merge ``rows`` into ``directory``/reference-<controller>.json, atomically; returns the paths."""
+    paths = []
+    for controller in sorted({r["controller"] for r in rows}):
+        path = os.path.join(directory, f"reference-{controller}.json")
+        by_m = {}
+        if os.path.exists(path):
+            with open(path) as f:
+                old = json.load(f)
+            if old.get("seed") != seed:
+                raise SystemExit(f"coverage_reference: {path} holds seed {old.get('seed')}, not {seed}: move it away")
+            by_m = {r["agents"]: r for r in old["results"]}
+        by_m.update({r["agents"]: r for r in rows if r["controller"] == controller})
+        data = {
+            "checkpoint": f"reference: {controller}",
+            "controller": controller,
+            "seed": seed,
+            "results": [by_m[m] for m in sorted(by_m)],
+        }
+        os.makedirs(directory, exist_ok=True)
+        tmp = path + ".tmp"
+        with open(tmp, "w") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, path)
+        paths.append(path)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=list(CONTROLLERS))
+    ap.add_argument("--sizes", nargs="+", type=int, default=[10, 20, 50, 100, 1000])
+    ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--seed", type=int, default=777)
+    ap.add_argument("--save", action="store_true", help="merge the rows into results/swarm/reference-<controller>.json")
+    args = ap.parse_args(argv)
+    if args.episodes < 1 or any(m < 2 for m in args.sizes):
+        ap.error("--episodes must be >= 1 and every size >= 2")
+    taichi_swarm.init("cpu")
+    rows = []
+    print(f"{'controller':10} {'M':>5} {'episodes':>8} {'S%':>6} {'covered':>8} {'DIST':>7} {'T':>6}")
+    for controller in args.controllers:
+        for m in args.sizes:
+            r = run(controller, m, args.episodes, args.seed)
+            rows.append(r)
+            print(
+                f"{controller:10} {m:5d} {r['episodes']:8d} {100 * r['success_rate']:6.1f} "
+                f"{r['covered']:8.2f} {r['dist']:7.3f} {r['length']:6.2f}",
+                flush=True,
+            )
+            if args.save:  # after every size: a stopped run keeps what it measured
+                save([r], args.seed)
+
+
+if __name__ == "__main__":
+    main()
