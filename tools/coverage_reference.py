@@ -14,7 +14,8 @@ the 50-step limit, the exact assignment's S%, covered and DIST.
     python tools/coverage_reference.py --sizes 10 100 1000 --episodes 100 --save
 
 --save merges the rows into results/swarm/reference-<controller>.json (a size run again
-replaces its row), which tools/swarm_curves.py draws beside the policies' zero-shot curves.
+replaces its row; reference-<controller>-nearest.json with --assignment nearest), which
+tools/swarm_curves.py draws beside the policies' zero-shot curves.
 """
 
 from __future__ import annotations
@@ -111,8 +112,10 @@ def greedy_goals(state: dict, obs: dict, rounds: int = 3) -> np.ndarray:
     return np.where(has[..., None], goal_free, goal_explore)
 
 
-def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10) -> dict:
-    """One controller at one team size: S%, covered and DIST over ``episodes`` episodes."""
+def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10, assignment: str = "exact") -> dict:
+    """One controller at one team size: S%, covered and DIST over ``episodes`` episodes; covered
+    and S% by the min-sum matching (``assignment="exact"``) or by the maximum matching within
+    the threshold ("nearest", never below the min-sum one's: docs/SWARM.md)."""
     success, covered, dist, length = [], [], [], []
     env = taichi_swarm.make(
         "coverage",
@@ -124,6 +127,7 @@ def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10)
         landmark_neighbours=5,
         sense_radius=1.0,
         scale="density",
+        assignment=assignment,
         array="numpy",
     )
     for first in range(0, episodes, env.num_envs):
@@ -145,6 +149,7 @@ def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10)
     n = min(episodes, len(success))
     return {
         "controller": controller,
+        **({"assignment": assignment} if assignment != "exact" else {}),
         "agents": agents,
         "episodes": n,
         "success_rate": float(np.mean(success[:n])),
@@ -157,8 +162,9 @@ def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10)
 def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
     """Merge ``rows`` into ``directory``/reference-<controller>.json, atomically; returns the paths."""
     paths = []
-    for controller in sorted({r["controller"] for r in rows}):
-        path = os.path.join(directory, f"reference-{controller}.json")
+    for controller, assignment in sorted({(r["controller"], r.get("assignment", "exact")) for r in rows}):
+        suffix = "" if assignment == "exact" else f"-{assignment}"
+        path = os.path.join(directory, f"reference-{controller}{suffix}.json")
         by_m = {}
         if os.path.exists(path):
             with open(path) as f:
@@ -166,7 +172,8 @@ def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
             if old.get("seed") != seed:
                 raise SystemExit(f"coverage_reference: {path} holds seed {old.get('seed')}, not {seed}: move it away")
             by_m = {r["agents"]: r for r in old["results"]}
-        by_m.update({r["agents"]: r for r in rows if r["controller"] == controller})
+        mine = [r for r in rows if r["controller"] == controller and r.get("assignment", "exact") == assignment]
+        by_m.update({r["agents"]: r for r in mine})
         data = {
             "checkpoint": f"reference: {controller}",
             "controller": controller,
@@ -188,7 +195,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--sizes", nargs="+", type=int, default=[10, 20, 50, 100, 1000])
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=777)
-    ap.add_argument("--save", action="store_true", help="merge the rows into results/swarm/reference-<controller>.json")
+    ap.add_argument(
+        "--assignment", choices=("exact", "nearest"), default="exact",
+        help="covered and S% by the min-sum matching (exact) or the maximum matching within the threshold (nearest)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--save", action="store_true",
+        help="merge the rows into results/swarm/reference-<controller>.json (-nearest.json with --assignment nearest)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     if args.episodes < 1 or any(m < 2 for m in args.sizes):
         ap.error("--episodes must be >= 1 and every size >= 2")
@@ -197,7 +211,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'controller':10} {'M':>5} {'episodes':>8} {'S%':>6} {'covered':>8} {'DIST':>7} {'T':>6}")
     for controller in args.controllers:
         for m in args.sizes:
-            r = run(controller, m, args.episodes, args.seed)
+            r = run(controller, m, args.episodes, args.seed, assignment=args.assignment)
             rows.append(r)
             print(
                 f"{controller:10} {m:5d} {r['episodes']:8d} {100 * r['success_rate']:6.1f} "

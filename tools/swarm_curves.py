@@ -30,7 +30,10 @@ def read(path: str) -> dict:
             r["agents"], r["success_rate"], r["covered"]  # noqa: B018 (the keys the curves need)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SystemExit(f"swarm_curves: {path} is not a `swarm zero-shot --json` file ({exc!r})") from None
-    return {"name": data.get("checkpoint", os.path.basename(path)), "rows": rows, "reference": "controller" in data}
+    name = data.get("checkpoint", os.path.basename(path))
+    if any(r.get("assignment") == "nearest" for r in rows):  # covered by the maximum matching within the threshold
+        name += " (max matching)"
+    return {"name": name, "rows": rows, "reference": "controller" in data}
 
 
 def table(curves: list[dict]) -> str:

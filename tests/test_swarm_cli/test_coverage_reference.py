@@ -52,3 +52,9 @@ def test_save_merges_rows_by_size_and_refuses_another_seed(tmp_path):
     assert data["controller"] == "greedy" and data["checkpoint"] == "reference: greedy"
     with pytest.raises(SystemExit, match="seed 777, not 1"):
         ref.save([row], seed=1, directory=str(tmp_path))
+
+
+def test_save_keeps_the_max_matching_rows_apart(tmp_path):
+    row = dict(controller="planned", agents=10, episodes=5, success_rate=1.0, covered=1.0, dist=0.03, length=10.0)
+    ref.save([row, dict(row, assignment="nearest")], seed=777, directory=str(tmp_path))
+    assert sorted(os.listdir(tmp_path)) == ["reference-planned-nearest.json", "reference-planned.json"]

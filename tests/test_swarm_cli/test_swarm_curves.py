@@ -41,3 +41,11 @@ def test_a_file_that_is_not_a_zero_shot_result_is_refused(tmp_path):
     bad.write_text(json.dumps({"results": [{"agents": 3}]}))
     with pytest.raises(SystemExit, match="is not a `swarm zero-shot --json` file"):
         swarm_curves.main([str(bad), "--no-plot"])
+
+
+def test_max_matching_rows_are_labelled(tmp_path, capsys):
+    path = tmp_path / "n.json"
+    rows = [dict(agents=100, success_rate=0.0, covered=0.6, assignment="nearest")]
+    path.write_text(json.dumps({"checkpoint": "p", "results": rows}))
+    assert swarm_curves.main([str(path), "--no-plot"]) == 0
+    assert "| `p (max matching)` | covered | 0.60 |" in capsys.readouterr().out
