@@ -1,0 +1,143 @@
+"""Behaviour cloning of the local greedy coverage controller (tools/coverage_reference.py) into a
+swarm policy, by DAgger: roll out at several team sizes, each environment driven by the
+controller or by the policy (the controller's share falling from 1 to 0), label every agent's
+step with the controller's action, and fit the policy's logits to the labels (cross-entropy).
+The controller uses only what an agent's lists and 3 rounds of messages give, so the network
+(the same lists, 3 attention rounds) can represent it; the result is a policy that `swarm eval`
+and `swarm zero-shot` read, and a start for PPO (`--init-from`).
+
+    python tools/imitate.py --init coverage-rc-m10-swarm --sizes 10 20 50 100 --iterations 60 \
+        --out runs/imitate/policy.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import torch  # noqa: E402
+from coverage_reference import greedy_goals, steer  # noqa: E402
+
+import taichi_swarm  # noqa: E402
+from trainer import checkpoint  # noqa: E402
+from trainer.model import policy_inputs  # noqa: E402
+
+AGENTS_PER_ROLLOUT = 1000  # B x M of each iteration's environments
+STEPS = 50  # the episode's length: one rollout is one episode of every environment
+
+
+def make_env(agents: int, swarm: dict, seed: int):
+    return taichi_swarm.make(
+        "coverage", max(1, AGENTS_PER_ROLLOUT // agents), agents, comm="rc", comm_radius=1.0, seed=seed, **swarm
+    )
+
+
+def expert_actions(env, obs) -> torch.Tensor:
+    """The greedy controller's action for every agent, int64 [B, M]."""
+    state = env.get_state()
+    state = {k: np.asarray(v) for k, v in state.items()}
+    view = {k: np.asarray(v) for k, v in obs.items()}
+    goals = greedy_goals(state, view)
+    a = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2))
+    return torch.from_numpy(a.reshape(env.num_envs, env.num_agents))
+
+
+def rollout(env, policy, expert_share: float, seed: int):
+    """One episode of every environment; the first round(expert_share * B) follow the controller,
+    the rest the policy's argmax. Returns (inputs per step, labels per step, covered)."""
+    obs = env.reset(seed=seed)
+    n_expert = int(round(expert_share * env.num_envs))
+    inputs, labels = [], []
+    for _ in range(STEPS):
+        x = {k: v.clone() for k, v in policy_inputs(obs).items()}  # the env's views are overwritten
+        label = expert_actions(env, obs)
+        with torch.no_grad():
+            mine = policy(**x)[0].argmax(-1)
+        action = mine.clone()
+        action[:n_expert] = label[:n_expert]
+        inputs.append(x)
+        labels.append(label)
+        obs, _, done, info = env.step(action.contiguous())
+    covered = float(np.asarray(info["episode"]["covered"])[np.asarray(done)].mean()) if np.asarray(done).any() else 0.0
+    return inputs, labels, covered
+
+
+def fit(policy, optimizer, inputs, labels, rng, chunk: int = 10) -> tuple[float, float]:
+    """One pass over a rollout's steps in random chunks of ``chunk`` steps; (loss, accuracy)."""
+    order = rng.permutation(len(inputs))
+    losses, hits, total = [], 0, 0
+    for i in range(0, len(order), chunk):
+        idx = order[i : i + chunk]
+        x = {k: torch.cat([inputs[j][k] for j in idx]) for k in inputs[0]}
+        y = torch.cat([labels[j] for j in idx])
+        logits = policy(**x)[0]
+        loss = torch.nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), y.reshape(-1))
+        optimizer.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
+        optimizer.step()
+        losses.append(loss.item())
+        hits += int((logits.argmax(-1) == y).sum())
+        total += y.numel()
+    return float(np.mean(losses)), hits / total
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--init", required=True, help="a zoo name or a checkpoint: the network, its lists and its start")
+    ap.add_argument("--sizes", nargs="+", type=int, default=[10, 20, 50, 100])
+    ap.add_argument("--iterations", type=int, default=40)
+    ap.add_argument("--expert-iterations", type=int, default=10, help="the controller's share falls to 0 over these")
+    ap.add_argument("--lr", type=float, default=3e-4)
+    ap.add_argument("--passes", type=int, default=2, help="passes over each new rollout")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", required=True, help="the policy file to write (policy.pt format)")
+    args = ap.parse_args(argv)
+    if args.iterations < 1 or any(m < 2 for m in args.sizes):
+        ap.error("--iterations must be >= 1 and every size >= 2")
+    taichi_swarm.init("cpu")
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    from trainer.zoo import get, looks_like_name
+
+    path = get(args.init).path if looks_like_name(args.init) else args.init
+    policy, payload = checkpoint.load_policy(path)
+    swarm = dict(payload.get("swarm") or {})
+    swarm["assignment"] = "nearest"  # covered by the maximum matching, and a step cost flat in M
+    for key in ("neighbours", "landmark_neighbours", "sense_radius"):
+        if swarm.get(key) is None:
+            raise SystemExit(f"imitate: {args.init} was not trained on lists ({key} unset)")
+    policy.train()
+    optimizer = torch.optim.Adam(policy.parameters(), lr=args.lr)
+    envs = {m: make_env(m, swarm, args.seed) for m in args.sizes}
+    log = []
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    for it in range(args.iterations):
+        m = args.sizes[it % len(args.sizes)]
+        share = max(0.0, 1.0 - it / max(1, args.expert_iterations))
+        t = time.time()
+        inputs, labels, covered = rollout(envs[m], policy, share, seed=args.seed * 100003 + it)
+        for _ in range(args.passes):
+            loss, acc = fit(policy, optimizer, inputs, labels, rng)
+        row = dict(
+            iteration=it, agents=m, expert_share=share, covered=covered, loss=loss, accuracy=acc, s=time.time() - t
+        )
+        log.append(row)
+        print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
+        payload = dict(payload, model={k: v.detach().clone() for k, v in policy.state_dict().items()})
+        checkpoint.save_policy_only(payload, args.out)  # atomic: a stopped run keeps its last iteration
+    with open(args.out + ".log.jsonl", "w") as f:
+        f.writelines(json.dumps(r) + "\n" for r in log)
+
+
+if __name__ == "__main__":
+    main()
