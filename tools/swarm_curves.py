@@ -57,7 +57,7 @@ def plot(curves: list[dict], out: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 3.8))
     for c in curves:
         m = [r["agents"] for r in c["rows"]]
         style = "s--" if c.get("reference") else "o-"
@@ -69,7 +69,7 @@ def plot(curves: list[dict], out: str) -> None:
         ax.set_xlabel("team size M (density-scaled arena, rc, neighbour lists)")
         ax.set_title(label, fontsize=10)
         ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=8)
+    axes[1].legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))  # beside, not over, the curves
     fig.tight_layout()
     tmp = out + ".tmp.png"
     fig.savefig(tmp, dpi=90)

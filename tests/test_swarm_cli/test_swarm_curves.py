@@ -49,3 +49,9 @@ def test_max_matching_rows_are_labelled(tmp_path, capsys):
     path.write_text(json.dumps({"checkpoint": "p", "results": rows}))
     assert swarm_curves.main([str(path), "--no-plot"]) == 0
     assert "| `p (max matching)` | covered | 0.60 |" in capsys.readouterr().out
+
+
+def test_the_swarm_doc_table_is_generated_from_the_committed_results(capsys):
+    assert swarm_curves.main(["--no-plot"]) == 0
+    table = capsys.readouterr().out.strip()
+    assert table in open(os.path.join(ROOT, "docs", "SWARM.md")).read(), "run python tools/swarm_curves.py"
