@@ -153,7 +153,7 @@ class SwarmOptions:
     scale: Annotated[Literal["density"] | None, Default("the paper's geometry")] = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10"""
     assignment: Annotated[Literal["exact", "auction", "nearest"] | None, Default(OWN)] = None
-    """targets to agents for the reward and success: exact, auction or nearest (local; needs --neighbours)"""
+    """targets to agents: exact (min-sum), auction or nearest (local, covered by max matching; needs --neighbours)"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")
