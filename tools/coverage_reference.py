@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument(
         "--assignment", choices=("exact", "nearest"), default="exact",
-        help="covered and S% by the min-sum matching (exact) or the maximum matching within the threshold (nearest)",
+        help="covered and S%% by the min-sum matching (exact) or the maximum matching within the threshold (nearest)",
     )  # fmt: skip
     ap.add_argument(
         "--save", action="store_true",
