@@ -13,6 +13,7 @@ import argparse
 import glob
 import json
 import os
+import re
 import sys
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
@@ -31,6 +32,8 @@ def read(path: str) -> dict:
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SystemExit(f"swarm_curves: {path} is not a `swarm zero-shot --json` file ({exc!r})") from None
     name = data.get("checkpoint", os.path.basename(path))
+    # a spec cell's policy (results/reproduce-<spec>/<cell>/s<seed>/stage-m<M>/policy.pt) by its cell id
+    name = re.sub(r"^(?:.*/)?results/reproduce-[\w-]+/([\w-]+)/s\d+/.*$", r"\1", name)
     if any(r.get("assignment") == "nearest" for r in rows):  # covered by the maximum matching within the threshold
         name += " (max matching)"
     return {"name": name, "rows": rows, "reference": "controller" in data}
