@@ -82,26 +82,25 @@ def greedy_goals(state: dict, obs: dict, rounds: int = 3) -> np.ndarray:
     pos = state["pos"]  # [B, M, 2]
     ent, emask = np.asarray(obs["entities"]), np.asarray(obs["entity_mask"])  # [B, M, KL, 2], [B, M, KL]
     nbr, nmask = np.asarray(obs["nbr"]), np.asarray(obs["nbr_mask"])  # [B, M, K]
-    B, M, KL = emask.shape
-    b_idx = np.arange(B)[:, None, None]
+    b_idx = np.arange(pos.shape[0])[:, None, None]
     lmk = pos[:, :, None, :] + ent  # [B, M, KL, 2]
     mine = np.where(emask, np.linalg.norm(ent, axis=-1), np.inf)  # [B, M, KL]
+
+    def heading(given_up):  # each agent's nearest landmark not given up: (goal [B, M, 2], its distance, any left)
+        free = ~given_up
+        choice = np.argmax(free, axis=-1)[..., None]  # the lists are nearest first
+        goal = np.take_along_axis(lmk, choice[..., None].repeat(2, -1), axis=2)[:, :, 0]
+        has = free.any(-1)
+        return goal, np.where(has, np.take_along_axis(mine, choice, axis=2)[..., 0], np.inf), has
+
     given_up = ~emask
     for _ in range(rounds):
-        free = ~given_up
-        choice = np.argmax(free, axis=-1)  # nearest landmark not given up
-        has = free.any(-1)
-        goal = np.take_along_axis(lmk, choice[..., None, None].repeat(2, -1), axis=2)[:, :, 0]  # [B, M, 2]
-        dist = np.where(has, np.take_along_axis(mine, choice[..., None], axis=2)[..., 0], np.inf)
+        goal, dist, _ = heading(given_up)
         # what each heard teammate heads for, and how far it is from it
         their_goal, their_dist = goal[b_idx, nbr], dist[b_idx, nbr]  # [B, M, K, 2], [B, M, K]
         same = (np.abs(their_goal[:, :, None] - lmk[:, :, :, None]).max(-1) < 1e-5) & nmask[:, :, None, :]
-        beaten = (same & (their_dist[:, :, None, :] < mine[..., None])).any(-1)  # [B, M, KL]
-        given_up = given_up | beaten
-    free = ~given_up
-    has = free.any(-1)
-    choice = np.argmax(free, axis=-1)
-    goal_free = np.take_along_axis(lmk, choice[..., None, None].repeat(2, -1), axis=2)[:, :, 0]
+        given_up = given_up | (same & (their_dist[:, :, None, :] < mine[..., None])).any(-1)  # beaten
+    goal_free, _, has = heading(given_up)
     # nothing left: one unit away from the centroid of the teammates heard (stay if none heard)
     mates = pos[b_idx, nbr]
     n_heard = nmask.sum(-1, keepdims=True)
@@ -116,46 +115,47 @@ def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10,
     """One controller at one team size: S%, covered and DIST over ``episodes`` episodes; covered
     and S% by the min-sum matching (``assignment="exact"``) or by the maximum matching within
     the threshold ("nearest", never below the min-sum one's: docs/SWARM.md)."""
-    success, covered, dist, length = [], [], [], []
-    env = taichi_swarm.make(
-        "coverage",
-        num_envs=min(batch, episodes),
-        num_agents=agents,
-        comm="rc",
-        comm_radius=1.0,
-        neighbours=4,
-        landmark_neighbours=5,
-        sense_radius=1.0,
-        scale="density",
-        assignment=assignment,
-        array="numpy",
-    )
-    for first in range(0, episodes, env.num_envs):
-        obs = env.reset(seed=seed + first)
-        goals = planned_goals(env.get_state()) if controller == "planned" else None
-        finished = np.zeros(env.num_envs, bool)
-        while not finished.all():
+    from taichi_swarm.metrics import run_first_episodes
+
+    tallies = []
+    for first in range(0, episodes, batch):
+        # one env per batch, seeded as reset(seed=seed + first) would: make's seed starts the first reset
+        env = taichi_swarm.make(
+            "coverage",
+            num_envs=min(batch, episodes - first),
+            num_agents=agents,
+            comm="rc",
+            comm_radius=1.0,
+            seed=seed + first,
+            neighbours=4,
+            landmark_neighbours=5,
+            sense_radius=1.0,
+            scale="density",
+            assignment=assignment,
+            array="numpy",
+        )
+        plan = {}
+
+        def decide(obs, env=env, plan=plan):
             state = env.get_state()
-            g = goals if controller == "planned" else greedy_goals(state, obs)
-            actions = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), g.reshape(-1, 2))
-            obs, _, done, info = env.step(actions.reshape(env.num_envs, agents))
-            ep = info["episode"]
-            for b in np.flatnonzero(done & ~finished):
-                success.append(bool(ep["success"][b]))
-                covered.append(float(ep["covered"][b]))
-                dist.append(float(ep["dist"][b]))
-                length.append(int(ep["length"][b]))
-            finished |= done
-    n = min(episodes, len(success))
+            if controller == "planned":  # the plan of the first episode's start (only first episodes count)
+                goals = plan.setdefault("goals", planned_goals(state))
+            else:
+                goals = greedy_goals(state, obs)
+            actions = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2))
+            return actions.reshape(env.num_envs, agents), None
+
+        tallies.append(run_first_episodes(env, decide).summary("coverage")["per_episode"])
+    per = {k: np.concatenate([t[k] for t in tallies]) for k in ("success", "covered", "dist", "length")}
     return {
         "controller": controller,
         **({"assignment": assignment} if assignment != "exact" else {}),
         "agents": agents,
-        "episodes": n,
-        "success_rate": float(np.mean(success[:n])),
-        "covered": float(np.mean(covered[:n])),
-        "dist": float(np.mean(dist[:n])),
-        "length": float(np.mean(length[:n])),
+        "episodes": len(per["success"]),
+        "success_rate": float(np.mean(per["success"])),
+        "covered": float(np.mean(per["covered"])),
+        "dist": float(np.mean(per["dist"])),
+        "length": float(np.mean(per["length"])),
     }
 
 
