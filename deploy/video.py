@@ -6,7 +6,8 @@ no GPU), rendered from the trajectory record (deploy/trajectory.py): ``frames`` 
 rendered from its one record.
 
 One panel per recorded environment in a grid (never overlaid): the arena, landmarks
-(grey), the current targets (black crosses) with the optimal assignment as thin
+(grey), the current targets (crosses: green once an agent is within the task's success
+threshold of it, red before; the title counts them) with the optimal assignment as thin
 lines, the communication graph (light blue; under RC the radius as a circle round
 each agent), and the agents coloured by id with a short trail. An environment's
 panel freezes on its last frame once its first episode ends, titled with the outcome.
@@ -84,6 +85,23 @@ MAX_TRAILS = 20  # more agents are drawn as points, without trails, and smaller
 MAX_RADIUS_CIRCLES = 50  # RC's radius drawn round each agent up to this many
 
 
+def _success_threshold(task: str) -> float | None:
+    """The task's default success threshold (a target counts as reached within it), or None for
+    a task that has none."""
+    from taichi_swarm.tasks import TASK_SPECS
+
+    spec = TASK_SPECS.get(task)
+    return getattr(spec.params_type(), "success_threshold", None) if spec is not None else None
+
+
+def targets_reached(targets: np.ndarray, pos: np.ndarray, threshold: float) -> np.ndarray:
+    """[T] bool: the targets [T, 2] with an agent (pos [M, 2]) nearer than ``threshold``, strictly
+    as the success rule (duplicates count: it is an upper bound on the matched count)."""
+    if len(pos) == 0:
+        return np.zeros(len(targets), bool)
+    return np.linalg.norm(targets[:, None] - pos[None], axis=-1).min(1) < threshold
+
+
 def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=None, comm_radius=None, fps=10):
     """Draw ``frames`` (as ``frames`` makes them from a trajectory record) into ``path``; returns ``path``."""
     if not frames:
@@ -99,12 +117,14 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
     from deploy.recording import ARENA_HALF_SIZE, PALETTE
 
     outcome = outcome or {}
+    threshold = _success_threshold(task)
     D = frames[0]["pos"].shape[0]
     # marker and line scale: the paper's sizes up to 20 agents, then smaller as the arena fills
     w = min(1.0, math.sqrt(MAX_TRAILS / max(num_agents, 1)))
     cols = math.ceil(math.sqrt(D))
     rows = math.ceil(D / cols)
     panel = 3.2 if num_agents <= 100 else 6.4  # inches; a swarm's points need the pixels
+    dpi = 80 if num_agents <= 100 else 100
     fig, axes = plt.subplots(rows, cols, figsize=(panel * cols, panel * rows), squeeze=False)
     colors = PALETTE[np.arange(num_agents) % len(PALETTE)] / 255.0
     last_live = [0] * D  # the frame each panel froze on
@@ -144,7 +164,11 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
                 for p in pos:
                     ax.add_patch(plt.Circle(p, comm_radius, fill=False, lw=0.4, ec=(0.55, 0.6, 0.9), alpha=0.4))
             ax.scatter(*f["landmarks"][b].T, s=60 * w**2, color="0.55", zorder=2)
-            ax.scatter(*f["targets"][b].T, s=25 * w**2, marker="x", color="k", lw=w, zorder=3)
+            targets = f["targets"][b]
+            # at M = 1000 S% is 0 for one miss: the count is what reads
+            reached = None if threshold is None else targets_reached(targets, pos, threshold)
+            shade = "k" if reached is None else np.where(reached[:, None], (0.1, 0.6, 0.2), (0.85, 0.15, 0.1))
+            ax.scatter(*targets.T, s=max(25 * w**2, 6.0), marker="x", color=shade, lw=max(w, 0.6), zorder=3)
             if f["assignment"] is not None:
                 j = f["assignment"][b]
                 on = j >= 0  # assignment="nearest": -1 where an agent holds no target
@@ -154,10 +178,12 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
                 lo = max(0, last_live[b] - TRAIL)
                 trail = np.stack([frames[t]["pos"][b] for t in range(lo, last_live[b] + 1)], 1)  # [M, S, 2]
                 ax.add_collection(LineCollection(trail, colors=colors, lw=1, alpha=0.5, zorder=3))
-            ax.scatter(*pos.T, s=55 * w**2, color=colors, edgecolors="k", linewidths=0.4 * w, zorder=4)
+            ax.scatter(*pos.T, s=max(55 * w**2, 4.0), color=colors, edgecolors="k", linewidths=0.4 * w, zorder=4)
             title = f"env {b}  step {f['step']}"
             if not frames[k]["live"][b] and b in outcome:
                 title = f"env {b}: {outcome[b]}"
+            if reached is not None:
+                title += f", {reached.sum()} of {len(reached)} targets reached"
             ax.set_title(title, fontsize=8)
         fig.suptitle(f"{task}, M = {num_agents}", fontsize=10)
 
@@ -176,7 +202,7 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
             os.makedirs(path, exist_ok=True)
             for k in range(len(frames)):
                 update(k)
-                fig.savefig(os.path.join(path, f"frame_{k:04d}.png"), dpi=80)
+                fig.savefig(os.path.join(path, f"frame_{k:04d}.png"), dpi=dpi)
         else:
             anim = animation.FuncAnimation(fig, update, frames=len(frames), blit=False)
             if path.lower().endswith(".gif"):
@@ -186,7 +212,7 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
                 writer = animation.FFMpegWriter(fps=fps)
             name, suffix = os.path.splitext(os.path.basename(path))
             tmp = os.path.join(os.path.dirname(os.path.abspath(path)), f".tmp-{name}{suffix}")
-            anim.save(tmp, writer=writer, dpi=80)
+            anim.save(tmp, writer=writer, dpi=dpi)
             os.replace(tmp, path)
     except BaseException:  # (Ctrl-C, a full disk, no ffmpeg): nothing half-written is left
         if tmp is not None and os.path.exists(tmp):

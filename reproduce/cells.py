@@ -107,7 +107,8 @@ def cell_state(root: str, cell: Cell, seed: int) -> str:
 
 
 def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> dict:
-    """S%, T, DIST of a policy on ``final_episodes`` fresh greedy episodes at ``eval_seed``."""
+    """S%, T, DIST (and the fraction of landmarks covered, where the task reports it) of a
+    policy on ``final_episodes`` fresh greedy episodes at ``eval_seed``."""
     from trainer.checkpoint import load_policy
     from trainer.evaluate import evaluate
 
@@ -118,7 +119,8 @@ def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> 
     r = evaluate(
         policy, run.task, agents, run.comm, run.comm_radius, run.final_episodes, run.eval_seed, arch=arch, swarm=swarm
     )
-    return {k: r[k] for k in ("agents", "success_rate", "mean_length", "dist", "episodes", "seed")}
+    row = {k: r[k] for k in ("agents", "success_rate", "mean_length", "dist", "episodes", "seed")}
+    return {**row, "covered": r["covered"]} if r.get("covered") is not None else row
 
 
 def policy_path(root: str, cell: Cell, seed: int, agents: int = 0, polished: bool = True) -> str:

@@ -103,6 +103,9 @@ def card(e, card_dir: str) -> str:
     ]
     if e.dist is not None:
         lines.append(f"| DIST | {e.dist:.3f} |")
+    if e.covered is not None:
+        covered = f"{e.covered:.3f} (mean fraction at the episodes' ends, by the matching S% is read on)"
+        lines.append(f"| landmarks covered | {covered} |")
     lines += [
         f"| training | {e.updates} PPO updates, {e.env_steps / 1e6:.2f} M env steps, {e.minutes:.1f} min wall-clock "
         "(this run or stage and its polish) |",

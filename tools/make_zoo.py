@@ -40,6 +40,8 @@ SINGLES = (
      "coverage RC on neighbour lists, density-scaled, relative inputs and edges (s-coverage-rc-rel-m5)"),
     ("coverage-rc-m10-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m10-cut", 10,
      "the same at M = 10 from coverage-rc-m5-swarm, on lists cut to K = 4, KL = 5 (s-coverage-rc-rel-m10-cut)"),
+    ("coverage-rc-m50-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-agent", 50,
+     "the same at M = 50 from coverage-rc-m10-swarm, each agent on its own reward (s-coverage-rc-rel-m50-agent)"),
 )  # fmt: skip
 
 
@@ -109,6 +111,7 @@ def _entry(cell, seed: int, agents: int, row: dict, weights: str, zero_shot: dic
         "success": row["success_rate"],
         "mean_length": round(row["mean_length"], 3),
         "dist": None if row.get("dist") is None else round(row["dist"], 4),
+        "covered": None if row.get("covered") is None else round(row["covered"], 4),
         "episodes": row.get("episodes", 500),
         "eval_seed": row.get("seed", 777),
         "paper_success": _paper_s(cell, agents),

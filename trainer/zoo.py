@@ -58,6 +58,8 @@ class ZooEntry:
     """S% on ``episodes`` fresh greedy episodes at ``eval_seed`` (a fraction)."""
     mean_length: float = 0.0
     dist: float | None = None
+    covered: float | None = None
+    """The mean fraction of landmarks covered at the episodes' ends (coverage, where recorded)."""
     episodes: int = 500
     eval_seed: int = 777
     paper_success: float | None = None

@@ -93,3 +93,14 @@ def test_mp4_when_an_ffmpeg_is_available(tmp_path):
     ]
     out = render(frames, str(tmp_path / "v.mp4"), "coverage", 2)
     assert open(out, "rb").read(12)[4:8] == b"ftyp"  # an MP4 container
+
+
+def test_targets_reached_counts_a_target_with_an_agent_strictly_within_the_threshold():
+    from deploy.video import _success_threshold, targets_reached
+
+    targets = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], np.float32)
+    pos = np.array([[0.05, 0.0], [1.1, 0.0], [0.0, 0.02]], np.float32)  # two on the first, one 0.1 off the second
+    assert targets_reached(targets, pos, 0.1).tolist() == [True, False, False]
+    assert targets_reached(targets, pos[:0], 0.1).tolist() == [False, False, False]
+    assert _success_threshold("coverage") == pytest.approx(0.1)
+    assert _success_threshold("no-such-task") is None
