@@ -30,6 +30,8 @@ TITLES = {
     9: "Beyond the paper: zero-shot S% of those formation M = 5 policies (paper: Table 4's formation UC row)",
     10: "Swarms: a curriculum on neighbour lists in density-scaled arenas (S% and updates N per stage)",
     11: "Beyond the paper: policies trained through a lossy radio (fault-free S%; faults in docs/DEPLOY.md)",
+    12: "Swarms: formation and line on their density-scaled shapes, by curriculum (S% and updates N per stage)",
+    13: "Swarms: coverage on several team sizes at once (S%, T at the evaluated size)",
 }
 
 
