@@ -58,7 +58,7 @@ class EncodePiece(nn.Module):
     def forward(self, self_obs: torch.Tensor, entities: torch.Tensor):
         if self.policy.config.entity_mode == "padded":
             # NOTE: zero-fill to the 10 slots with a concat (not F.pad) so L stays symbolic.
-            pad = entities.new_zeros(PADDED_SLOTS - entities.shape[0], 2)
+            pad = entities.new_zeros(PADDED_SLOTS - entities.shape[0], entities.shape[1])
             entities = torch.cat([entities, pad], dim=0)
         h = self.policy.encode(self_obs, entities)  # [H]
         return h, torch.stack(self.policy.message(h))
@@ -138,7 +138,10 @@ def _example_inputs(name: str, policy: SwarmPolicy) -> tuple[tuple[torch.Tensor,
         else:
             L_ex = 3
             dyn = torch.export.Dim("L", min=1, max=PADDED_SLOTS if cfg.entity_mode == "padded" else 4096)
-        return (torch.randn(SELF_DIM), torch.randn(L_ex, 2)), {"self_obs": None, "entities": {0: dyn} if dyn else None}
+        return (torch.randn(SELF_DIM), torch.randn(L_ex, cfg.entity_features)), {
+            "self_obs": None,
+            "entities": {0: dyn} if dyn else None,
+        }
     if name == "heads":
         return (torch.randn(H),), {"h": None}
     args, dynamic = (torch.randn(H), torch.randn(3, 2, H)), {"h": None, "heard": {0: n}}
@@ -250,8 +253,14 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
         "observation": {
             "self_obs": {"shape": [SELF_DIM], "layout": ["vx", "vy", "px", "py"], "dtype": "float32"},
             "entities": {
-                "shape": ["L", 2],
-                "layout": "landmark position - own position, per landmark",
+                "shape": ["L", cfg.entity_features],
+                "layout": "landmark position - own position, per landmark"
+                + (
+                    "; then its occupancy: its distance to the nearest agent other than this one, capped at "
+                    "sense_radius"
+                    if cfg.landmark_occupancy
+                    else ""
+                ),
                 "dtype": "float32",
                 "L": "coverage: M; formation: 1; line: 2",
             },
@@ -269,7 +278,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
             "round K: round_heads(h, heard) -> logits (K = 0: heads(h)); action = argmax(logits)",
             "calls_per_step": 1 + max(cfg.rounds, 1),
             "inputs": {
-                "encode": ["self_obs [4]", "entities [L, 2]"],
+                "encode": ["self_obs [4]", f"entities [L, {cfg.entity_features}]"],
                 "round": ["h [H]", "heard [n, 2, H]", *edge],
                 "round_heads": ["h [H]", "heard [n, 2, H]", *edge],
                 "heads": ["h [H]"],
@@ -303,6 +312,7 @@ def swarm_contract(payload: dict) -> dict:
         "swarm_doc": "the simulator options it trained on: neighbours K: an agent hears its K nearest "
         "(within comm_radius under rc), never more; landmark_neighbours KL: entities holds the KL nearest "
         "landmarks within sense_radius, nearest first (unsensed slots left out of entities); "
+        "landmark_occupancy: each landmark row adds its distance to the nearest other agent; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

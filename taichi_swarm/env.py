@@ -12,6 +12,10 @@ Shapes: B environments, M agents, L landmarks.
     obs["entities"]  float32 [B, M, KL, 2] the KL nearest landmarks within sense_radius,
                                            nearest first, zeros where none
     obs["entity_mask"] bool  [B, M, KL]
+  and with ``landmark_occupancy=True``:
+    obs["entities"]  float32 [B, M, KL, 3] (dx, dy, occupancy): occupancy is the landmark's
+                                           distance to its nearest agent other than the
+                                           observer, capped at sense_radius
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
@@ -114,6 +118,9 @@ class SwarmEnv:
     adjacency. "rc": those within comm_radius; "uc": the K nearest of all.
     landmark_neighbours (coverage) with sense_radius: each agent's KL nearest landmarks
     within sense_radius (obs["entities"] [B, M, KL, 2], obs["entity_mask"]).
+    landmark_occupancy (with neighbours and landmark_neighbours): obs["entities"] [B, M, KL, 3],
+    the third feature each listed landmark's distance to its nearest agent other than the
+    observer, capped at sense_radius: whether someone else already holds it.
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -141,6 +148,7 @@ class SwarmEnv:
         sense_radius: float | None = None,
         scale: str | None = None,
         assignment: str = "exact",
+        landmark_occupancy: bool = False,
         **task_params,
     ):
         if not isinstance(task, str) or task not in TASK_SPECS:
@@ -177,6 +185,14 @@ class SwarmEnv:
         self.action_dim = ACTION_DIM  # continuous: float32 [B, M, 2]
         self._task_id = spec.task_id
         self._check_lists(spec, neighbours, landmark_neighbours, sense_radius, scale)
+        if not isinstance(landmark_occupancy, bool):
+            raise ValueError(f"landmark_occupancy must be True or False, got {landmark_occupancy!r}")
+        if landmark_occupancy and (self.neighbours is None or self.landmark_neighbours is None):
+            raise ValueError(
+                "landmark_occupancy needs neighbours=K and landmark_neighbours=KL: it is read off the agents' "
+                "cell grid for each listed landmark"
+            )
+        self.landmark_occupancy = landmark_occupancy
         if assignment is None:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
@@ -199,6 +215,7 @@ class SwarmEnv:
             | (kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0)
             | (kernels.AUCTION if auctioned else 0)
             | (kernels.NEAREST if assignment == "nearest" else 0)
+            | (kernels.OCCUPANCY if landmark_occupancy else 0)
         )
 
         self.arch = runtime.init(arch)
@@ -255,6 +272,8 @@ class SwarmEnv:
                 LN=L,
                 GL1=neighbours.buckets(L, neighbours.SPLIT) + 1,
             )
+            if self.landmark_occupancy:
+                dims.update(EF=3, LO=L)
         if self.assignment_method in ("auction", "nearest"):  # a grid of the targets instead of the M x M costs
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
         return dims
@@ -583,6 +602,7 @@ class SwarmEnv:
             ("sense_radius", self.sense_radius),
             ("scale", self.scale),
             ("assignment", None if self.assignment_method == "exact" else self.assignment_method),
+            ("landmark_occupancy", True if self.landmark_occupancy else None),
         )
         return tuple(f"{k}={v}" for k, v in opts if v is not None)
 

@@ -14,8 +14,9 @@ communication graph.
 Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (size of the dense
 physics' per-thread force array and of the small-M assignment's work arrays; 0 with
 neighbour lists: no per-M stack arrays), ``lists`` (AGENT_LISTS | LANDMARK_LISTS: neighbour
-and landmark lists through cell grids instead of the dense adjacency, neighbours.py; AUCTION
-or NEAREST: the assignment, auction.py or nearest.py),
+and landmark lists through cell grids instead of the dense adjacency, neighbours.py; OCCUPANCY:
+each listed landmark's occupancy beside its offset; AUCTION or NEAREST: the assignment,
+auction.py or nearest.py),
 ``sm`` (M itself for M <= layout.STATIC_M_MAX, so the loops over agents unroll; else 0
 and M is read from the header) and ``parallel`` (serial env loop for small batches, see
 env.py).
@@ -43,8 +44,9 @@ from .layout import (
 )
 
 # bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment,
-# nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS)
-AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST = 1, 2, 4, 8
+# nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS), landmark
+# occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid)
+AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY = 1, 2, 4, 8, 16
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -91,8 +93,9 @@ def write_team_obs(
 ):
     """Every agent's observation of env b, into the current (``term`` False) or the
     terminal observation blocks: self [M, 4] = (vel, pos); entities [M, L, 2] = landmark
-    - pos; and who agent i hears: the adjacency [M, M] (dense: itself always; "rc": those
-    within comm radius) or, with neighbour lists, its K nearest heard agents."""
+    - pos (with landmark lists: landmark_lists); and who agent i hears: the adjacency
+    [M, M] (dense: itself always; "rc": those within comm radius) or, with neighbour lists,
+    its K nearest heard agents."""
     M, L = team_size(sm, ib), tasks.landmark_count(task, sm, ib)
     pos, vel, lmk = blocks.pos, blocks.vel, blocks.landmarks
     obs_self = blocks.term_self if ti.static(term) else blocks.obs_self
@@ -101,16 +104,6 @@ def write_team_obs(
         s = obs_self.row(ib, S, i)
         v, p = vel.get2(f, ib, V0, i), pos.get2(f, ib, P0, i)
         f[s + 0], f[s + 1], f[s + 2], f[s + 3] = v[0], v[1], p[0], p[1]
-    if ti.static(lists & LANDMARK_LISTS):
-        landmark_lists(sm, f, ib, u8, b, M, L, term)
-    else:
-        ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
-        E = ent.env(ib, b)
-        for i in range(M):
-            p, e = pos.get2(f, ib, P0, i), ent.row(ib, E, i)  # agent i's [L, 2] offsets
-            for l in range(L):
-                d = lmk.get2(f, ib, LM, l) - p
-                f[e + 2 * l], f[e + 2 * l + 1] = d[0], d[1]
     if ti.static(lists & AGENT_LISTS):
         agent_lists(sm, lists, f, ib, u8, b, M, term)
     else:
@@ -128,6 +121,17 @@ def write_team_obs(
                 hears = ti.cast((not restricted) or d[0] * d[0] + d[1] * d[1] <= r2, ti.u8)
                 u8[A + i * width + j] = hears
                 u8[A + j * width + i] = hears
+    # after the graph: landmark occupancy reads the agents' grid that agent_lists builds
+    if ti.static(lists & LANDMARK_LISTS):
+        landmark_lists(sm, lists, f, ib, u8, b, M, L, term)
+    else:
+        ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
+        E = ent.env(ib, b)
+        for i in range(M):
+            p, e = pos.get2(f, ib, P0, i), ent.row(ib, E, i)  # agent i's [L, 2] offsets
+            for l in range(L):
+                d = lmk.get2(f, ib, LM, l) - p
+                f[e + 2 * l], f[e + 2 * l + 1] = d[0], d[1]
 
 
 @ti.func
@@ -183,6 +187,7 @@ def agent_lists(
 @ti.func
 def landmark_lists(
     sm: ti.template(),
+    lists: ti.template(),
     f: ti.template(),
     ib: ti.template(),
     u8: ti.template(),
@@ -193,8 +198,12 @@ def landmark_lists(
 ):
     """Each agent's KL nearest landmarks within sense_radius, nearest first, through the
     landmarks' cell grid: entities [M, KL, 2] (landmark - pos, zeros where none) and
-    entity_mask [M, KL]."""
+    entity_mask [M, KL]. With OCCUPANCY, entities [M, KL, 3]: the third feature is the
+    landmark's distance to its nearest agent other than this one, capped at sense_radius
+    (sense_radius where none is nearer; 0 where none is listed), from each landmark's two
+    nearest agents found once through the agents' grid."""
     KL, G = ib[H_KL], ib[H_GL]
+    EF = 3 if ti.static(lists & OCCUPANCY) else 2
     ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
     mask = blocks.term_entity_mask if ti.static(term) else blocks.entity_mask
     P0, LM = blocks.pos.env(ib, b), blocks.landmarks.env(ib, b)
@@ -203,6 +212,8 @@ def landmark_lists(
     neighbours.build(f, ib, L, LM, h, G, GS, GI, GC)
     E, MK, D2, IDX = ent.env(ib, b), mask.env(ib, b), blocks.ent_d2.env(ib, b), blocks.ent_idx.env(ib, b)
     s2 = f[P_SENSE] * f[P_SENSE]
+    if ti.static(lists & OCCUPANCY):
+        landmark_occupants(f, ib, b, L, s2)
     for i in range(M):
         p = blocks.pos.get2(f, ib, P0, i)
         row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
@@ -213,7 +224,37 @@ def landmark_lists(
             d = ti.math.vec2(0.0, 0.0)
             if listed:
                 d = blocks.landmarks.get2(f, ib, LM, ib[IDX + k]) - p
-            f[row + 2 * k], f[row + 2 * k + 1] = d[0], d[1]
+            f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
+            if ti.static(lists & OCCUPANCY):
+                f[row + EF * k + 2] = occupancy(f, ib, b, ib[IDX + k], i) if listed else 0.0
+
+
+@ti.func
+def landmark_occupants(f: ti.template(), ib: ti.template(), b: ti.i32, L: ti.i32, s2: ti.f32):
+    """Each landmark's two nearest agents within sense_radius (occ_idx, occ_d2, occ_found),
+    through the agents' grid: with them every agent's occupancy of a landmark is a lookup."""
+    P0, G = blocks.pos.env(ib, b), ib[H_G]
+    GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
+    LM, OD, OI, OF = (
+        blocks.landmarks.env(ib, b), blocks.occ_d2.env(ib, b), blocks.occ_idx.env(ib, b), blocks.occ_found.env(ib, b)
+    )  # fmt: skip
+    for l in range(L):
+        q = blocks.landmarks.get2(f, ib, LM, l)
+        d2, idx = blocks.occ_d2.row(ib, OD, l), blocks.occ_idx.row(ib, OI, l)
+        found = neighbours.nearest_in_grid(f, ib, q[0], q[1], -1, P0, s2, f[P_CELL], G, GS, GI, GC, d2, idx, 2)
+        ib[OF + l] = found[0]
+
+
+@ti.func
+def occupancy(f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
+    """Landmark l's distance to its nearest agent other than agent i, capped at sense_radius."""
+    OD, OI = blocks.occ_d2.env(ib, b), blocks.occ_idx.env(ib, b)
+    d2, idx, n = blocks.occ_d2.row(ib, OD, l), blocks.occ_idx.row(ib, OI, l), ib[blocks.occ_found.env(ib, b) + l]
+    k = 1 if n >= 1 and ib[idx] == i else 0  # the nearest is i itself: the next one
+    out = f[P_SENSE]
+    if k < n:
+        out = ti.min(ti.sqrt(f[d2 + k]), f[P_SENSE])
+    return out
 
 
 @ti.func

@@ -53,6 +53,7 @@ def dense_dims(M: int, L: int) -> dict:
         "L": L,
         "MA": M,
         "LE": L,
+        "EF": 2,
         "MC": M,
         "K": 0,
         "KL": 0,
@@ -62,6 +63,7 @@ def dense_dims(M: int, L: int) -> dict:
         "GL1": 0,
         "TN": 0,
         "GT1": 0,
+        "LO": 0,
     }
 
 
@@ -76,7 +78,8 @@ BLOCKS = (
     BlockSpec("landmarks", "f32", ("L", 2)),
     BlockSpec("targets", "f32", ("M", 2)),
     BlockSpec("obs_self", "f32", ("M", SELF_DIM)),
-    BlockSpec("obs_entities", "f32", ("M", "LE", 2)),  # LE: L, or KL with landmark lists
+    # LE: L, or KL with landmark lists; EF: 2 (the offset), 3 with landmark occupancy
+    BlockSpec("obs_entities", "f32", ("M", "LE", "EF")),
     BlockSpec("reward", "f32"),
     BlockSpec("agent_reward", "f32", ("M",)),  # each agent's own terms (the team reward is their mean)
     BlockSpec("matched_dist", "f32", ("M",)),
@@ -85,13 +88,14 @@ BLOCKS = (
     BlockSpec("ep_return", "f32"),
     BlockSpec("return_acc", "f32"),
     BlockSpec("term_self", "f32", ("M", SELF_DIM)),
-    BlockSpec("term_entities", "f32", ("M", "LE", 2)),
+    BlockSpec("term_entities", "f32", ("M", "LE", "EF")),
     BlockSpec("assign_cost", "f32", ("M", "MC")),  # exact assignment's cost matrix (M > SMALL_M)
     BlockSpec("prices", "f32", ("M",)),  # assignment column prices, the next solve's warm start
     BlockSpec("lap_dist", "f32", ("M",)),  # assignment work array: path lengths to each column
     BlockSpec("ep_covered", "f32"),  # fraction of targets matched within success_threshold
     BlockSpec("nbr_d2", "f32", ("M", "K")),  # squared distances of the listed neighbours
     BlockSpec("ent_d2", "f32", ("M", "KL")),  # squared distances of the listed landmarks
+    BlockSpec("occ_d2", "f32", ("LO", 2)),  # each landmark's two nearest agents (occupancy), d^2
     BlockSpec("step", "i32"),
     BlockSpec("rng", "i32"),
     BlockSpec("ep_length", "i32"),
@@ -105,6 +109,8 @@ BLOCKS = (
     BlockSpec("nbr", "i32", ("M", "K")),  # the K nearest heard agents, nearest first
     BlockSpec("term_nbr", "i32", ("M", "K")),
     BlockSpec("ent_idx", "i32", ("KL",)),  # scratch: one agent's landmark list being built
+    BlockSpec("occ_idx", "i32", ("LO", 2)),  # ... and their indices
+    BlockSpec("occ_found", "i32", ("LO",)),  # ... how many of the two are within sense_radius
     BlockSpec("in_range", "i32", ("N",)),  # how many agents each agent hears
     BlockSpec("dropped", "i32"),  # heard but cut from the lists (more than K), summed over agents
     BlockSpec("grid_start", "i32", ("G1",)),  # agents' cell grid: bucket g holds items[start[g]:start[g+1]]

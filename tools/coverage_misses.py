@@ -8,7 +8,8 @@ maximum matching within the success threshold leaves without a landmark is a
 
 An unmatched agent means an uncovered landmark (as many agents as landmarks), so the three
 fractions add up to 1 - covered. Run in the swarm policies' setting (rc within 1, lists K = 4
-and KL = 5 within 1, density-scaled), greedy actions, fresh episodes at the seed:
+and KL = 5 within 1, density-scaled; the lists and options a policy trained on take
+precedence, landmark occupancy among them), greedy actions, fresh episodes at the seed:
 
     python tools/coverage_misses.py coverage-rc-m50-swarm --agents 100 --episodes 20
 """
@@ -57,12 +58,12 @@ def run(policy_name: str, agents: int, episodes: int, seed: int) -> dict:
     from trainer.model import policy_inputs
 
     torch.set_num_threads(1)
-    policy, _ = load_policy(policy_name)
+    policy, payload = load_policy(policy_name)
     fused = policy.fused_weights()
-    env = taichi_swarm.make(
-        "coverage", episodes, agents, comm="rc", comm_radius=1.0, seed=seed, neighbours=4,
-        landmark_neighbours=5, sense_radius=1.0, scale="density",
-    )  # fmt: skip
+    # the swarm policies' setting, with the lists and options the policy trained on over it
+    swarm = {"neighbours": 4, "landmark_neighbours": 5, "sense_radius": 1.0, "scale": "density"}
+    swarm.update(payload.get("swarm") or {})
+    env = taichi_swarm.make("coverage", episodes, agents, comm="rc", comm_radius=1.0, seed=seed, **swarm)
     obs = env.reset()
     finished = np.zeros(episodes, bool)
     for _ in range(env.params["max_steps"] - 1):  # stop before the last step: its auto-reset would clear the state

@@ -163,6 +163,10 @@ class TrainConfig:
     """KL: each agent senses its KL nearest landmarks within sense_radius (None: every landmark)."""
     sense_radius: float | None = None
     """Landmark sensing radius of ``landmark_neighbours`` (None: the simulator's)."""
+    landmark_occupancy: bool = False
+    """With neighbours and landmark_neighbours: each sensed landmark also carries its distance
+    to the nearest other agent (capped at sense_radius), whether a teammate already holds it;
+    the network takes it as a third landmark input (docs/SWARM.md)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
@@ -329,6 +333,8 @@ class TrainConfig:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
         if self.comm_radius < 0:
             raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
+        if self.model.landmark_occupancy and not self.landmark_occupancy:
+            raise ValueError("model.landmark_occupancy follows landmark_occupancy (the simulator's): set that instead")
         self.ppo.validate()
         self.swarm_options()
         self.validate_memory()
@@ -365,7 +371,10 @@ class TrainConfig:
         """The simulator's neighbour-list and density options that are set (``make()`` keywords)."""
         from trainer.evaluate import swarm_options
 
-        return swarm_options(self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment)
+        return swarm_options(
+            self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
+            self.landmark_occupancy,
+        )  # fmt: skip
 
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""

@@ -10,15 +10,17 @@ from taichi_swarm.metrics import format_results, result_header, run_first_episod
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 
 ACTION_MODES = ("greedy", "sampled")
-SWARM_KEYS = ("neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment")
+SWARM_KEYS = ("neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy")
 
 
-def swarm_options(neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None) -> dict:
-    """The simulator's neighbour-list, scaling and assignment options that are set, as ``make()``
-    keywords (none set: the dense layout, the paper's geometry, the exact assignment)."""
+def swarm_options(
+    neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None
+) -> dict:
+    """The simulator's neighbour-list, scaling, assignment and occupancy options that are set, as
+    ``make()`` keywords (none set: the dense layout, the paper's geometry, the exact assignment)."""
     given = dict(
         neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale,
-        assignment=assignment,
+        assignment=assignment, landmark_occupancy=landmark_occupancy,
     )  # fmt: skip
     for key in ("neighbours", "landmark_neighbours"):
         v = given[key]
@@ -35,6 +37,14 @@ def swarm_options(neighbours=None, landmark_neighbours=None, sense_radius=None, 
         raise ValueError("assignment 'nearest' needs neighbour lists: set neighbours (--neighbours K)")
     if assignment == "exact":  # the default: recorded as unset, so the exact runs' records stay as they were
         given["assignment"] = None
+    if landmark_occupancy not in (None, False, True):
+        raise ValueError(f"landmark_occupancy must be true or false, got {landmark_occupancy!r}")
+    if landmark_occupancy and (neighbours is None or landmark_neighbours is None):
+        raise ValueError(
+            "landmark_occupancy needs neighbour and landmark lists: set neighbours and landmark_neighbours"
+        )
+    if not landmark_occupancy:  # off: recorded as unset, like the exact assignment
+        given["landmark_occupancy"] = None
     return {k: v for k, v in given.items() if v is not None}
 
 

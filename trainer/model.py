@@ -126,6 +126,11 @@ class ModelConfig:
     (k_ij = W_k h_j + E_k (p_j - p_i), likewise v_ij), so agents without a shared frame
     still know where their neighbours are. E_k, E_v start at zero: a policy without them
     is the same function with them, and may be fine-tuned into them (docs/SWARM.md)."""
+    landmark_occupancy: bool = False
+    """Each landmark input is (dx, dy, occupancy), the simulator's ``landmark_occupancy``
+    (its distance to the nearest other agent): a third encoder input through its own weights,
+    which start at zero, so a policy without it is the same function with it and may be
+    fine-tuned into it ("emp" only; the trainer sets it from ``landmark_occupancy``)."""
 
     def __post_init__(self):
         if self.entity_mode not in ENTITY_MODES:
@@ -138,6 +143,13 @@ class ModelConfig:
             raise ValueError(f"hidden must be >= 1 and rounds >= 0, got {self.hidden}, {self.rounds}")
         if self.num_landmarks < 0:
             raise ValueError(f"num_landmarks must be >= 0, got {self.num_landmarks}")
+        if self.landmark_occupancy and self.entity_mode != "emp":
+            raise ValueError(f"landmark_occupancy needs entity_mode 'emp', got {self.entity_mode!r}")
+
+    @property
+    def entity_features(self) -> int:
+        """Features of one landmark input: the offset (dx, dy), and its occupancy if taken."""
+        return 3 if self.landmark_occupancy else 2
 
     def landmark_misfit(self, L: int) -> str:
         """Why this network cannot take ``L`` landmarks ("" when it can)."""
@@ -216,6 +228,8 @@ class SwarmPolicy(nn.Module):
         self.agent_encoder = nn.Linear(config.input_dim(), H)
         if config.entity_mode == "emp":
             self.entity_encoder = nn.Linear(2, H)
+            if config.landmark_occupancy:
+                self.entity_occupancy = nn.Linear(1, H, bias=False)
             self.entity_attention = Attention(H)
             self.entity_update = nn.Linear(2 * H, H)
         self.comm_attention = Attention(H)
@@ -243,6 +257,8 @@ class SwarmPolicy(nn.Module):
         if self.config.edge_position == "relative":  # zero: the paper's network until trained
             nn.init.zeros_(self.edge_key.weight)
             nn.init.zeros_(self.edge_value.weight)
+        if self.config.landmark_occupancy:  # likewise: the network without occupancy until trained
+            nn.init.zeros_(self.entity_occupancy.weight)
 
     # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
     def own_input(self, self_obs: torch.Tensor) -> torch.Tensor:
@@ -263,7 +279,7 @@ class SwarmPolicy(nn.Module):
         self_obs = self.own_input(self_obs)
         if mode == "emp":
             h = torch.relu(self.agent_encoder(self_obs))
-            e = torch.relu(self.entity_encoder(entities))  # [..., L, H]
+            e = self.embed_entities(entities)  # [..., L, H]
             att = self.entity_attention
             q = att.w_q(h).unsqueeze(-2)  # [..., 1, H]
             mask = None if entity_mask is None else entity_mask.unsqueeze(-2)  # [..., 1, L]
@@ -280,7 +296,22 @@ class SwarmPolicy(nn.Module):
             flat = nn.functional.pad(flat, (0, 2 * (PADDED_SLOTS - L)))
         return torch.relu(self.agent_encoder(torch.cat([self_obs, flat], dim=-1)))
 
+    def embed_entities(self, entities: torch.Tensor) -> torch.Tensor:
+        """EMP's landmark embeddings relu(W e + b) [..., L, H], W e + b + w_o * occupancy with
+        landmark occupancy."""
+        e = self.entity_encoder(entities[..., :2])
+        if self.config.landmark_occupancy:
+            e = e + self.entity_occupancy(entities[..., 2:])
+        return torch.relu(e)
+
     def _check_entity_mask(self, entities: torch.Tensor, entity_mask: torch.Tensor | None) -> None:
+        F = self.config.entity_features
+        if entities.shape[-1] != F:
+            raise ValueError(
+                f"entities must hold {F} features per landmark"
+                + (" (dx, dy, occupancy: the simulator's landmark_occupancy)" if F == 3 else " (dx, dy)")
+                + f", got {entities.shape[-1]}"
+            )
         if entity_mask is None:
             return
         if self.config.entity_mode == "concat":
@@ -427,7 +458,7 @@ class SwarmPolicy(nn.Module):
         N, M = self_obs.shape[0], self_obs.shape[1]
         if self.config.entity_mode == "emp":
             h = torch.relu(self.agent_encoder(self.own_input(self_obs))).reshape(N * M, H)  # [NM, H]
-            e = torch.relu(self.entity_encoder(entities)).reshape(N * M, -1, H)  # [NM, L, H]
+            e = self.embed_entities(entities).reshape(N * M, -1, H)  # [NM, L, H]
             own, own_bias, heard = fw.entity
             q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
             # NOTE: broadcast-multiply-sum, not bmm: batched GEMMs of these tiny matrices

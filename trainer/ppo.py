@@ -40,7 +40,7 @@ class Rollout:
     landmark lists), as the simulator observes it."""
 
     self_obs: torch.Tensor  # [T, E, M, 4]
-    entities: torch.Tensor  # [T, E, M, L, 2] (L: KL with landmark lists)
+    entities: torch.Tensor  # [T, E, M, L, F] (L: KL with landmark lists; F: 2, 3 with occupancy)
     adj: torch.Tensor | None  # [T, E, M, M] bool (dense); [T, E, R, M, M] with a graph per round
     actions: torch.Tensor  # [T, E, M] int64
     logprobs: torch.Tensor  # [T, E, M]
@@ -54,17 +54,17 @@ class Rollout:
     @classmethod
     def allocate(
         cls, T: int, E: int, M: int, L: int, device="cpu", neighbours: int | None = None, entity_mask: bool = False,
-        rounds: int = 0,
+        rounds: int = 0, features: int = 2,
     ) -> Rollout:  # fmt: skip
         """``neighbours``: K of the simulator's lists (None: dense adj); ``entity_mask``: the
         observation has landmark lists (L is then their KL); ``rounds`` > 0: a graph per round
-        (TrainConfig.drop_per_round)."""
+        (TrainConfig.drop_per_round); ``features``: per landmark (3 with landmark occupancy)."""
         z = dict(device=device)
         lists = neighbours is not None
         R = (rounds,) if rounds else ()
         return cls(
             self_obs=torch.zeros(T, E, M, 4, **z),
-            entities=torch.zeros(T, E, M, L, 2, **z),
+            entities=torch.zeros(T, E, M, L, features, **z),
             adj=None if lists else torch.zeros(T, E, *R, M, M, dtype=torch.bool, **z),
             actions=torch.zeros(T, E, M, dtype=torch.int64, **z),
             logprobs=torch.zeros(T, E, M, **z),
@@ -84,6 +84,7 @@ class Rollout:
         return cls.allocate(
             T, env.num_envs, env.num_agents, obs["entities"].shape[-2], device,
             neighbours=None if nbr is None else nbr.shape[-1], entity_mask="entity_mask" in obs, rounds=rounds,
+            features=obs["entities"].shape[-1],
         )  # fmt: skip
 
     def input_names(self) -> tuple[str, ...]:

@@ -71,8 +71,11 @@ def check_arch(arch: str) -> str:
 
 
 def model_config_for(cfg: TrainConfig) -> ModelConfig:
-    """The model config with the task's L filled in for the "concat" entity mode."""
+    """The model config with the task's L filled in for the "concat" entity mode, and the
+    landmark inputs' occupancy feature where the simulator gives it."""
     m = cfg.model
+    if cfg.landmark_occupancy != m.landmark_occupancy:
+        m = dataclasses.replace(m, landmark_occupancy=cfg.landmark_occupancy)
     if m.entity_mode == "concat":
         L = taichi_swarm.TASK_SPECS[cfg.task].num_landmarks(cfg.agents)
         m = dataclasses.replace(m, num_landmarks=L)  # every other field as configured
@@ -121,10 +124,13 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     if cfg.init_from and payload is None:
         init_policy, init_payload = checkpoint.load_policy(cfg.init_from, trust_unsigned=cfg.trust_unsigned)
         # the same shapes; self_position only changes what the encoder is fed, and relative
-        # edges add two weights that start at zero (the same function), so a policy may be
-        # fine-tuned into relative inputs and edges
-        relative = {"self_position": policy.config.self_position, "edge_position": policy.config.edge_position}
-        dropped = init_policy.config.edge_position == "relative" and policy.config.edge_position == "none"
+        # edges and landmark occupancy add weights that start at zero (the same function), so
+        # a policy may be fine-tuned into relative inputs, edges and occupancy
+        grown = ("self_position", "edge_position", "landmark_occupancy")
+        relative = {k: getattr(policy.config, k) for k in grown}
+        dropped = (init_policy.config.edge_position == "relative" and policy.config.edge_position == "none") or (
+            init_policy.config.landmark_occupancy and not policy.config.landmark_occupancy
+        )
         if dropped or dataclasses.replace(init_policy.config, **relative) != policy.config:
             raise checkpoint.CheckpointError(
                 f"--init-from {cfg.init_from} has model {init_policy.config}, this run wants {policy.config}"

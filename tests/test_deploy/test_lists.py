@@ -25,21 +25,38 @@ def one_torch_thread():
     torch.set_num_threads(threads)
 
 
+def _save_and_export(policy: SwarmPolicy, d, task: str = "coverage") -> ExportedModel:
+    """``policy`` as a checkpoint in folder ``d`` (trained on ``task``, M = 3, rc), exported."""
+    path = str(d / "ckpt.pt")
+    setting = {"task": task, "agents": 3, "comm": "rc", "comm_radius": 0.8}
+    checkpoint.save(path, {"model_config": policy.config.to_dict(), "model": policy.state_dict(), "task": setting})
+    export(path, str(d / "onnx"))
+    return ExportedModel(str(d / "onnx"))
+
+
+def _train_and_export(tmp_path, *options: str) -> tuple[str, dict]:
+    """One tiny `swarm train` of coverage at M = 3 on lists (K = 2) with ``options``, exported:
+    (the export's folder, its contract's swarm options)."""
+    import json
+
+    from swarm_cli.deploy import export_main
+    from swarm_cli.main import main as swarm_main
+
+    run = str(tmp_path / "run")
+    args = ["train", "--task", "coverage", "--agents", "3", "--comm", "rc", "--neighbours", "2", "--updates", "1"]
+    args += ["--ppo.num-envs", "2", "--ppo.num-steps", "4", "--ppo.minibatches", "1", "--eval-every", "100"]
+    args += ["--model.hidden", "8", "--run-dir", run, "--no-progress", "--transfer-offsets", *options]
+    assert swarm_main(args) == 0
+    out = str(tmp_path / "onnx-trained")
+    assert export_main([os.path.join(run, "policy.pt"), "--out", out]) == 0
+    with open(os.path.join(out, "manifest.json")) as f:
+        return out, json.load(f)["contract"]["swarm"]
+
+
 def _export(tmp_path_factory, mode: str, task: str, seed: int):
     torch.manual_seed(seed)
     policy = SwarmPolicy(ModelConfig(hidden=32, rounds=2, entity_mode=mode)).eval()
-    d = tmp_path_factory.mktemp(mode)
-    path = str(d / "ckpt.pt")
-    checkpoint.save(
-        path,
-        {
-            "model_config": policy.config.to_dict(),
-            "model": policy.state_dict(),
-            "task": {"task": task, "agents": 3, "comm": "rc", "comm_radius": 0.8},
-        },
-    )
-    export(path, str(d / "onnx"))
-    return policy, ExportedModel(str(d / "onnx"))
+    return policy, _save_and_export(policy, tmp_path_factory.mktemp(mode), task)
 
 
 @pytest.fixture(scope="module")
@@ -236,18 +253,10 @@ def test_a_policy_trained_on_lists_exports_and_executes_on_them(tmp_path):
     them unless --neighbours says otherwise."""
     import json
 
-    from swarm_cli.deploy import execute_main, export_main
-    from swarm_cli.main import main as swarm_main
+    from swarm_cli.deploy import execute_main
 
-    run = str(tmp_path / "run")
-    args = ["train", "--task", "coverage", "--agents", "3", "--comm", "rc", "--neighbours", "2", "--updates", "1"]
-    args += ["--ppo.num-envs", "2", "--ppo.num-steps", "4", "--ppo.minibatches", "1", "--eval-every", "100"]
-    args += ["--model.hidden", "8", "--run-dir", run, "--no-progress", "--transfer-offsets"]
-    assert swarm_main(args) == 0
-    out = str(tmp_path / "onnx")
-    assert export_main([os.path.join(run, "policy.pt"), "--out", out]) == 0
-    with open(os.path.join(out, "manifest.json")) as f:
-        assert json.load(f)["contract"]["swarm"] == {"neighbours": 2}
+    out, swarm = _train_and_export(tmp_path)
+    assert swarm == {"neighbours": 2}
     for extra, K in (([], 2), (["--neighbours", "1"], 1)):
         rows = str(tmp_path / f"rows{K}.json")
         assert execute_main([out, "--episodes", "2", "--json", rows, *extra]) == 0
@@ -260,20 +269,42 @@ def test_an_export_without_absolute_position_matches_torch(tmp_path):
     torch's, and its manifest says so."""
     torch.manual_seed(4)
     policy = SwarmPolicy(ModelConfig(hidden=32, rounds=2, self_position="none")).eval()
-    path = str(tmp_path / "ckpt.pt")
-    checkpoint.save(
-        path,
-        {
-            "model_config": policy.config.to_dict(),
-            "model": policy.state_dict(),
-            "task": {"task": "coverage", "agents": 3, "comm": "rc", "comm_radius": 0.8},
-        },
-    )
-    export(path, str(tmp_path / "onnx"))
-    model = ExportedModel(str(tmp_path / "onnx"))
+    model = _save_and_export(policy, tmp_path)
     assert model.manifest["model_config"]["self_position"] == "none"
     executor = Executor(model, 2, 6)
     for obs in _states(6, 5):
         want, _ = _torch(policy, obs)
         got, _, _ = executor.decide(obs["self"], obs["entities"], nbr=obs["nbr"], nbr_mask=obs["nbr_mask"])
         np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+
+
+def test_an_export_with_landmark_occupancy_matches_torch_and_executes(tmp_path):
+    """landmark_occupancy: the exported encoder takes entities [L, 3] and decides what torch
+    decides; trained through the CLI, the export's contract carries the option and swarm
+    execute runs on it."""
+    import json
+
+    from swarm_cli.deploy import execute_main
+
+    torch.manual_seed(5)
+    policy = SwarmPolicy(ModelConfig(hidden=32, rounds=2, landmark_occupancy=True)).eval()
+    with torch.no_grad():
+        policy.entity_occupancy.weight.normal_(0.0, 0.5)  # it starts at zero: make it matter
+    model = _save_and_export(policy, tmp_path)
+    assert model.manifest["observation"]["entities"]["shape"] == ["L", 3]
+    executor = Executor(model, 2, 6)
+    for obs in _states(6, 3, landmark_neighbours=3, sense_radius=0.8, landmark_occupancy=True):
+        assert obs["entities"].shape[-1] == 3
+        want, _ = _torch(policy, obs)
+        graph = {k: obs[k] for k in ("nbr", "nbr_mask", "entity_mask")}
+        got, *_ = executor.decide(obs["self"], obs["entities"], **graph)
+        np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+
+    out, swarm = _train_and_export(
+        tmp_path, "--landmark-neighbours", "2", "--sense-radius", "1.0", "--landmark-occupancy"
+    )
+    assert swarm == {"neighbours": 2, "landmark_neighbours": 2, "sense_radius": 1.0, "landmark_occupancy": True}
+    rows = str(tmp_path / "rows.json")
+    assert execute_main([out, "--episodes", "2", "--json", rows]) == 0
+    with open(rows) as f:
+        assert json.load(f)["rows"][0]["landmark_occupancy"] is True

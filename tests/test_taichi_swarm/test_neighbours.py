@@ -234,3 +234,62 @@ def test_list_snapshots_restore_bit_identically():
 def test_bad_list_options_are_refused(task, kwargs, message):
     with pytest.raises(ValueError, match=message):
         taichi_swarm.make(task, 2, 4, array="numpy", **kwargs)
+
+
+def _occupancy_reference(pos, lmk, entities, mask, sense):
+    """Each listed landmark's distance to its nearest agent other than the observer, capped at
+    sense (float64 brute force over all agents; the landmark found from the listed offset)."""
+    M = len(pos)
+    out = np.zeros(mask.shape, dtype=np.float64)
+    for i in range(M):
+        for k in np.flatnonzero(mask[i]):
+            lm = pos[i] + entities[i, k, :2]
+            l = np.argmin(np.abs(lmk - lm).sum(-1))  # the landmark the offset points at
+            d = np.linalg.norm(pos.astype(np.float64) - lmk[l].astype(np.float64), axis=-1)
+            d[i] = np.inf
+            out[i, k] = min(d.min(), sense)
+    return out
+
+
+@pytest.mark.parametrize(("M", "comm"), [(200, "rc"), (150, "uc")])
+def test_landmark_occupancy_is_the_nearest_other_agents_distance(M, comm):
+    """landmark_occupancy adds a third landmark feature, checked against a brute force over all
+    agents after steps; the offsets, masks and the whole simulation are those without it."""
+    B, sense = 2, 0.6
+    kw = dict(comm=comm, comm_radius=0.8, neighbours=6, landmark_neighbours=5, sense_radius=sense)
+    kw.update(scale="density", seed=4, array="numpy")
+    occ = taichi_swarm.make("coverage", B, M, landmark_occupancy=True, **kw)
+    plain = taichi_swarm.make("coverage", B, M, **kw)
+    oo, op = occ.reset(), plain.reset()
+    rng = np.random.default_rng(1)
+    for step in range(4):
+        if step:
+            a = rng.integers(0, 5, size=(B, M))
+            oo, ro, do, io = occ.step(a)
+            op, rp, dp, ip = plain.step(a)
+            np.testing.assert_array_equal(ro, rp)
+            np.testing.assert_array_equal(do, dp)
+        assert oo["entities"].shape == (B, M, 5, 3)
+        np.testing.assert_array_equal(oo["entities"][..., :2], op["entities"])
+        np.testing.assert_array_equal(oo["entity_mask"], op["entity_mask"])
+        np.testing.assert_array_equal(oo["nbr"], op["nbr"])
+        s = occ.get_state()
+        for b in range(B):
+            ref = _occupancy_reference(s["pos"][b], s["landmarks"][b], oo["entities"][b], oo["entity_mask"][b], sense)
+            np.testing.assert_allclose(oo["entities"][b, ..., 2], ref, atol=2e-6)
+            np.testing.assert_array_equal(oo["entities"][b, ..., 2][~oo["entity_mask"][b]], 0.0)
+    third = oo["entities"][..., 2][oo["entity_mask"]]
+    assert (third < sense).any() and (third == np.float32(sense)).any()  # both held and free landmarks seen
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"landmark_occupancy": True}, "landmark_occupancy needs neighbours=K and landmark_neighbours"),
+        ({"landmark_occupancy": True, "neighbours": 4}, "landmark_occupancy needs"),
+        ({"landmark_occupancy": 1, "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5}, "True or False"),
+    ],
+)
+def test_bad_occupancy_options_are_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        taichi_swarm.make("coverage", 2, 4, array="numpy", **kwargs)
