@@ -42,6 +42,10 @@ SINGLES = (
      "the same at M = 10 from coverage-rc-m5-swarm, on lists cut to K = 4, KL = 5 (s-coverage-rc-rel-m10-cut)"),
     ("coverage-rc-m50-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-agent", 50,
      "the same at M = 50 from coverage-rc-m10-swarm, each agent on its own reward (s-coverage-rc-rel-m50-agent)"),
+    ("coverage-rc-m10-occupancy", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m10-occupancy", 10,
+     "coverage-rc-m10-swarm fine-tuned with landmark occupancy (s-coverage-rc-rel-m10-occupancy)"),
+    ("coverage-rc-m50-occupancy", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy", 50,
+     "coverage-rc-m50-swarm fine-tuned with landmark occupancy (s-coverage-rc-rel-m50-occupancy)"),
 )  # fmt: skip
 
 
