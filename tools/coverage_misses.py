@@ -7,7 +7,10 @@ maximum matching within the success threshold leaves without a landmark is a
 - far: farther still (it never found a free landmark).
 
 An unmatched agent means an uncovered landmark (as many agents as landmarks), so the three
-fractions add up to 1 - covered. Run in the swarm policies' setting (rc within 1, lists K = 4
+fractions add up to 1 - covered. For the duplicates it also reports how far the nearest
+uncovered landmark is (the median) and how many of them sense one (among the KL nearest within
+the sensing radius, the policy's lists, or ``--sense KL R``): a duplicate with none in sight has
+nowhere it can see to go. Run in the swarm policies' setting (rc within 1, lists K = 4
 and KL = 5 within 1, density-scaled; the lists and options a policy trained on take
 precedence, landmark occupancy among them), greedy actions, fresh episodes at the seed:
 
@@ -47,9 +50,34 @@ def classify(pos: np.ndarray, landmarks: np.ndarray, threshold: float) -> dict:
     }
 
 
-def run(policy_name: str, agents: int, episodes: int, seed: int) -> dict:
-    """The mean fractions over ``episodes`` episodes (one environment each) that run their 50 steps;
-    episodes that succeed before the last step are counted apart (every landmark covered)."""
+def duplicates_reach(pos: np.ndarray, landmarks: np.ndarray, threshold: float, kl: int, radius: float):
+    """pos, landmarks [M, 2] of one environment -> for each duplicate agent (as ``classify``
+    counts them): (distance to the nearest landmark the maximum matching leaves uncovered,
+    whether one is among its ``kl`` nearest landmarks within ``radius``), as two arrays."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import maximum_bipartite_matching
+
+    d = np.linalg.norm(pos[:, None] - landmarks[None], axis=-1)
+    match = maximum_bipartite_matching(csr_matrix(d < threshold), perm_type="column")
+    uncovered = np.ones(len(landmarks), bool)
+    uncovered[match[match >= 0]] = False
+    dup = np.where((match < 0) & (d.min(1) < threshold))[0]
+    if not uncovered.any() or not len(dup):
+        return np.zeros(0), np.zeros(0, bool)
+    dist = d[dup][:, uncovered].min(1)
+    sensed = np.argsort(d[dup], axis=1)[:, :kl]  # each duplicate's kl nearest landmarks
+    rows = np.arange(len(dup))[:, None]
+    in_sight = (uncovered[sensed] & (d[dup][rows, sensed] < radius)).any(1)
+    return dist, in_sight
+
+
+def run(
+    policy_name: str, agents: int, episodes: int, seed: int, sense: tuple[int, float] | None = None, steps: int = 50
+) -> dict:
+    """The mean fractions over ``episodes`` episodes (one environment each) that run their 50 steps,
+    and where the duplicates' free landmarks are (``sense``: (KL, radius) counted as in sight;
+    default the policy's lists); episodes that succeed before the last step are counted apart
+    (every landmark covered). ``steps``: the episode length (the task's is 50)."""
     import torch
 
     import taichi_swarm
@@ -63,7 +91,9 @@ def run(policy_name: str, agents: int, episodes: int, seed: int) -> dict:
     # the swarm policies' setting, with the lists and options the policy trained on over it
     swarm = {"neighbours": 4, "landmark_neighbours": 5, "sense_radius": 1.0, "scale": "density"}
     swarm.update(payload.get("swarm") or {})
-    env = taichi_swarm.make("coverage", episodes, agents, comm="rc", comm_radius=1.0, seed=seed, **swarm)
+    env = taichi_swarm.make(
+        "coverage", episodes, agents, comm="rc", comm_radius=1.0, seed=seed, max_steps=steps, **swarm
+    )  # fmt: skip
     obs = env.reset()
     finished = np.zeros(episodes, bool)
     for _ in range(env.params["max_steps"] - 1):  # stop before the last step: its auto-reset would clear the state
@@ -73,8 +103,15 @@ def run(policy_name: str, agents: int, episodes: int, seed: int) -> dict:
         finished |= np.asarray(done, bool)
     state = {k: np.asarray(v) for k, v in env.get_state().items()}
     threshold = CoverageParams().success_threshold
-    rows = [classify(state["pos"][b], state["landmarks"][b], threshold) for b in range(episodes) if not finished[b]]
+    kept = [b for b in range(episodes) if not finished[b]]
+    rows = [classify(state["pos"][b], state["landmarks"][b], threshold) for b in kept]
     out = {k: float(np.mean([r[k] for r in rows])) if rows else None for k in ("covered", "duplicate", "near", "far")}
+    kl, radius = sense or (swarm["landmark_neighbours"], swarm["sense_radius"])
+    reach = [duplicates_reach(state["pos"][b], state["landmarks"][b], threshold, kl, radius) for b in kept]
+    dist = np.concatenate([r[0] for r in reach]) if reach else np.zeros(0)
+    sight = np.concatenate([r[1] for r in reach]) if reach else np.zeros(0, bool)
+    out["free_distance"] = float(np.median(dist)) if len(dist) else None
+    out["free_in_sight"] = float(sight.mean()) if len(sight) else None
     return {"agents": agents, "episodes": episodes, "succeeded_early": int(finished.sum()), **out}
 
 
@@ -84,17 +121,34 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--agents", type=int, nargs="+", default=[100], help="team sizes (default: 100)")
     ap.add_argument("--episodes", type=int, default=20, help="episodes per size (default: 20)")
     ap.add_argument("--seed", type=int, default=777, help="evaluation seed (default: 777)")
+    ap.add_argument("--steps", type=int, default=50, help="episode length (default: the task's 50)")
+    ap.add_argument(
+        "--sense", nargs=2, metavar=("KL", "R"), help="count a free landmark in sight among the KL nearest within R "
+        "(default: the policy's landmark lists)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     if args.episodes < 1 or any(m < 1 for m in args.agents):
         ap.error("--episodes and --agents must be >= 1")
-    print(f"{'M':>5} {'episodes':>8} {'covered':>8} {'duplicate':>9} {'near':>6} {'far':>6}")
+    if args.steps < 2:
+        ap.error(f"--steps must be >= 2 (the state is read before the last step), got {args.steps}")
+    sense = None
+    if args.sense:
+        try:
+            sense = (int(args.sense[0]), float(args.sense[1]))
+        except ValueError:
+            ap.error(f"--sense takes an integer KL and a radius, got {' '.join(args.sense)}")
+        if sense[0] < 1 or not sense[1] > 0:
+            ap.error(f"--sense takes KL >= 1 and a radius > 0, got {' '.join(args.sense)}")
+    head = f"{'M':>5} {'episodes':>8} {'covered':>8} {'duplicate':>9} {'near':>6} {'far':>6}"
+    print(f"{head} {'free_distance':>13} {'free_in_sight':>13}")
     for m in args.agents:
-        r = run(args.policy, m, args.episodes, args.seed)
+        r = run(args.policy, m, args.episodes, args.seed, sense, args.steps)
         if r["covered"] is None:
             print(f"{m:>5} {args.episodes:>8}  every episode succeeded before its last step")
             continue
         fractions = f"{r['covered']:>8.3f} {r['duplicate']:>9.3f} {r['near']:>6.3f} {r['far']:>6.3f}"
-        print(f"{m:>5} {args.episodes:>8} {fractions}")
+        reach = " ".join("-".rjust(13) if r[k] is None else f"{r[k]:>13.2f}" for k in ("free_distance", "free_in_sight"))
+        print(f"{m:>5} {args.episodes:>8} {fractions} {reach}")
 
 
 if __name__ == "__main__":

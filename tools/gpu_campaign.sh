@@ -2,8 +2,8 @@
 # The training that is slow on two CPU cores, prepared for a GPU lent for a few minutes:
 # Table 2's coverage curricula without and with EMP (UC and RC, all from scratch) and
 # formation's curricula with the landmark offset concatenated (the authors' network), the
-# first 6 jobs of --list by default; Table 1's M = 6 cells and the other RC curricula on
-# request. Each a
+# first 6 jobs of --list by default; Table 1's M = 6 cells, the other RC curricula and the
+# swarm's M = 100 coverage stage on request. Each a
 # `swarm` command with the `gpu` preset on CUDA, several at a time on the one GPU.
 #
 #   tools/gpu_campaign.sh --list                      # the jobs and their commands
@@ -23,6 +23,8 @@ set -uo pipefail
 
 usage() { sed -n '2,/^set -uo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; }
 common="--preset gpu --no-compile --no-progress --eval-every 10 --eval-episodes 500"
+# docs/SWARM.md's M = 50 occupancy policy on at M = 100 (evaluated at 200 too)
+swarm="--neighbours 4 --landmark-neighbours 5 --sense-radius 1.0 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
 curr="--max-updates-per-stage 200 --fresh-eval-episodes 500 --fresh-eval-seed 777 --transfer-offsets"
 declare -A JOBS=(
     [table1-cov6-uc]="train --task coverage --agents 6 --comm uc --updates 400 --transfer-offsets -1 1"
@@ -38,8 +40,9 @@ declare -A JOBS=(
     [curr-form-rc-concat]="curriculum --task formation --comm rc --model.entity-mode concat $curr"
     [curr-cov-uc-noemp]="curriculum --task coverage --comm uc --model.entity-mode padded $curr"
     [curr-cov-rc-noemp]="curriculum --task coverage --comm rc --model.entity-mode padded $curr"
+    [swarm-cov-m100-occ]="train --task coverage --agents 100 --comm rc $swarm --init-from coverage-rc-m50-occupancy --ppo.lr 1e-4 --updates 200 --transfer-offsets 100"
 )
-ORDER="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat table1-cov6-uc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc"
+ORDER="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat table1-cov6-uc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc swarm-cov-m100-occ"
 DEFAULT="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat"
 
 dry_run=0

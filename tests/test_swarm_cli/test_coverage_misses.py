@@ -28,12 +28,39 @@ def test_each_uncovered_landmark_is_one_duplicate_near_or_far_agent():
     assert misses.classify(pos2, landmarks2, 0.1)["covered"] == 1.0
 
 
+def test_a_duplicates_nearest_free_landmark_and_whether_it_is_in_sight():
+    landmarks = np.array([[0, 0], [0.5, 0], [3, 0], [0, 0.8]], np.float32)
+    # agents 0 and 1 share landmark 0, agent 2 holds landmark 1; landmarks 2 (3 away) and 3
+    # (0.8 away, beyond the two nearest) are free
+    pos = np.array([[0.02, 0], [-0.03, 0], [0.5, 0.05], [9, 9]], np.float32)
+    dist, sight = misses.duplicates_reach(pos, landmarks, 0.1, kl=2, radius=1.0)
+    assert len(dist) == 1 and abs(dist[0] - np.hypot(0.03, 0.8)) < 1e-5 and not sight[0]
+    _, sight = misses.duplicates_reach(pos, landmarks, 0.1, kl=3, radius=1.0)
+    assert sight[0]  # landmark 3 is its third nearest
+    _, sight = misses.duplicates_reach(pos, landmarks, 0.1, kl=3, radius=0.5)
+    assert not sight[0]  # ... but outside the radius
+    none = misses.duplicates_reach(pos[[0, 2, 3]], landmarks[[0, 1, 2]], 0.1, kl=2, radius=1.0)
+    assert len(none[0]) == 0 and len(none[1]) == 0  # no duplicate
+
+
 def test_the_tool_runs_a_zoo_policy(capsys):
     misses.main(["coverage-rc-m5-swarm", "--agents", "5", "--episodes", "3"])
     out = capsys.readouterr().out.splitlines()
-    assert out[0].split() == ["M", "episodes", "covered", "duplicate", "near", "far"]
+    assert out[0].split() == ["M", "episodes", "covered", "duplicate", "near", "far", "free_distance", "free_in_sight"]
     cells = out[1].split()
     assert cells[:2] == ["5", "3"]
-    if len(cells) == 6:  # (every episode may succeed early at M = 5)
-        covered, dup, near, far = map(float, cells[2:])
+    if len(cells) == 8:  # (every episode may succeed early at M = 5)
+        covered, dup, near, far = map(float, cells[2:6])
         assert abs(covered + dup + near + far - 1.0) < 2e-3
+
+
+def test_a_bad_sense_option_is_one_line(capsys):
+    import pytest
+
+    for bad in (["x", "1"], ["0", "1"], ["4", "-1"]):
+        with pytest.raises(SystemExit) as exc:
+            misses.main(["coverage-rc-m5-swarm", "--sense", *bad])
+        assert exc.value.code == 2 and "--sense takes" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        misses.main(["coverage-rc-m5-swarm", "--steps", "1"])
+    assert exc.value.code == 2 and "--steps must be >= 2" in capsys.readouterr().err
