@@ -147,7 +147,9 @@ def main(argv: list[str] | None = None) -> None:
             print(f"{m:>5} {args.episodes:>8}  every episode succeeded before its last step")
             continue
         fractions = f"{r['covered']:>8.3f} {r['duplicate']:>9.3f} {r['near']:>6.3f} {r['far']:>6.3f}"
-        reach = " ".join("-".rjust(13) if r[k] is None else f"{r[k]:>13.2f}" for k in ("free_distance", "free_in_sight"))
+        reach = " ".join(  # (None: no duplicate)
+            "-".rjust(13) if r[k] is None else f"{r[k]:>13.2f}" for k in ("free_distance", "free_in_sight")
+        )
         print(f"{m:>5} {args.episodes:>8} {fractions} {reach}")
 
 
