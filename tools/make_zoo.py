@@ -46,6 +46,10 @@ SINGLES = (
      "coverage-rc-m10-swarm fine-tuned with landmark occupancy (s-coverage-rc-rel-m10-occupancy)"),
     ("coverage-rc-m50-occupancy", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy", 50,
      "coverage-rc-m50-swarm fine-tuned with landmark occupancy (s-coverage-rc-rel-m50-occupancy)"),
+    ("coverage-rc-m100-occupancy", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-occupancy", 100,
+     "coverage-rc-m50-occupancy trained on at M = 100 (s-coverage-rc-rel-m100-occupancy)"),
+    ("coverage-rc-m50-wide", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy-wide", 50,
+     "coverage-rc-m50-occupancy on landmark lists of 12 within 1.5 (s-coverage-rc-rel-m50-occupancy-wide)"),
 )  # fmt: skip
 
 
