@@ -31,14 +31,20 @@ sys.path.insert(0, ROOT)
 NEAR = 2.5  # a near miss: the nearest landmark within this many thresholds
 
 
-def classify(pos: np.ndarray, landmarks: np.ndarray, threshold: float) -> dict:
-    """pos [M, 2], landmarks [M, 2] of one environment -> the fractions of agents covered (in the
-    maximum matching of agents to landmarks over |p - l| < threshold), duplicate, near and far."""
+def matching(pos: np.ndarray, landmarks: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """pos [M, 2], landmarks [M, 2] -> (distances [agents, landmarks], each agent's landmark in the
+    maximum matching over |p - l| < threshold, -1 where unmatched)."""
     from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import maximum_bipartite_matching
 
-    d = np.linalg.norm(pos[:, None] - landmarks[None], axis=-1)  # [agents, landmarks]
-    match = maximum_bipartite_matching(csr_matrix(d < threshold), perm_type="column")  # agent -> landmark or -1
+    d = np.linalg.norm(pos[:, None] - landmarks[None], axis=-1)
+    return d, maximum_bipartite_matching(csr_matrix(d < threshold), perm_type="column")
+
+
+def classify(pos: np.ndarray, landmarks: np.ndarray, threshold: float) -> dict:
+    """pos [M, 2], landmarks [M, 2] of one environment -> the fractions of agents covered (in the
+    maximum matching of agents to landmarks over |p - l| < threshold), duplicate, near and far."""
+    d, match = matching(pos, landmarks, threshold)
     free = match < 0
     nearest = d.min(1)
     M = len(pos)
@@ -54,11 +60,7 @@ def duplicates_reach(pos: np.ndarray, landmarks: np.ndarray, threshold: float, k
     """pos, landmarks [M, 2] of one environment -> for each duplicate agent (as ``classify``
     counts them): (distance to the nearest landmark the maximum matching leaves uncovered,
     whether one is among its ``kl`` nearest landmarks within ``radius``), as two arrays."""
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import maximum_bipartite_matching
-
-    d = np.linalg.norm(pos[:, None] - landmarks[None], axis=-1)
-    match = maximum_bipartite_matching(csr_matrix(d < threshold), perm_type="column")
+    d, match = matching(pos, landmarks, threshold)
     uncovered = np.ones(len(landmarks), bool)
     uncovered[match[match >= 0]] = False
     dup = np.where((match < 0) & (d.min(1) < threshold))[0]
@@ -74,7 +76,7 @@ def duplicates_reach(pos: np.ndarray, landmarks: np.ndarray, threshold: float, k
 def run(
     policy_name: str, agents: int, episodes: int, seed: int, sense: tuple[int, float] | None = None, steps: int = 50
 ) -> dict:
-    """The mean fractions over ``episodes`` episodes (one environment each) that run their 50 steps,
+    """The mean fractions over ``episodes`` episodes (one environment each) that run their ``steps``,
     and where the duplicates' free landmarks are (``sense``: (KL, radius) counted as in sight;
     default the policy's lists); episodes that succeed before the last step are counted apart
     (every landmark covered). ``steps``: the episode length (the task's is 50)."""
