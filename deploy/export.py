@@ -262,7 +262,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
                     else ""
                 ),
                 "dtype": "float32",
-                "L": "coverage: M; formation: 1; line: 2",
+                "L": "coverage: M; formation: 1; line: 2; with landmark lists the KL listed",
             },
         },
         "message": {

@@ -602,7 +602,9 @@ def _check_needs(spec: Spec, c: Cell, src: Cell | None) -> None:
         ours, theirs = (c.run.task, c.run.comm, c.run.comm_radius), (src.run.task, src.run.comm, src.run.comm_radius)
         if ours != theirs:
             raise SpecError(f"{where}: task / comm / comm_radius {ours} differ from its source's {theirs}")
-    elif (src.run.task, model) != (c.run.task, c.run.config.model.entity_mode):
+    elif model != c.run.config.model.entity_mode or (model == "concat" and src.run.task != c.run.task):
+        # the weights fit another task's only where neither concatenates a task's own landmark
+        # count (e.g. coverage's policy into formation's sensed lattice: the same inputs)
         raise SpecError(
             f"{where}: task / entity_mode {c.run.task, c.run.config.model.entity_mode} differ from its "
             f"{src.run.task, model} (the weights would not fit)"

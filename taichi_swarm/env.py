@@ -116,8 +116,9 @@ class SwarmEnv:
     neighbours: K, each agent's K nearest heard agents as index lists (obs["nbr"],
     obs["nbr_mask"]) found through a cell grid, which also finds the contacts; no M x M
     adjacency. "rc": those within comm_radius; "uc": the K nearest of all.
-    landmark_neighbours (coverage) with sense_radius: each agent's KL nearest landmarks
-    within sense_radius (obs["entities"] [B, M, KL, 2], obs["entity_mask"]).
+    landmark_neighbours (coverage; formation and line with scale="density", whose landmarks are
+    then their M targets) with sense_radius: each agent's KL nearest landmarks within sense_radius
+    (obs["entities"] [B, M, KL, 2], obs["entity_mask"]).
     landmark_occupancy (with neighbours and landmark_neighbours): obs["entities"] [B, M, KL, 3],
     the third feature each listed landmark's distance to its nearest agent other than the
     observer, capped at sense_radius: whether someone else already holds it.
@@ -157,7 +158,7 @@ class SwarmEnv:
         self.task = task
         self.num_envs = _check_int("num_envs", num_envs, 1)
         self.num_agents = _check_int("num_agents", num_agents, spec.min_agents)
-        self.num_landmarks = spec.num_landmarks(self.num_agents)
+        self.num_landmarks = spec.num_landmarks(self.num_agents, listed=landmark_neighbours is not None)
         if comm not in COMMS:
             raise ValueError(f"comm must be one of {COMMS}, got {comm!r}")
         self.comm = comm
@@ -241,8 +242,8 @@ class SwarmEnv:
         if landmark_neighbours is not None:
             if not spec.landmark_lists:
                 raise ValueError(
-                    f"landmark_neighbours is for tasks with a landmark per agent (coverage); {spec.name!r} "
-                    "keeps its landmarks global"
+                    f"landmark_neighbours is for tasks with a landmark per agent; {spec.name!r} keeps its "
+                    "landmarks global"
                 )
             if sense_radius is None:
                 raise ValueError("landmark_neighbours needs sense_radius (how far an agent senses landmarks)")
@@ -255,6 +256,11 @@ class SwarmEnv:
             raise ValueError(f"scale must be one of {SCALES}, got {scale!r}")
         if scale == "density" and not spec.density_scale:
             raise ValueError(f"scale='density' is not implemented for task {spec.name!r}")
+        if landmark_neighbours is not None and spec.listed_landmarks is not None and scale != "density":
+            raise ValueError(
+                f"{spec.name}'s listed landmarks are the points of its density-scaled lattice: "
+                "landmark_neighbours needs scale='density'"
+            )
         self.scale = scale
         # spawn square half-width: sqrt(M / 10) keeps the agents per unit area of M = 10 in [-1, 1]^2
         self.arena = (self.num_agents / DENSITY_TEAM) ** 0.5 if scale == "density" else 1.0

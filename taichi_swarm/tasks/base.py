@@ -57,8 +57,11 @@ class Task:
     """Whether the task implements ``scale="density"`` (spawn square of half-width
     sqrt(M / 10), read as f[P_ARENA] by its spawn)."""
     landmark_lists: bool = False
-    """Whether its landmarks may be sensed as lists (``landmark_neighbours``): the tasks
-    with one landmark per agent; formation and line keep their landmarks global."""
+    """Whether its landmarks may be sensed as lists (``landmark_neighbours``): coverage's
+    M landmarks; formation's and line's targets (``listed_landmarks``)."""
+    listed_landmarks: Callable[[int], int] | None = None
+    """L for M agents when the landmarks are sensed as lists, where that differs from
+    ``landmarks`` (formation: its M lattice points, which only ``scale="density"`` has)."""
     reward_terms: tuple[str, ...] = ()
     """The named per-agent reward terms ``agent_reward`` sums, each a Taichi function of
     the module, ``term(d) -> f32`` (d: the agent's matched distance d*_i)."""
@@ -74,6 +77,8 @@ class Task:
             raise ValueError(f"task {self.name!r}: params_type must be a dataclass")
         if "success_threshold" not in self.params:
             raise ValueError(f"task {self.name!r}: its parameters must include success_threshold")
+        if self.listed_landmarks is not None and not (self.landmark_lists and self.density_scale):
+            raise ValueError(f"task {self.name!r}: listed_landmarks needs landmark_lists and density_scale")
         if self.kernel_param and self.kernel_param not in self.params:
             raise ValueError(f"task {self.name!r}: kernel_param {self.kernel_param!r} is not one of its parameters")
 
@@ -82,7 +87,10 @@ class Task:
         """The task's parameters and their defaults."""
         return dataclasses.asdict(self.params_type())
 
-    def num_landmarks(self, num_agents: int) -> int:
+    def num_landmarks(self, num_agents: int, listed: bool = False) -> int:
+        """L for M agents; ``listed``: with landmark lists (``landmark_neighbours``)."""
+        if listed and self.listed_landmarks is not None:
+            return self.listed_landmarks(num_agents)
         return self.landmarks(num_agents)
 
 

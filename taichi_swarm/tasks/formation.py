@@ -12,7 +12,14 @@ the first M points of its hexagonal spiral (ring n holds 6 n points; size ~ sqrt
 fixed orientation (no re-anchoring: a lattice has no vertex to anchor on). The agents spawn
 uniformly in the disc round the landmark with the lattice's own area (M hexagonal cells),
 so that, as in density-scaled coverage, the distance each agent must travel is set by the
-spacing and not by M. Its one landmark is always seen (no landmark lists)."""
+spacing and not by M. Its one landmark is always seen.
+
+With landmark lists (``landmark_neighbours``, density-scaled only) the M lattice points
+themselves are the landmarks (landmark 0, the centre, is point 0) and each agent senses the
+nearest of them as coverage's agents sense theirs, with occupancy where asked: the lattice is
+then a shape an agent can fill by a local rule (move to the nearest free point it senses),
+which the first M points of a spiral round one landmark are not (where they lie depends on
+M). The targets, the reward and success are unchanged; only what an agent sees is."""
 
 import math
 import sys
@@ -21,7 +28,7 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import H_DENSITY, P_TASK_PARAM, blocks, team_size
+from ..layout import H_DENSITY, H_L, P_TASK_PARAM, blocks, team_size
 from .base import Task
 from .base import clipped_matched_distance as matched_distance  # the reward term line and formation share
 
@@ -36,7 +43,7 @@ class FormationParams:
 
 @ti.func
 def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
-    return 1
+    return ib[H_L]  # 1; with landmark lists the M lattice points (Task.listed_landmarks)
 
 
 LATTICE_SPACING = 2.0 * 0.5 * math.sin(math.pi / 10.0)  # the paper's M = 10 ring: neighbours 0.309 apart
@@ -59,6 +66,8 @@ def spawn_landmarks(sm: ti.template(), f: ti.template(), ib: ti.template(), b: t
             r = radius * ti.sqrt(rng.uniform(ib, b))
             ang = 2.0 * math.pi * rng.uniform(ib, b)
             blocks.pos.store(f, ib, b, i, centre + r * ti.math.vec2(ti.cos(ang), ti.sin(ang)))
+        for k in range(1, ib[H_L]):  # landmark lists: every lattice point is a landmark (no draws)
+            blocks.landmarks.store(f, ib, b, k, centre + LATTICE_SPACING * lattice_point(k))
 
 
 @ti.func
@@ -140,9 +149,11 @@ TASK = Task(
     min_agents=2,
     params_type=FormationParams,
     landmarks=lambda num_agents: 1,
+    listed_landmarks=lambda num_agents: num_agents,
     funcs=sys.modules[__name__],
     kernel_param="formation_radius",
     density_scale=True,
+    landmark_lists=True,
     reward_terms=("matched_distance",),
     doc="M agents form a regular M-gon round one landmark.",
 )

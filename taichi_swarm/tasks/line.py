@@ -13,8 +13,13 @@ short): a block of side ~ sqrt(M). Landmark 0 is the start and landmark 1 the en
 first row (so they give the direction; the block is centred on a point uniform in
 [-0.25, 0.25]^2, in a uniformly random direction), and the agents spawn uniformly over the
 block's footprint (half a spacing / half a row gap round it), so each agent's travel is
-bounded by the row gap and the spacing, not by M. Its two landmarks are always seen (no
-landmark lists)."""
+bounded by the row gap and the spacing, not by M. Its two landmarks are always seen.
+
+With landmark lists (``landmark_neighbours``, density-scaled only) every target is a landmark
+(landmarks 0 and 1 stay the first row's ends, the other M - 2 targets follow) and each agent
+senses the nearest of them, as coverage's agents sense theirs: the rows become points an agent
+can fill by a local rule, as formation's lattice does (formation.py). The targets, reward and
+success are unchanged; only what an agent sees is."""
 
 import math
 import sys
@@ -23,7 +28,7 @@ from dataclasses import dataclass
 import taichi as ti
 
 from .. import rng
-from ..layout import H_DENSITY, P_TASK_PARAM, blocks, team_size
+from ..layout import H_DENSITY, H_L, P_TASK_PARAM, blocks, team_size
 from .base import Task
 from .base import clipped_matched_distance as matched_distance  # the reward term line and formation share
 
@@ -40,7 +45,7 @@ class LineParams:
 
 @ti.func
 def landmark_count(sm: ti.template(), ib: ti.template()) -> ti.i32:
-    return 2
+    return ib[H_L]  # 2; with landmark lists the M targets (Task.listed_landmarks)
 
 
 PAPER_GAPS = 9  # the paper's M = 10 line: 9 gaps of line_length / 9
@@ -86,6 +91,9 @@ def spawn_rows(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
         a = -0.5 * spacing + (m * spacing) * rng.uniform(ib, b)
         c = -0.5 * gap + (n * gap) * rng.uniform(ib, b)
         blocks.pos.store(f, ib, b, i, l0 + a * along + c * across)
+    for k in range(2, ib[H_L]):  # landmark lists: the other targets, in order (no draws)
+        j = k - 1 if k < m else k  # targets 1 .. m - 2, then the rows after the first
+        blocks.landmarks.store(f, ib, b, k, l0 + (j % m) * spacing * along + (j // m) * gap * across)
 
 
 @ti.func
@@ -139,9 +147,11 @@ TASK = Task(
     min_agents=2,
     params_type=LineParams,
     landmarks=lambda num_agents: 2,
+    listed_landmarks=lambda num_agents: num_agents,
     funcs=sys.modules[__name__],
     kernel_param="line_length",
     density_scale=True,
+    landmark_lists=True,
     reward_terms=("matched_distance",),
     doc="M agents spread evenly on the segment between two landmarks.",
 )

@@ -788,6 +788,22 @@ def test_bad_init_from_and_polish_name_the_cell_and_the_key(tmp_path, edit, mess
         load_spec(write_spec(tmp_path, text=edit(CHAIN)))
 
 
+def test_init_from_crosses_tasks_only_where_the_inputs_fit(tmp_path):
+    """Coverage's weights start a formation run on the same (entity message passing) inputs; a
+    network that concatenates its task's landmarks fits only its own task."""
+    chain = CHAIN.split('[[cells]]\nid = "zs-cov-rc"')[0]
+    crossed = chain.replace('kind = "curriculum"\ntask = "coverage"', 'kind = "curriculum"\ntask = "formation"')
+    assert crossed != chain
+    spec = load_spec(write_spec(tmp_path, text=crossed))
+    assert spec.cell("curr-cov-rc").run.task == "formation"
+    concat = 'model = { entity_mode = "concat" }\n'
+    both = crossed.replace("updates = 2\npaper", concat + "updates = 2\npaper", 1).replace(
+        "polish_updates = 1\n", "polish_updates = 1\n" + concat
+    )
+    with pytest.raises(SpecError, match="the weights would not fit"):
+        load_spec(write_spec(tmp_path, text=both))
+
+
 # --- a cell's identity: the schema, its one migration, and fields added later ---------------
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))

@@ -94,6 +94,47 @@ def test_density_formation_is_a_filled_hexagonal_lattice(M):
         np.testing.assert_allclose(gaps.min(axis=1), spacing, rtol=1e-9)
 
 
+@pytest.mark.parametrize(("task", "M"), [("formation", 2), ("formation", 7), ("formation", 50), ("line", 2),
+                                         ("line", 9), ("line", 61)])  # fmt: skip
+def test_density_shapes_list_their_targets_as_landmarks(task, M):
+    """With landmark lists every target is a landmark (formation: landmark 0 the lattice's
+    centre; line: landmarks 0 and 1 the first row's ends), the episode is otherwise the plain
+    task's draw for draw, and each agent senses the nearest targets, as coverage's agents sense
+    their landmarks. (line at M = 61: three rows, the last short.)"""
+    from scipy.spatial import cKDTree
+
+    B, KL, sense = 3, 6, 0.8
+    kw = dict(comm="rc", neighbours=6, scale="density", seed=M, array="numpy")
+    listed = taichi_swarm.make(task, B, M, landmark_neighbours=KL, sense_radius=sense, **kw)
+    plain = taichi_swarm.make(task, B, M, **kw)
+    L = plain.num_landmarks
+    assert listed.num_landmarks == M and L == {"formation": 1, "line": 2}[task]
+    obs, _ = listed.reset(), plain.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        a, b = listed.get_state(), plain.get_state()
+        np.testing.assert_array_equal(a["pos"], b["pos"])
+        np.testing.assert_array_equal(a["landmarks"][:, :L], b["landmarks"])
+        for e in range(B):  # the same points (line's landmarks are its targets, reordered)
+            got = a["landmarks"][e]
+            gaps = np.linalg.norm(got[:, None] - listed.targets[e][None], axis=-1)
+            np.testing.assert_allclose(gaps.min(axis=0), 0.0, atol=1e-5)
+            np.testing.assert_allclose(gaps.min(axis=1), 0.0, atol=1e-5)
+        np.testing.assert_allclose(listed.targets, plain.targets, atol=1e-6)
+        np.testing.assert_allclose(listed.matched_dist, plain.matched_dist, atol=1e-5)
+        for e in range(B):
+            tree = cKDTree(a["landmarks"][e].astype(np.float64))
+            for i in range(M):
+                d, _ = tree.query(a["pos"][e, i], k=min(KL, M), distance_upper_bound=sense)
+                d = np.atleast_1d(d)
+                want = np.sort(d[np.isfinite(d)])
+                got = np.linalg.norm(obs["entities"][e, i][obs["entity_mask"][e, i] > 0], axis=-1)
+                np.testing.assert_allclose(np.sort(got), want, atol=1e-4)
+        actions = rng.integers(0, 5, size=(B, M))
+        obs, *_ = listed.step(actions)
+        plain.step(actions)
+
+
 def test_density_formation_travel_stays_bounded():
     """The mean matched distance at the start (what an agent must travel) does not grow with M."""
     means = []

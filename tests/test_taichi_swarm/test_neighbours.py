@@ -226,8 +226,8 @@ def test_list_snapshots_restore_bit_identically():
         ("coverage", {"sense_radius": 0.5}, "only used with landmark_neighbours"),
         ("coverage", {"landmark_neighbours": 0, "sense_radius": 0.5}, "landmark_neighbours must be >= 1"),
         ("coverage", {"landmark_neighbours": 2, "sense_radius": -1.0}, "sense_radius must be >= 0"),
-        ("formation", {"landmark_neighbours": 1, "sense_radius": 0.5}, "keeps its landmarks global"),
-        ("line", {"landmark_neighbours": 1, "sense_radius": 0.5}, "keeps its landmarks global"),
+        ("line", {"landmark_neighbours": 1, "sense_radius": 0.5}, "landmark_neighbours needs scale='density'"),
+        ("formation", {"landmark_neighbours": 1, "sense_radius": 0.5}, "landmark_neighbours needs scale='density'"),
         ("coverage", {"scale": "area"}, "scale must be one of"),
     ],
 )
