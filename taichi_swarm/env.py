@@ -131,6 +131,9 @@ class SwarmEnv:
     in MPE's simple_spread, in matched_dist [B, M] per target; success and covered from a maximum
     matching within success_threshold, in assignment [B, M], -1 where unmatched; each agent's
     reward from its nearest target: nearest.py, docs/SWARM.md).
+    agent_parallel (with neighbours): step every agent of every environment in parallel
+    (kernels.step_wide_kernel), not one environment per thread; the same results bit for bit.
+    None (default): on CUDA, where one thread per environment leaves the GPU idle at small B.
     """
 
     def __init__(
@@ -150,6 +153,7 @@ class SwarmEnv:
         scale: str | None = None,
         assignment: str = "exact",
         landmark_occupancy: bool = False,
+        agent_parallel: bool | None = None,
         **task_params,
     ):
         if not isinstance(task, str) or task not in TASK_SPECS:
@@ -224,6 +228,13 @@ class SwarmEnv:
             raise ValueError("array='numpy' needs arch='cpu': CUDA buffers are torch tensors")
         self.device = "cuda" if self.arch == "cuda" else "cpu"
         self._parallel = self.arch == "cuda" or self.num_envs * self.num_agents**2 >= SERIAL_BELOW_WORK
+        if agent_parallel not in (None, True, False):
+            raise ValueError(f"agent_parallel must be None, True or False, got {agent_parallel!r}")
+        if agent_parallel and self.neighbours is None:
+            raise ValueError("agent_parallel needs neighbours (the dense layout's step is all pairs per team)")
+        self._agent_parallel = self.neighbours is not None and (
+            agent_parallel if agent_parallel is not None else self.arch == "cuda"
+        )
         self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks, **self._list_dims())
         if self.neighbours is None and self.num_agents >= LARGE_TEAM and self._cap not in _ANNOUNCED_CAPACITIES:
             _ANNOUNCED_CAPACITIES.add(self._cap)
@@ -455,6 +466,11 @@ class SwarmEnv:
             raise RuntimeError("call reset() before step()")
         if self.continuous:
             u = self._check_continuous_actions(actions)  # 1-D float32 view, no copy
+            if self._agent_parallel:
+                kernels.step_wide_kernel(
+                    self._f, self._i, self._u8, u, self._task_id, self._cap, self._sm, self._lists, True
+                )
+                return self.obs, self.reward, self.done, self.info
             kernels.step_continuous_kernel(
                 self._f, self._i, self._u8, u, self._task_id, self._cap, self._sm, self._lists, self._parallel
             )
@@ -464,7 +480,14 @@ class SwarmEnv:
             np.copyto(self._actions_host, host, casting="unsafe")  # int64 -> int32
         else:
             self._actions_in.copy_(actions)  # CUDA
-        kernels.step_kernel(self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._lists, self._parallel)
+        if self._agent_parallel:  # ``u`` unused (discrete): any float32 array will do
+            kernels.step_wide_kernel(
+                self._f, self._i, self._u8, self._f, self._task_id, self._cap, self._sm, self._lists, False
+            )
+        else:
+            kernels.step_kernel(
+                self._f, self._i, self._u8, self._task_id, self._cap, self._sm, self._lists, self._parallel
+            )
         return self.obs, self.reward, self.done, self.info
 
     def _check_continuous_actions(self, actions):

@@ -9,7 +9,8 @@ loop is parallel, and every extra pass costs a thread-pool dispatch, which
 dominated at small B). Per environment, a step is: forces -> velocities ->
 positions, targets, optimal assignment, reward, success and done, episode
 statistics, terminal observation and auto-reset, then the observations and
-communication graph.
+communication graph. ``step_wide_kernel`` is the exception, for GPUs: the same
+step as several passes, each per-agent part parallel over (environment, agent).
 
 Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (size of the dense
 physics' per-thread force array and of the small-M assignment's work arrays; 0 with
@@ -93,22 +94,21 @@ def write_team_obs(
 ):
     """Every agent's observation of env b, into the current (``term`` False) or the
     terminal observation blocks: self [M, 4] = (vel, pos); entities [M, L, 2] = landmark
-    - pos (with landmark lists: landmark_lists); and who agent i hears: the adjacency
+    - pos (with landmark lists: agent_landmarks); and who agent i hears: the adjacency
     [M, M] (dense: itself always; "rc": those within comm radius) or, with neighbour lists,
-    its K nearest heard agents."""
+    its K nearest heard agents. ``step_wide_kernel`` writes the same, agent by agent in parallel."""
     M, L = team_size(sm, ib), tasks.landmark_count(task, sm, ib)
-    pos, vel, lmk = blocks.pos, blocks.vel, blocks.landmarks
-    obs_self = blocks.term_self if ti.static(term) else blocks.obs_self
-    P0, V0, LM, S = pos.env(ib, b), vel.env(ib, b), lmk.env(ib, b), obs_self.env(ib, b)
-    for i in range(M):  # (vx, vy, px, py): SELF_DIM
-        s = obs_self.row(ib, S, i)
-        v, p = vel.get2(f, ib, V0, i), pos.get2(f, ib, P0, i)
-        f[s + 0], f[s + 1], f[s + 2], f[s + 3] = v[0], v[1], p[0], p[1]
+    for i in range(M):
+        self_obs(f, ib, b, i, term)
+    obs_grids(task, sm, lists, f, ib, b)
     if ti.static(lists & AGENT_LISTS):
-        agent_lists(sm, lists, f, ib, u8, b, M, term)
+        dropped = 0
+        for i in range(M):
+            dropped += agent_list(lists, f, ib, u8, b, i, M, term)
+        ib[blocks.dropped.env(ib, b)] = dropped
     else:
-        adj = blocks.term_adj if ti.static(term) else blocks.adj
-        A = adj.env(ib, b)
+        pos, adj = blocks.pos, blocks.term_adj if ti.static(term) else blocks.adj
+        P0, A = pos.env(ib, b), adj.env(ib, b)
         restricted = ib[H_COMM_RC] != 0
         radius = f[P_COMM_RADIUS]
         r2 = radius * radius
@@ -121,128 +121,150 @@ def write_team_obs(
                 hears = ti.cast((not restricted) or d[0] * d[0] + d[1] * d[1] <= r2, ti.u8)
                 u8[A + i * width + j] = hears
                 u8[A + j * width + i] = hears
-    # after the graph: landmark occupancy reads the agents' grid that agent_lists builds
-    if ti.static(lists & LANDMARK_LISTS):
-        landmark_lists(sm, lists, f, ib, u8, b, M, L, term)
-    else:
-        ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
-        E = ent.env(ib, b)
-        for i in range(M):
-            p, e = pos.get2(f, ib, P0, i), ent.row(ib, E, i)  # agent i's [L, 2] offsets
-            for l in range(L):
-                d = lmk.get2(f, ib, LM, l) - p
-                f[e + 2 * l], f[e + 2 * l + 1] = d[0], d[1]
+    # after the graph: landmark occupancy reads the agents' grid (obs_grids)
+    if ti.static(lists & OCCUPANCY):
+        for l in range(L):
+            landmark_occupants(f, ib, b, l)
+    for i in range(M):
+        if ti.static(lists & LANDMARK_LISTS):
+            agent_landmarks(lists, f, ib, u8, b, i, term)
+        else:
+            entity_offsets(L, f, ib, b, i, term)
 
 
 @ti.func
-def agent_lists(
-    sm: ti.template(),
+def self_obs(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, term: ti.template()):
+    """Agent i's own (vx, vy, px, py): SELF_DIM."""
+    obs_self = blocks.term_self if ti.static(term) else blocks.obs_self
+    s = obs_self.row(ib, obs_self.env(ib, b), i)
+    v, p = blocks.vel.get2(f, ib, blocks.vel.env(ib, b), i), blocks.pos.get2(f, ib, blocks.pos.env(ib, b), i)
+    f[s + 0], f[s + 1], f[s + 2], f[s + 3] = v[0], v[1], p[0], p[1]
+
+
+@ti.func
+def entity_offsets(L: ti.i32, f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, term: ti.template()):
+    """Agent i's [L, 2] offsets to every landmark (no landmark lists)."""
+    ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
+    p, e = blocks.pos.get2(f, ib, blocks.pos.env(ib, b), i), ent.row(ib, ent.env(ib, b), i)
+    LM = blocks.landmarks.env(ib, b)
+    for l in range(L):
+        d = blocks.landmarks.get2(f, ib, LM, l) - p
+        f[e + 2 * l], f[e + 2 * l + 1] = d[0], d[1]
+
+
+@ti.func
+def obs_grids(
+    task: ti.template(), sm: ti.template(), lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
+):
+    """The cell grids of env b the observation's queries read: the agents' (kept for the next
+    step's contacts; with NEAREST ``match`` has just built it) and, with landmark lists, the
+    landmarks'."""
+    if ti.static((lists & AGENT_LISTS) and not (lists & NEAREST)):
+        GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
+        neighbours.build(f, ib, team_size(sm, ib), blocks.pos.env(ib, b), f[P_CELL], ib[H_G], GS, GI, GC)
+    if ti.static(lists & LANDMARK_LISTS):
+        GS, GI, GC = blocks.lgrid_start.env(ib, b), blocks.lgrid_items.env(ib, b), blocks.lgrid_cell.env(ib, b)
+        L = tasks.landmark_count(task, sm, ib)
+        neighbours.build(f, ib, L, blocks.landmarks.env(ib, b), f[P_LCELL], ib[H_GL], GS, GI, GC)
+
+
+@ti.func
+def agent_list(
     lists: ti.template(),
     f: ti.template(),
     ib: ti.template(),
     u8: ti.template(),
     b: ti.i32,
+    i: ti.i32,
     M: ti.i32,
     term: ti.template(),
-):
-    """The cell grid of env b's agents (kept for the next step's contacts), then each
-    agent's K nearest heard agents (itself excluded), nearest first: nbr [M, K] (padded
-    with the agent's own index), nbr_mask [M, K], in_range [M] and dropped (the env's
-    heard-but-not-listed count). With NEAREST, ``match`` has just built the grid."""
+) -> ti.i32:
+    """Agent i's K nearest heard agents (itself excluded), nearest first, through the agents'
+    grid: its rows of nbr [M, K] (padded with its own index), nbr_mask [M, K], in_range [M];
+    returns how many it heard but could not list (the env's ``dropped`` sums them)."""
     K, G = ib[H_K], ib[H_G]
     nbr = blocks.term_nbr if ti.static(term) else blocks.nbr
     mask = blocks.term_nbr_mask if ti.static(term) else blocks.nbr_mask
     P0 = blocks.pos.env(ib, b)
     GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
     h = f[P_CELL]
-    if ti.static(not (lists & NEAREST)):
-        neighbours.build(f, ib, M, P0, h, G, GS, GI, GC)
-    NB, MK, D2, IR = nbr.env(ib, b), mask.env(ib, b), blocks.nbr_d2.env(ib, b), blocks.in_range.env(ib, b)
-    restricted = ib[H_COMM_RC] != 0
-    r2 = f[P_COMM_RADIUS] * f[P_COMM_RADIUS]
-    dropped = 0
-    for i in range(M):
-        p = blocks.pos.get2(f, ib, P0, i)
-        row, row_d2, row_mask = nbr.row(ib, NB, i), blocks.nbr_d2.row(ib, D2, i), mask.row(ib, MK, i)
-        found = ti.math.ivec2(0, 0)  # (listed, in range)
-        if restricted:
-            found = neighbours.nearest_in_grid(f, ib, p[0], p[1], i, P0, r2, h, G, GS, GI, GC, row_d2, row, K)
-        else:  # "uc": everyone is heard; the K nearest of all
-            kept = 0
-            for j in range(M):
-                if j != i:
-                    d = blocks.pos.get2(f, ib, P0, j) - p
-                    kept = neighbours.insert(f, ib, row_d2, row, kept, K, d[0] * d[0] + d[1] * d[1], j)
-            found = ti.math.ivec2(kept, M - 1)
-        for k in range(K):
-            listed = k < found[0]
-            u8[row_mask + k] = ti.cast(listed, ti.u8)
-            if not listed:
-                ib[row + k] = i
-        ib[IR + i] = found[1]
-        dropped += found[1] - found[0]
-    ib[blocks.dropped.env(ib, b)] = dropped
+    NB, MK, D2 = nbr.env(ib, b), mask.env(ib, b), blocks.nbr_d2.env(ib, b)
+    p = blocks.pos.get2(f, ib, P0, i)
+    row, row_d2, row_mask = nbr.row(ib, NB, i), blocks.nbr_d2.row(ib, D2, i), mask.row(ib, MK, i)
+    found = ti.math.ivec2(0, 0)  # (listed, in range)
+    if ib[H_COMM_RC] != 0:
+        r2 = f[P_COMM_RADIUS] * f[P_COMM_RADIUS]
+        found = neighbours.nearest_in_grid(f, ib, p[0], p[1], i, P0, r2, h, G, GS, GI, GC, row_d2, row, K)
+    else:  # "uc": everyone is heard; the K nearest of all
+        kept = 0
+        for j in range(M):
+            if j != i:
+                d = blocks.pos.get2(f, ib, P0, j) - p
+                kept = neighbours.insert(f, ib, row_d2, row, kept, K, d[0] * d[0] + d[1] * d[1], j)
+        found = ti.math.ivec2(kept, M - 1)
+    for k in range(K):
+        listed = k < found[0]
+        u8[row_mask + k] = ti.cast(listed, ti.u8)
+        if not listed:
+            ib[row + k] = i
+    ib[blocks.in_range.env(ib, b) + i] = found[1]
+    return found[1] - found[0]
 
 
 @ti.func
-def landmark_lists(
-    sm: ti.template(),
+def agent_landmarks(
     lists: ti.template(),
     f: ti.template(),
     ib: ti.template(),
     u8: ti.template(),
     b: ti.i32,
-    M: ti.i32,
-    L: ti.i32,
+    i: ti.i32,
     term: ti.template(),
 ):
-    """Each agent's KL nearest landmarks within sense_radius, nearest first, through the
-    landmarks' cell grid: entities [M, KL, 2] (landmark - pos, zeros where none) and
-    entity_mask [M, KL]. With OCCUPANCY, entities [M, KL, 3]: the third feature is the
+    """Agent i's KL nearest landmarks within sense_radius, nearest first, through the
+    landmarks' cell grid: its rows of entities [M, KL, 2] (landmark - pos, zeros where none)
+    and entity_mask [M, KL]. With OCCUPANCY, entities [M, KL, 3]: the third feature is the
     landmark's distance to its nearest agent other than this one, capped at sense_radius
     (sense_radius where none is nearer; 0 where none is listed), from each landmark's two
-    nearest agents found once through the agents' grid."""
+    nearest agents (``landmark_occupants``)."""
     KL, G = ib[H_KL], ib[H_GL]
     EF = 3 if ti.static(lists & OCCUPANCY) else 2
     ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
     mask = blocks.term_entity_mask if ti.static(term) else blocks.entity_mask
     P0, LM = blocks.pos.env(ib, b), blocks.landmarks.env(ib, b)
     GS, GI, GC = blocks.lgrid_start.env(ib, b), blocks.lgrid_items.env(ib, b), blocks.lgrid_cell.env(ib, b)
-    h = f[P_LCELL]
-    neighbours.build(f, ib, L, LM, h, G, GS, GI, GC)
     E, MK, D2, IDX = ent.env(ib, b), mask.env(ib, b), blocks.ent_d2.env(ib, b), blocks.ent_idx.env(ib, b)
     s2 = f[P_SENSE] * f[P_SENSE]
-    if ti.static(lists & OCCUPANCY):
-        landmark_occupants(f, ib, b, L, s2)
-    for i in range(M):
-        p = blocks.pos.get2(f, ib, P0, i)
-        row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
-        found = neighbours.nearest_in_grid(f, ib, p[0], p[1], -1, LM, s2, h, G, GS, GI, GC, row_d2, IDX, KL)
-        for k in range(KL):
-            listed = k < found[0]
-            u8[row_mask + k] = ti.cast(listed, ti.u8)
-            d = ti.math.vec2(0.0, 0.0)
-            if listed:
-                d = blocks.landmarks.get2(f, ib, LM, ib[IDX + k]) - p
-            f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
-            if ti.static(lists & OCCUPANCY):
-                f[row + EF * k + 2] = occupancy(f, ib, b, ib[IDX + k], i) if listed else 0.0
+    p = blocks.pos.get2(f, ib, P0, i)
+    row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
+    # the search's indices go in row i of ent_idx (one row per agent: agents may search at once)
+    idx = blocks.ent_idx.row(ib, IDX, i)
+    found = neighbours.nearest_in_grid(f, ib, p[0], p[1], -1, LM, s2, f[P_LCELL], G, GS, GI, GC, row_d2, idx, KL)
+    for k in range(KL):
+        listed = k < found[0]
+        u8[row_mask + k] = ti.cast(listed, ti.u8)
+        d = ti.math.vec2(0.0, 0.0)
+        if listed:
+            d = blocks.landmarks.get2(f, ib, LM, ib[idx + k]) - p
+        f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
+        if ti.static(lists & OCCUPANCY):
+            f[row + EF * k + 2] = occupancy(f, ib, b, ib[idx + k], i) if listed else 0.0
 
 
 @ti.func
-def landmark_occupants(f: ti.template(), ib: ti.template(), b: ti.i32, L: ti.i32, s2: ti.f32):
-    """Each landmark's two nearest agents within sense_radius (occ_idx, occ_d2, occ_found),
+def landmark_occupants(f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32):
+    """Landmark l's two nearest agents within sense_radius (occ_idx, occ_d2, occ_found),
     through the agents' grid: with them every agent's occupancy of a landmark is a lookup."""
     P0, G = blocks.pos.env(ib, b), ib[H_G]
     GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
     LM, OD, OI, OF = (
         blocks.landmarks.env(ib, b), blocks.occ_d2.env(ib, b), blocks.occ_idx.env(ib, b), blocks.occ_found.env(ib, b)
     )  # fmt: skip
-    for l in range(L):
-        q = blocks.landmarks.get2(f, ib, LM, l)
-        d2, idx = blocks.occ_d2.row(ib, OD, l), blocks.occ_idx.row(ib, OI, l)
-        found = neighbours.nearest_in_grid(f, ib, q[0], q[1], -1, P0, s2, f[P_CELL], G, GS, GI, GC, d2, idx, 2)
-        ib[OF + l] = found[0]
+    s2 = f[P_SENSE] * f[P_SENSE]
+    q = blocks.landmarks.get2(f, ib, LM, l)
+    d2, idx = blocks.occ_d2.row(ib, OD, l), blocks.occ_idx.row(ib, OI, l)
+    found = neighbours.nearest_in_grid(f, ib, q[0], q[1], -1, P0, s2, f[P_CELL], G, GS, GI, GC, d2, idx, 2)
+    ib[OF + l] = found[0]
 
 
 @ti.func
@@ -380,13 +402,19 @@ def physics_step(
 
 
 @ti.func
-def physics_step_grid(
-    sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, u: ti.template(), continuous: ti.template()
+def grid_velocity(
+    sm: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    b: ti.i32,
+    i: ti.i32,
+    u: ti.template(),
+    continuous: ti.template(),
 ):
-    """``physics_step`` with the contacts found through the cell grid of the current
-    positions (built with the last observation). Each agent sums its action force and
-    then its contacts in increasing j, as the dense loop does, so both give the same
-    forces; velocities first (forces read positions only), then positions."""
+    """Agent i's action force and contacts, found through the cell grid of the current
+    positions (built with the last observation), -> its new velocity. It sums its contacts
+    in increasing j, as the dense loop does, so both give the same forces; it reads
+    positions only, so every agent's velocity may be computed at once."""
     M = team_size(sm, ib)
     G = ib[H_G]
     pos, vel = blocks.pos, blocks.vel
@@ -395,46 +423,62 @@ def physics_step_grid(
     dist_min = 2.0 * f[P_AGENT_RADIUS]
     reach = (dist_min + physics.CUTOFF_MARGINS * physics.CONTACT_MARGIN) * 1.001  # a superset of the force's
     h = f[P_CELL]
-    for i in range(M):
-        force = ti.math.vec2(0.0, 0.0)
-        if ti.static(continuous):
-            force = physics.continuous_force(ti.math.vec2(u[(b * M + i) * 2], u[(b * M + i) * 2 + 1]))
-        else:
-            force = physics.action_force(ib[blocks.actions.row(ib, A0, i)])
-        p = pos.get2(f, ib, P0, i)
-        # one pass over the cells that meet the reach's disc keeps the CONTACT_SLOTS smallest touching indices,
-        # sorted; past that many (a pile-up) the rest are walked in increasing index
-        touching = ti.Vector([M] * CONTACT_SLOTS, dt=ti.i32)
-        count = 0
-        rp = neighbours.padded(reach)
-        span_y = neighbours.rows(p[1], rp, h)
-        for qy in range(span_y[0], span_y[1] + 1):
-            span_x = neighbours.columns(p[0], p[1], rp, qy, h)
-            run = neighbours.row_run(ib, span_x, qy, G, GS)
-            for t in range(run[1]):
-                j = neighbours.run_item(ib, run, t, span_x, qy, GI, GC)
-                if j >= 0 and j != i:
-                    d = pos.get2(f, ib, P0, j) - p
-                    d2 = d[0] * d[0] + d[1] * d[1]
-                    if d2 > 0.0 and d2 < reach * reach:
-                        count += 1
-                        if j < touching[CONTACT_SLOTS - 1]:
-                            k = CONTACT_SLOTS - 1
-                            while k > 0 and touching[k - 1] > j:
-                                touching[k] = touching[k - 1]
-                                k -= 1
-                            touching[k] = j
-        for k in range(ti.min(count, CONTACT_SLOTS)):
-            j = touching[k]
+    force = ti.math.vec2(0.0, 0.0)
+    if ti.static(continuous):
+        force = physics.continuous_force(ti.math.vec2(u[(b * M + i) * 2], u[(b * M + i) * 2 + 1]))
+    else:
+        force = physics.action_force(ib[blocks.actions.row(ib, A0, i)])
+    p = pos.get2(f, ib, P0, i)
+    # one pass over the cells that meet the reach's disc keeps the CONTACT_SLOTS smallest touching indices,
+    # sorted; past that many (a pile-up) the rest are walked in increasing index
+    touching = ti.Vector([M] * CONTACT_SLOTS, dt=ti.i32)
+    count = 0
+    rp = neighbours.padded(reach)
+    span_y = neighbours.rows(p[1], rp, h)
+    for qy in range(span_y[0], span_y[1] + 1):
+        span_x = neighbours.columns(p[0], p[1], rp, qy, h)
+        run = neighbours.row_run(ib, span_x, qy, G, GS)
+        for t in range(run[1]):
+            j = neighbours.run_item(ib, run, t, span_x, qy, GI, GC)
+            if j >= 0 and j != i:
+                d = pos.get2(f, ib, P0, j) - p
+                d2 = d[0] * d[0] + d[1] * d[1]
+                if d2 > 0.0 and d2 < reach * reach:
+                    count += 1
+                    if j < touching[CONTACT_SLOTS - 1]:
+                        k = CONTACT_SLOTS - 1
+                        while k > 0 and touching[k - 1] > j:
+                            touching[k] = touching[k - 1]
+                            k -= 1
+                        touching[k] = j
+    for k in range(ti.min(count, CONTACT_SLOTS)):
+        j = touching[k]
+        force += physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
+    if count > CONTACT_SLOTS:
+        j = neighbours.next_contact(f, ib, i, touching[CONTACT_SLOTS - 1], P0, reach * reach, h, G, GS, GI, GC, M)
+        while j < M:
             force += physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
-        if count > CONTACT_SLOTS:
-            j = neighbours.next_contact(f, ib, i, touching[CONTACT_SLOTS - 1], P0, reach * reach, h, G, GS, GI, GC, M)
-            while j < M:
-                force += physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
-                j = neighbours.next_contact(f, ib, i, j, P0, reach * reach, h, G, GS, GI, GC, M)
-        vel.set2(f, ib, V0, i, physics.integrate_velocity(vel.get2(f, ib, V0, i), force))
+            j = neighbours.next_contact(f, ib, i, j, P0, reach * reach, h, G, GS, GI, GC, M)
+    vel.set2(f, ib, V0, i, physics.integrate_velocity(vel.get2(f, ib, V0, i), force))
+
+
+@ti.func
+def move(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
+    P0, V0 = blocks.pos.env(ib, b), blocks.vel.env(ib, b)
+    blocks.pos.set2(f, ib, P0, i, blocks.pos.get2(f, ib, P0, i) + blocks.vel.get2(f, ib, V0, i) * physics.DT)
+
+
+@ti.func
+def physics_step_grid(
+    sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, u: ti.template(), continuous: ti.template()
+):
+    """``physics_step`` with the contacts found through the cell grid (``grid_velocity``):
+    velocities first (forces read positions only), then positions."""
+    M = team_size(sm, ib)
     for i in range(M):
-        pos.set2(f, ib, P0, i, pos.get2(f, ib, P0, i) + vel.get2(f, ib, V0, i) * physics.DT)
+        grid_velocity(sm, f, ib, b, i, u, continuous)
+    for i in range(M):
+        move(f, ib, b, i)
 
 
 @ti.func
@@ -451,14 +495,37 @@ def step_env(
     continuous: ti.template(),
 ):
     """One step of env b: physics, targets, assignment, reward, done, auto-reset, observations."""
-    M = team_size(sm, ib)
     if ti.static(lists & AGENT_LISTS):
         physics_step_grid(sm, f, ib, b, u, continuous)
     else:
         physics_step(cap, sm, f, ib, b, u, continuous)
+    settle(task, cap, sm, lists, f, ib, u8, b, False)
+    write_team_obs(task, sm, lists, f, ib, u8, b, False)
+
+
+@ti.func
+def settle(
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    lists: ti.template(),
+    f: ti.template(),
+    ib: ti.template(),
+    u8: ti.template(),
+    b: ti.i32,
+    searched: ti.template(),
+):
+    """Env b after its agents moved: targets, assignment, reward, done, episode statistics,
+    terminal observation and auto-reset (all but the step's own observation). ``searched``
+    (NEAREST): targets, grids and nearest distances are already there (``nearest_searches``),
+    only the matching is left."""
+    M = team_size(sm, ib)
     t = ib[blocks.step.env(ib, b)] + 1
     ib[blocks.step.env(ib, b)] = t
-    match(task, cap, sm, lists, f, ib, b)
+    if ti.static(searched):
+        nearest.matching(f, ib, b)
+    else:
+        match(task, cap, sm, lists, f, ib, b)
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
     if ti.static(lists & NEAREST):  # d_t per target; agent i's own d: its nearest target (lap_dist)
         MD, ND, A = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b), blocks.assignment.env(ib, b)
@@ -498,7 +565,6 @@ def step_env(
             f[blocks.ep_matched_dist.at(ib, b, i)] = f[blocks.matched_dist.at(ib, b, i)]
         write_team_obs(task, sm, lists, f, ib, u8, b, True)
         start_episode(task, cap, sm, lists, f, ib, b)
-    write_team_obs(task, sm, lists, f, ib, u8, b, False)
 
 
 @ti.kernel
@@ -514,8 +580,58 @@ def step_kernel(
 ):
     """One step of every environment, with the discrete actions already in the actions block."""
     ti.loop_config(serialize=ti.static(not parallel))
-    for b in range(ib[H_B]):  # the only parallel loop: one environment per thread
+    for b in range(ib[H_B]):  # one environment per thread (step_wide_kernel: per agent)
         step_env(task, cap, sm, lists, f, ib, u8, b, f, False)  # ``u`` unused (discrete): any array will do
+
+
+@ti.kernel
+def step_wide_kernel(
+    f: F32,
+    ib: I32,
+    u8: U8,
+    u: F32,
+    task: ti.template(),
+    cap: ti.template(),
+    sm: ti.template(),
+    lists: ti.template(),
+    continuous: ti.template(),
+):
+    """``step_kernel`` (``continuous``: ``step_continuous_kernel``) with neighbour lists, its
+    per-agent work parallel over (env, agent): a GPU given one thread per environment idles
+    at B = 10 x M = 1000 (docs/SWARM.md). Each top-level loop is a parallel pass; what stays
+    per environment is what the team shares: the assignment, reward, done, statistics, the
+    auto-reset and the cell grids (counting sorts). Every agent computes exactly what it does
+    in ``step_env``, so the two give the same results bit for bit."""
+    B, M, L = ib[H_B], team_size(sm, ib), tasks.landmark_count(task, sm, ib)
+    for b, i in ti.ndrange(B, M):  # velocities from the old positions (the grid of the last observation)
+        grid_velocity(sm, f, ib, b, i, u, continuous)
+    for b, i in ti.ndrange(B, M):
+        move(f, ib, b, i)
+    if ti.static(lists & NEAREST):  # ``match``'s searches, target by target and agent by agent
+        for b in range(B):
+            tasks.place_targets(task, sm, f, ib, b)
+            GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
+            neighbours.build(f, ib, M, blocks.pos.env(ib, b), f[P_CELL], ib[H_G], GS, GI, GC)
+            nearest.targets_grid(f, ib, b)
+        for b, t in ti.ndrange(B, M):
+            nearest.target_nearest(f, ib, b, t)
+        for b, i in ti.ndrange(B, M):
+            nearest.agent_nearest(f, ib, b, i)
+    for b in range(B):
+        settle(task, cap, sm, lists, f, ib, u8, b, ti.static((lists & NEAREST) != 0))
+        obs_grids(task, sm, lists, f, ib, b)
+        ib[blocks.dropped.env(ib, b)] = 0
+    for b, i in ti.ndrange(B, M):
+        self_obs(f, ib, b, i, False)
+        ti.atomic_add(ib[blocks.dropped.env(ib, b)], agent_list(lists, f, ib, u8, b, i, M, False))
+        if ti.static(not (lists & LANDMARK_LISTS)):
+            entity_offsets(L, f, ib, b, i, False)
+    if ti.static(lists & OCCUPANCY):
+        for b, l in ti.ndrange(B, L):
+            landmark_occupants(f, ib, b, l)
+    if ti.static(lists & LANDMARK_LISTS):
+        for b, i in ti.ndrange(B, M):
+            agent_landmarks(lists, f, ib, u8, b, i, False)
 
 
 @ti.kernel

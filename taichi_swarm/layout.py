@@ -108,7 +108,7 @@ BLOCKS = (
     BlockSpec("lap_pred", "i32", ("M",)),
     BlockSpec("nbr", "i32", ("M", "K")),  # the K nearest heard agents, nearest first
     BlockSpec("term_nbr", "i32", ("M", "K")),
-    BlockSpec("ent_idx", "i32", ("KL",)),  # scratch: one agent's landmark list being built
+    BlockSpec("ent_idx", "i32", ("M", "KL")),  # scratch: each agent's landmark list being built (agents search at once)
     BlockSpec("occ_idx", "i32", ("LO", 2)),  # ... and their indices
     BlockSpec("occ_found", "i32", ("LO",)),  # ... how many of the two are within sense_radius
     BlockSpec("in_range", "i32", ("N",)),  # how many agents each agent hears

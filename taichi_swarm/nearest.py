@@ -96,22 +96,50 @@ def _dist(f: ti.template(), ib: ti.template(), P0: ti.i32, i: ti.i32, T0: ti.i32
 def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
     """Env b's d_t (matched_dist), each agent's nearest-target distance (lap_dist) and the
     maximum threshold matching (assignment). The agents' grid must hold the current
-    positions (kernels.match builds it just before)."""
+    positions (kernels.match builds it just before). kernels.step_wide_kernel runs the same
+    pieces with the searches parallel over targets and agents."""
+    M = ib[H_M]
+    targets_grid(f, ib, b)
+    for t in range(M):
+        target_nearest(f, ib, b, t)
+    for i in range(M):
+        agent_nearest(f, ib, b, i)
+    matching(f, ib, b)
+
+
+@ti.func
+def targets_grid(f: ti.template(), ib: ti.template(), b: ti.i32):
+    TS, TI, TC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
+    build(f, ib, ib[H_M], blocks.targets.env(ib, b), f[P_TCELL], ib[H_GT], TS, TI, TC)
+
+
+@ti.func
+def target_nearest(f: ti.template(), ib: ti.template(), b: ti.i32, t: ti.i32):
+    """d_t: target t's distance to its nearest agent, through the agents' grid."""
+    GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
+    tp = blocks.targets.get2(f, ib, blocks.targets.env(ib, b), t)
+    d = nearest(f, ib, tp[0], tp[1], blocks.pos.env(ib, b), ib[H_M], f[P_CELL], ib[H_G], GS, GI, GC)
+    f[blocks.matched_dist.env(ib, b) + t] = d
+
+
+@ti.func
+def agent_nearest(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
+    """Agent i's distance to its nearest target, through the targets' grid."""
+    TS, TI, TC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
+    p = blocks.pos.get2(f, ib, blocks.pos.env(ib, b), i)
+    d = nearest(f, ib, p[0], p[1], blocks.targets.env(ib, b), ib[H_M], f[P_TCELL], ib[H_GT], TS, TI, TC)
+    f[blocks.lap_dist.env(ib, b) + i] = d
+
+
+@ti.func
+def matching(f: ti.template(), ib: ti.template(), b: ti.i32):
+    """The maximum threshold matching, from the d_t just computed (a target farther than the
+    threshold from every agent has no edge)."""
     M = ib[H_M]
     P0, T0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b)
     G, h = ib[H_G], f[P_CELL]
     GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
-    GT, ht = ib[H_GT], f[P_TCELL]
-    TS, TI, TC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
-    build(f, ib, M, T0, ht, GT, TS, TI, TC)
-    MD, ND = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b)
-    for t in range(M):  # each target's nearest agent
-        tp = blocks.targets.get2(f, ib, T0, t)
-        f[MD + t] = nearest(f, ib, tp[0], tp[1], P0, M, h, G, GS, GI, GC)
-    for i in range(M):  # each agent's nearest target
-        p = blocks.pos.get2(f, ib, P0, i)
-        f[ND + i] = nearest(f, ib, p[0], p[1], T0, M, ht, GT, TS, TI, TC)
-
+    MD = blocks.matched_dist.env(ib, b)
     thr = f[P_SUCCESS]
     A, Y = blocks.assignment.env(ib, b), blocks.lap_y.env(ib, b)
     Q, PR, ST = blocks.lap_cols.env(ib, b), blocks.lap_pred.env(ib, b), blocks.lap_x.env(ib, b)

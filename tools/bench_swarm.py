@@ -14,6 +14,11 @@ cached; ``--cold`` compiles into a fresh cache directory).
     python tools/bench_swarm.py --arch cuda       # the GPU (torch tensors on the device)
     python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
     python tools/bench_swarm.py --layouts "lists KL=16 nearest" --skip-10k --vmas 10 100   # pip install vmas
+    python tools/bench_swarm.py --arch cuda --layouts "lists KL=16 nearest" "lists KL=16 nearest wide"
+
+A layout ending in "wide" steps every agent in parallel (``agent_parallel=True``, the default
+on CUDA); the others pin one thread per environment, so a pair of them is an A/B in one run
+and its time ratio is printed.
 """
 
 from __future__ import annotations
@@ -36,6 +41,19 @@ LAYOUTS = (
         "lists KL=16 nearest",
         {"neighbours": 16, "landmark_neighbours": 16, "sense_radius": 1.0, "assignment": "nearest"},
     ),
+    # the same stepped agent by agent in parallel (agent_parallel, the default on CUDA; the rows
+    # above pin one thread per environment on every arch, so each pair is an A/B in one run)
+    ("lists K=16 nearest wide", {"neighbours": 16, "assignment": "nearest", "agent_parallel": True}),
+    (
+        "lists KL=16 nearest wide",
+        {
+            "neighbours": 16,
+            "landmark_neighbours": 16,
+            "sense_radius": 1.0,
+            "assignment": "nearest",
+            "agent_parallel": True,
+        },
+    ),  # fmt: skip
 )
 
 
@@ -46,6 +64,8 @@ def measure(
 
     t0 = time.perf_counter()
     array = "numpy" if arch == "cpu" else "torch"
+    if "neighbours" in options:
+        options = {"agent_parallel": False, **options}
     env = taichi_swarm.make(
         "coverage", B, M, comm="rc", comm_radius=comm_radius, scale="density", seed=0, arch=arch, array=array,
         **options,
@@ -155,6 +175,13 @@ def main() -> None:
             ns = measure_vmas(B, M)
             ours = next(r["ns"] for name, b, m, r in rows if name == first and m == M)
             print(f"vmas {B:>5} x {M:>5}: {ns:>12.0f} ns/agent-step; {first} is {ns / ours:.0f}x faster", flush=True)
+    paired = [(n, n + " wide") for n, _ in LAYOUTS if n + " wide" in args.layouts and n in args.layouts]
+    if paired:
+        print("\nagent-parallel step against one thread per environment (time ratio, < 1: faster):")
+        for one, wide in paired:
+            ns = {(name, M): r["ns"] for name, B, M, r in rows}
+            ratios = "  ".join(f"M = {M}: {ns[wide, M] / ns[one, M]:.2f}" for _, M in SIZES if (one, M) in ns)
+            print(f"{wide:<26} {ratios}", flush=True)
     for name, options in LAYOUTS[2:]:  # no M x M block: the auction and "nearest"
         if args.skip_10k or name not in args.layouts:
             continue

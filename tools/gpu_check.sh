@@ -68,8 +68,12 @@ for m in $agents; do
         --updates "$updates" --num-envs "$num_envs" --no-compile --precisions $precisions
 done
 # large teams on CUDA: simulator cost per agent-step at M = 10 / 100 / 1000 (10,000 agents per
-# step) with neighbour lists, and one environment of M = 10,000 (docs/SWARM.md)
-run "$python" tools/bench_swarm.py --arch cuda --seconds 1 --skip-dense-large
+# step) with neighbour lists, one thread per environment against every agent in parallel (the
+# "wide" rows, CUDA's default), and one environment of M = 10,000 (docs/SWARM.md). Not the
+# exact or auction assignments: one GPU thread solving a team's M x M problem took 5.5 s a step
+# at M = 1000 on an H200
+run "$python" tools/bench_swarm.py --arch cuda --seconds 1 --skip-dense-large --layouts dense "lists K=16 nearest" \
+    "lists K=16 nearest wide" "lists KL=16 nearest" "lists KL=16 nearest wide"
 if [ "$train_seconds" -gt 0 ]; then
     # SIGINT at the limit: the trainer saves its checkpoint and exits 130 (not a failure
     # here); a process still there 60 s later is killed

@@ -50,6 +50,11 @@ SINGLES = (
      "coverage-rc-m50-occupancy trained on at M = 100 (s-coverage-rc-rel-m100-occupancy)"),
     ("coverage-rc-m50-wide", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy-wide", 50,
      "coverage-rc-m50-occupancy on landmark lists of 12 within 1.5 (s-coverage-rc-rel-m50-occupancy-wide)"),
+    ("coverage-rc-m50-wider", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy-wider", 50,
+     "coverage-rc-m50-wide on landmark lists of 16 within 2 (s-coverage-rc-rel-m50-occupancy-wider)"),
+    ("formation-rc-m50-lattice", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50", 50,
+     "formation RC at M = 50 on its density-scaled lattice, the points sensed as landmarks with their occupancy, "
+     "from coverage-rc-m50-wide (s-formation-rc-lattice-m50)"),
 )  # fmt: skip
 
 

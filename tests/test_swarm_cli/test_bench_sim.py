@@ -147,6 +147,19 @@ def test_gpu_check_script_arguments():
     assert len(bench) == 2 and "--agents 3" in bench[0] and "--agents 5" in bench[1] and "--device cuda" in bench[0]
     assert not any("swarm_cli train" in x for x in lines)  # no training unless asked
     assert any("tools/bench_swarm.py --arch cuda" in x for x in lines)  # large teams on CUDA
+    # the layouts it names are bench_swarm's (the dry run drops their quotes: read the script)
+    import importlib.util
+    import shlex
+
+    text = open(script).read().replace("\\\n", " ")
+    call = next(x for x in text.splitlines() if "tools/bench_swarm.py --arch cuda" in x)
+    layouts = shlex.split(call.split("--layouts", 1)[1])
+    path = os.path.join(os.path.dirname(script), "bench_swarm.py")
+    spec = importlib.util.spec_from_file_location("bench_swarm", path)
+    bench_swarm = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_swarm)
+    names = [name for name, _ in bench_swarm.LAYOUTS]
+    assert "lists KL=16 nearest wide" in layouts and set(layouts) <= set(names), layouts
     r = subprocess.run(
         [script, "--dry-run", "--python", "python3", "--train-seconds", "60", "--precisions", "bf16"],
         capture_output=True,

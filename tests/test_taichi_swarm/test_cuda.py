@@ -120,13 +120,21 @@ def test_cuda_neighbour_lists_and_auction():
         a = torch.randint(0, 5, (B, M), device="cuda")
         od, *_ = dense.step(a)
         ol, *_ = lists.step(a)
-        np.testing.assert_allclose(ol["self"].cpu().numpy(), od["self"].cpu().numpy(), atol=1e-5)
-        adj = od["adj"].cpu().numpy() & ~np.eye(M, dtype=bool)
+        # on the CPU the two layouts are equal bit for bit (test_neighbours.py); on the GPU the
+        # compiler contracts multiply-adds differently in each kernel, so the trajectories part
+        # by float32 rounding (4e-5 after 60 steps on an H200): positions agree to 1e-3, and
+        # each env's lists are checked against its own positions, pairs within 1e-5 of the
+        # radius left out
+        np.testing.assert_allclose(ol["self"].cpu().numpy(), od["self"].cpu().numpy(), atol=1e-3)
+        pos = ol["self"].cpu().numpy()[..., 2:4].astype(np.float64)
+        d = np.linalg.norm(pos[:, :, None] - pos[:, None], axis=-1)
+        adj = (d <= kw["comm_radius"]) & ~np.eye(M, dtype=bool)
+        clear = np.abs(d - kw["comm_radius"]) > 1e-5
         heard = np.zeros_like(adj)
         nbr, mask = ol["nbr"].cpu().numpy(), ol["nbr_mask"].cpu().numpy()
         b, i, _ = np.nonzero(mask)
         heard[b, i, nbr[mask]] = True
-        np.testing.assert_array_equal(heard, adj)
+        np.testing.assert_array_equal(heard[clear], adj[clear])
     M, K, r = 1000, 16, 0.5
     env = taichi_swarm.make(
         "coverage", 2, M, comm="rc", comm_radius=r, neighbours=K, scale="density", assignment="auction", arch="cuda"

@@ -293,3 +293,56 @@ def test_landmark_occupancy_is_the_nearest_other_agents_distance(M, comm):
 def test_bad_occupancy_options_are_refused(kwargs, message):
     with pytest.raises(ValueError, match=message):
         taichi_swarm.make("coverage", 2, 4, array="numpy", **kwargs)
+
+
+def _assert_same(a, b, where):
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _assert_same(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, tuple | list):
+        assert len(a) == len(b), where
+        for k, (x, y) in enumerate(zip(a, b, strict=True)):
+            _assert_same(x, y, f"{where}[{k}]")
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b, err_msg=where)
+    else:
+        assert a == b, where
+
+
+@pytest.mark.parametrize(
+    ("task", "M", "kwargs"),
+    [
+        ("coverage", 40, dict(comm="rc", neighbours=6, landmark_neighbours=5, sense_radius=0.8,
+                              landmark_occupancy=True, assignment="nearest", scale="density")),
+        ("coverage", 12, dict(comm="uc", neighbours=4)),  # the exact assignment, every landmark seen
+        ("formation", 20, dict(comm="rc", neighbours=5, landmark_neighbours=6, sense_radius=0.8, scale="density",
+                               assignment="auction")),
+        ("line", 30, dict(comm="rc", neighbours=4, scale="density", action_space="continuous")),
+    ],
+)  # fmt: skip
+def test_agent_parallel_step_is_the_env_step_bit_for_bit(task, M, kwargs):
+    """The agent-parallel step (the default on CUDA) against one thread per environment: every
+    observation, reward, done, episode statistic and dropped count equal, through auto-resets
+    (episodes of 50 steps)."""
+    B = 3
+    envs = [taichi_swarm.make(task, B, M, seed=5, array="numpy", agent_parallel=w, **kwargs) for w in (False, True)]
+    assert [e._agent_parallel for e in envs] == [False, True]
+    out = [e.reset() for e in envs]
+    _assert_same(out[0], out[1], "reset")
+    rng = np.random.default_rng(1)
+    for t in range(60):
+        if kwargs.get("action_space") == "continuous":
+            a = rng.uniform(-1.5, 1.5, size=(B, M, 2)).astype(np.float32)
+        else:
+            a = rng.integers(0, 5, size=(B, M))
+        out = [e.step(a) for e in envs]
+        _assert_same(out[0], out[1], f"step {t}")
+    _assert_same(envs[0].get_state(), envs[1].get_state(), "state")
+
+
+def test_agent_parallel_needs_lists():
+    with pytest.raises(ValueError, match="agent_parallel needs neighbours"):
+        taichi_swarm.make("coverage", 2, 3, agent_parallel=True)
+    with pytest.raises(ValueError, match="agent_parallel must be None, True or False"):
+        taichi_swarm.make("coverage", 2, 3, neighbours=2, agent_parallel="yes")
