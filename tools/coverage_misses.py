@@ -1,4 +1,5 @@
-"""Where a coverage policy's misses are: at the last step of each episode, every agent that the
+"""Where a coverage policy's misses are (or a formation policy's on its sensed lattice, whose
+landmarks are its M targets): at the last step of each episode, every agent that the
 maximum matching within the success threshold leaves without a landmark is a
 
 - duplicate: within the threshold of a landmark another agent covers (the matching is maximum,
@@ -15,6 +16,7 @@ and KL = 5 within 1, density-scaled; the lists and options a policy trained on t
 precedence, landmark occupancy among them), greedy actions, fresh episodes at the seed:
 
     python tools/coverage_misses.py coverage-rc-m50-swarm --agents 100 --episodes 20
+    python tools/coverage_misses.py formation-rc-m50-lattice --agents 50 100 --steps 100
 """
 
 from __future__ import annotations
@@ -83,7 +85,6 @@ def run(
     import torch
 
     import taichi_swarm
-    from taichi_swarm.tasks.coverage import CoverageParams
     from trainer.checkpoint import load_policy
     from trainer.model import policy_inputs
 
@@ -93,9 +94,10 @@ def run(
     # the swarm policies' setting, with the lists and options the policy trained on over it
     swarm = {"neighbours": 4, "landmark_neighbours": 5, "sense_radius": 1.0, "scale": "density"}
     swarm.update(payload.get("swarm") or {})
-    env = taichi_swarm.make(
-        "coverage", episodes, agents, comm="rc", comm_radius=1.0, seed=seed, max_steps=steps, **swarm
-    )  # fmt: skip
+    task = (payload.get("task") or {}).get("task", "coverage")
+    env = taichi_swarm.make(task, episodes, agents, comm="rc", comm_radius=1.0, seed=seed, max_steps=steps, **swarm)
+    if env.num_landmarks != agents:  # formation's sensed lattice: its landmarks are its M targets
+        raise SystemExit(f"coverage_misses: {task}'s landmarks are not its {agents} targets here ({env.num_landmarks})")
     obs = env.reset()
     finished = np.zeros(episodes, bool)
     for _ in range(env.params["max_steps"] - 1):  # stop before the last step: its auto-reset would clear the state
@@ -104,7 +106,7 @@ def run(
         obs, _, done, _ = env.step(logits.argmax(-1).contiguous())
         finished |= np.asarray(done, bool)
     state = {k: np.asarray(v) for k, v in env.get_state().items()}
-    threshold = CoverageParams().success_threshold
+    threshold = env.params["success_threshold"]
     kept = [b for b in range(episodes) if not finished[b]]
     rows = [classify(state["pos"][b], state["landmarks"][b], threshold) for b in kept]
     out = {k: float(np.mean([r[k] for r in rows])) if rows else None for k in ("covered", "duplicate", "near", "far")}
@@ -141,18 +143,19 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"--sense takes an integer KL and a radius, got {' '.join(args.sense)}")
         if sense[0] < 1 or not sense[1] > 0:
             ap.error(f"--sense takes KL >= 1 and a radius > 0, got {' '.join(args.sense)}")
-    head = f"{'M':>5} {'episodes':>8} {'covered':>8} {'duplicate':>9} {'near':>6} {'far':>6}"
+    # succeeded: episodes that covered everything before the last step (the fractions are over the others)
+    head = f"{'M':>5} {'episodes':>8} {'succeeded':>9} {'covered':>8} {'duplicate':>9} {'near':>6} {'far':>6}"
     print(f"{head} {'free_distance':>13} {'free_in_sight':>13}")
     for m in args.agents:
         r = run(args.policy, m, args.episodes, args.seed, sense, args.steps)
         if r["covered"] is None:
-            print(f"{m:>5} {args.episodes:>8}  every episode succeeded before its last step")
+            print(f"{m:>5} {args.episodes:>8} {r['succeeded_early']:>9}  every episode succeeded before its last step")
             continue
         fractions = f"{r['covered']:>8.3f} {r['duplicate']:>9.3f} {r['near']:>6.3f} {r['far']:>6.3f}"
         reach = " ".join(  # (None: no duplicate)
             "-".rjust(13) if r[k] is None else f"{r[k]:>13.2f}" for k in ("free_distance", "free_in_sight")
         )
-        print(f"{m:>5} {args.episodes:>8} {fractions} {reach}")
+        print(f"{m:>5} {args.episodes:>8} {r['succeeded_early']:>9} {fractions} {reach}")
 
 
 if __name__ == "__main__":

@@ -46,12 +46,22 @@ def test_a_duplicates_nearest_free_landmark_and_whether_it_is_in_sight():
 def test_the_tool_runs_a_zoo_policy(capsys):
     misses.main(["coverage-rc-m5-swarm", "--agents", "5", "--episodes", "3"])
     out = capsys.readouterr().out.splitlines()
-    assert out[0].split() == ["M", "episodes", "covered", "duplicate", "near", "far", "free_distance", "free_in_sight"]
+    head = ["M", "episodes", "succeeded", "covered", "duplicate", "near", "far", "free_distance", "free_in_sight"]
+    assert out[0].split() == head
     cells = out[1].split()
-    assert cells[:2] == ["5", "3"]
-    if len(cells) == 8:  # (every episode may succeed early at M = 5)
-        covered, dup, near, far = map(float, cells[2:6])
+    assert cells[:2] == ["5", "3"] and 0 <= int(cells[2]) <= 3
+    if len(cells) == 9:  # (every episode may succeed early at M = 5)
+        covered, dup, near, far = map(float, cells[3:7])
         assert abs(covered + dup + near + far - 1.0) < 2e-3
+
+
+def test_the_tool_runs_a_formation_policy_on_its_sensed_lattice(capsys):
+    """Formation's sensed lattice: its landmarks are its targets, the threshold formation's 0.05."""
+    misses.main(["formation-rc-m50-lattice", "--agents", "12", "--episodes", "3", "--steps", "4"])
+    cells = capsys.readouterr().out.splitlines()[1].split()
+    assert cells[:3] == ["12", "3", "0"] and len(cells) == 9  # no lattice is filled in 4 steps
+    covered, dup, near, far = map(float, cells[3:7])
+    assert abs(covered + dup + near + far - 1.0) < 2e-3 and far > 0
 
 
 def test_a_bad_sense_option_is_one_line(capsys):
