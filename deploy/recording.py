@@ -171,14 +171,16 @@ def _log(rec, traj, task: str, M: int, D: int, spec) -> None:
 
 
 def _log_ends(rec, traj, step: int, envs: list[int], successes: list[bool]) -> None:
-    """The scalars of the first episodes that ended at ``step``; the env's last state stays on
-    screen (no Clear)."""
+    """The scalars of the first episodes that ended at ``step``, and where the agents stood at
+    the end (the record's end_pos, where it has one); that state stays on screen (no Clear)."""
     a = traj.arrays
     rec.set_time("step", sequence=step)
     for b in envs:
         successes.append(bool(a["success"][b]))
         if b < traj.drawn:
             p = f"env_{b}"
+            if "end_pos" in a and not np.isnan(a["end_pos"][b, 0, 0]):
+                rec.log(f"{p}/agents", rr.Points2D.from_fields(positions=a["end_pos"][b]))
             rec.log(f"{p}/episode/success", rr.Scalars(float(a["success"][b])))
             rec.log(f"{p}/episode/length", rr.Scalars(float(a["length"][b])))
             if not np.isnan(a["dist"][b]):

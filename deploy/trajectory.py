@@ -20,6 +20,9 @@ The file is an .npz (numpy's zip of arrays, read without pickle), written atomic
     attention_index [A, 3], attention_weights [A], attention_offsets [T + 1]
                             last-round attention i <- j, the same way (only with attention)
     end_step, success, length, dist [B]  each env's first episode (end_step -1: it did not end)
+    end_pos [D, M, 2]       where the drawn envs' agents stood when their first episode ended
+                            (the env restarts inside that step, so no logged state holds it;
+                            NaN where it did not end; absent from older records)
 """
 
 from __future__ import annotations
@@ -174,6 +177,7 @@ class Trajectory:
         bad += [k for k in ("pos", "vel") if arrays[k].shape[1:] != (D, M, 2)]
         bad += [k for k in ("end_step", "success", "length", "dist") if arrays[k].shape != (B,)]
         bad += [k for k in ("graph_offsets",) if arrays[k].shape != (T + 1,)]
+        bad += [k for k in ("end_pos",) if k in arrays and arrays[k].shape != (D, M, 2)]
         if T == 0 or bad:
             raise TrajectoryError(
                 f"{path}: the trajectory record's arrays do not fit its header ({', '.join(bad) or 'no steps'})"
@@ -205,6 +209,7 @@ class TrajectoryRecorder:
         self.success = np.zeros(self.num_envs, bool)
         self.length = np.zeros(self.num_envs, np.int32)
         self.dist = np.full(self.num_envs, np.nan, np.float32)
+        self.end_pos = np.full((self.drawn, self.num_agents, 2), np.nan, np.float32)
 
     def log_step(self, step: int, env, actions=None, attention=None) -> None:
         """The state the agents act on at ``step`` (before ``env.step(actions)``); actions [B, M]."""
@@ -228,9 +233,13 @@ class TrajectoryRecorder:
         self.graphs.append(comm_graph(env.obs, D))
         self.attention.append(None if attention is None else to_numpy(attention)[:D].astype(np.float32))
 
-    def log_episode_ends(self, step: int, mask, episode_info: dict) -> None:
-        """Envs in ``mask`` [B] just ended their first episode; success/length/dist [B] (valid where mask)."""
+    def log_episode_ends(self, step: int, mask, episode_info: dict, terminal_pos=None) -> None:
+        """Envs in ``mask`` [B] just ended their first episode; success/length/dist [B] (valid where mask);
+        ``terminal_pos`` [B, M, 2]: where their agents stood at the end (the env has restarted them)."""
         new = to_numpy(mask).astype(bool) & (self.end_step < 0)
+        if terminal_pos is not None:
+            drawn = new[: self.drawn]
+            self.end_pos[drawn] = to_numpy(terminal_pos)[: self.drawn][drawn].astype(np.float32)
         self.end_step[new] = int(step)
         self.success[new] = to_numpy(episode_info["success"]).astype(bool)[new]
         self.length[new] = to_numpy(episode_info["length"])[new]
@@ -250,5 +259,7 @@ class TrajectoryRecorder:
             arrays["attention_index"], arrays["attention_weights"], arrays["attention_offsets"] = _sparse(
                 self.attention
             )
-        arrays.update(end_step=self.end_step, success=self.success, length=self.length, dist=self.dist)
+        arrays.update(
+            end_step=self.end_step, success=self.success, length=self.length, dist=self.dist, end_pos=self.end_pos
+        )
         return Trajectory({**self.header, "attention": has_attention, "steps": len(self.steps)}, arrays)

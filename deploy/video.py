@@ -44,7 +44,14 @@ def frames(traj) -> list[dict]:
         }
         for t in range(traj.num_steps)
     ]
-    out.append({**out[-1], "live": a["end_step"][: traj.drawn] < 0})
+    # the outcome frame: each finished env where its agents stood at the end (the last logged
+    # state is the one they acted on in the final step; a record without end_pos shows that)
+    last = {**out[-1], "live": a["end_step"][: traj.drawn] < 0}
+    if "end_pos" in a:
+        ended = ~np.isnan(a["end_pos"][:, 0, 0])
+        last["pos"] = np.where(ended[:, None, None], a["end_pos"], last["pos"])
+        last["ended_pos"] = ended
+    out.append(last)
     return out
 
 
@@ -155,6 +162,8 @@ def render(frames: list[dict], path: str, task: str, num_agents: int, outcome=No
             half = f.get("arena", ARENA_HALF_SIZE)
             ax.add_patch(plt.Rectangle((-half, -half), 2 * half, 2 * half, fill=False, lw=0.8, ec="0.4"))
             pos = f["pos"][b]
+            if not frames[k]["live"][b] and frames[-1].get("ended_pos", np.zeros(D, bool))[b]:
+                pos = frames[-1]["pos"][b]  # a finished env: where its agents stood at the end
             adj = f["adj"][b]
             # one LineCollection per kind of line: a swarm has thousands of edges and trails
             i, j = np.nonzero(np.triu(adj | adj.T, k=1))

@@ -80,7 +80,8 @@ def run_first_episodes(env, decide, recorder=None, on_done=None) -> FirstEpisode
             on_done(done)
         new = tally.add(done, info["episode"])
         if recorder is not None and new.any():
-            recorder.log_episode_ends(step, new, info["episode"])
+            # where the agents stood at the end: the env has already restarted them
+            recorder.log_episode_ends(step, new, info["episode"], _np(info["terminal_obs"]["self"])[..., 2:4])
     return tally
 
 

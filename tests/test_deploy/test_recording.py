@@ -195,3 +195,38 @@ def test_replay_names_directories_and_non_recordings(tmp_path, capsys):
     garbage.write_bytes(b"RRF2" + bytes(range(256)) * 4)
     assert replay_main([str(garbage), "--stats"]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_the_record_keeps_where_each_finished_env_ended(tmp_path):
+    """An env restarts inside the step that ends it, so the last logged state is the one its
+    agents acted on; the record keeps where they stood at the end (the terminal observation),
+    the video's outcome frame draws that, and a record without it still renders as before."""
+    from deploy.video import frames
+    from taichi_swarm.metrics import run_first_episodes
+
+    B, M = 3, 3
+    env = taichi_swarm.make("coverage", B, M, comm="rc", seed=0, array="numpy", max_steps=6)
+    rec = TrajectoryRecorder("coverage", B, M, 2, comm="rc", comm_radius=1.0)
+    rng = np.random.default_rng(0)
+    seen = {}
+
+    def on_done(done):
+        seen["end"] = env.info["terminal_obs"]["self"][..., 2:4].copy()
+
+    run_first_episodes(env, lambda obs: (rng.integers(0, 5, size=(B, M)), None), recorder=rec, on_done=on_done)
+    traj = rec.trajectory()
+    assert (traj.arrays["end_step"] == 6).all()
+    np.testing.assert_array_equal(traj.arrays["end_pos"], seen["end"][:2])
+    last = frames(traj)[-1]
+    np.testing.assert_array_equal(last["pos"], seen["end"][:2])
+    assert not np.allclose(last["pos"], traj.arrays["pos"][-1])  # one step later than the last logged state
+    path = str(tmp_path / "t.npz")
+    traj.save(path)
+    np.testing.assert_array_equal(Trajectory.load(path).arrays["end_pos"], seen["end"][:2])
+    older = Trajectory(traj.header, {k: v for k, v in traj.arrays.items() if k != "end_pos"})
+    np.testing.assert_array_equal(frames(older)[-1]["pos"], traj.arrays["pos"][-1])
+    rrd = str(tmp_path / "t.rrd")
+    write_rrd(traj, rrd)  # the agents logged once more, at the end step: the last logged state is step 5
+    assert summarize(rrd)["entities"]["/env_0/agents"]["steps"] == (0, 6)
+    write_rrd(older, rrd)
+    assert summarize(rrd)["entities"]["/env_0/agents"]["steps"] == (0, 5)
