@@ -517,7 +517,7 @@ def settle(
 ):
     """Env b after its agents moved: targets, assignment, reward, done, episode statistics,
     terminal observation and auto-reset (all but the step's own observation). ``searched``
-    (NEAREST): targets, grids and nearest distances are already there (``nearest_searches``),
+    (NEAREST): targets, grids and nearest distances are already there (step_wide_kernel's passes),
     only the matching is left."""
     M = team_size(sm, ib)
     t = ib[blocks.step.env(ib, b)] + 1
