@@ -64,6 +64,11 @@ DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
 # (crossover measured at M = 3, 5, 10 on 2 cores: B*M^2 between ~13k and ~37k).
 SERIAL_BELOW_WORK = 32768
+# With neighbour lists, from this many agents per step the CPU steps them agent by agent too
+# (step_wide_kernel): its passes cost a thread-pool dispatch each, which loses below it (time
+# ratio against one thread per env on 2 threads: 3.6 at B x M = 120, 1.0-1.2 at 600-1000,
+# 0.81-0.84 at 2500-5000, 0.54-0.95 at 10,000; docs/SWARM.md)
+WIDE_CPU_AGENTS = 2048
 
 
 INT32_MAX = 2**31 - 1
@@ -133,7 +138,8 @@ class SwarmEnv:
     reward from its nearest target: nearest.py, docs/SWARM.md).
     agent_parallel (with neighbours): step every agent of every environment in parallel
     (kernels.step_wide_kernel), not one environment per thread; the same results bit for bit.
-    None (default): on CUDA, where one thread per environment leaves the GPU idle at small B.
+    None (default): on CUDA, where one thread per environment leaves the GPU idle at small B,
+    and on the CPU from WIDE_CPU_AGENTS (2048) agents per step.
     """
 
     def __init__(
@@ -233,7 +239,9 @@ class SwarmEnv:
         if agent_parallel and self.neighbours is None:
             raise ValueError("agent_parallel needs neighbours (the dense layout's step is all pairs per team)")
         self._agent_parallel = self.neighbours is not None and (
-            agent_parallel if agent_parallel is not None else self.arch == "cuda"
+            agent_parallel
+            if agent_parallel is not None
+            else self.arch == "cuda" or self.num_envs * self.num_agents >= WIDE_CPU_AGENTS
         )
         self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks, **self._list_dims())
         if self.neighbours is None and self.num_agents >= LARGE_TEAM and self._cap not in _ANNOUNCED_CAPACITIES:

@@ -341,6 +341,20 @@ def test_agent_parallel_step_is_the_env_step_bit_for_bit(task, M, kwargs):
     _assert_same(envs[0].get_state(), envs[1].get_state(), "state")
 
 
+def test_agent_parallel_is_the_default_for_many_agents_on_the_cpu():
+    """One thread per env below WIDE_CPU_AGENTS agents per step (each pass's dispatch would cost
+    more than it saves), agent by agent from there; never without lists."""
+    from taichi_swarm.env import WIDE_CPU_AGENTS
+
+    def wide(B, M, **kw):
+        return taichi_swarm.make("coverage", B, M, comm="rc", array="numpy", **kw)._agent_parallel
+
+    assert not wide(WIDE_CPU_AGENTS // 64 - 1, 64, neighbours=4)
+    assert wide(WIDE_CPU_AGENTS // 64, 64, neighbours=4)
+    assert not wide(WIDE_CPU_AGENTS // 64, 64)  # the dense layout
+    assert not wide(WIDE_CPU_AGENTS // 64, 64, neighbours=4, agent_parallel=False)
+
+
 def test_agent_parallel_needs_lists():
     with pytest.raises(ValueError, match="agent_parallel needs neighbours"):
         taichi_swarm.make("coverage", 2, 3, agent_parallel=True)
