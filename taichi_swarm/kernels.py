@@ -69,16 +69,30 @@ def match(
     with NEAREST, each target's nearest-agent distance d_t, each agent's nearest-target distance and
     the maximum threshold matching (nearest.py), the agents' grid built here for them (and for the
     observations and the next step's contacts: every caller writes the observations next)."""
-    tasks.place_targets(task, sm, f, ib, b)
     if ti.static(lists & NEAREST):
-        P0 = blocks.pos.env(ib, b)
-        GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
-        neighbours.build(f, ib, team_size(sm, ib), P0, f[P_CELL], ib[H_G], GS, GI, GC)
+        nearest_setup(task, sm, f, ib, b)
         nearest.solve(f, ib, b)
-    elif ti.static(lists & AUCTION):
-        auction.solve(f, ib, b)
     else:
-        assignment.solve(cap, sm, f, ib, b)
+        tasks.place_targets(task, sm, f, ib, b)
+        if ti.static(lists & AUCTION):
+            auction.solve(f, ib, b)
+        else:
+            assignment.solve(cap, sm, f, ib, b)
+
+
+@ti.func
+def agents_grid(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    """The cell grid of env b's agents at their current positions."""
+    GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
+    neighbours.build(f, ib, team_size(sm, ib), blocks.pos.env(ib, b), f[P_CELL], ib[H_G], GS, GI, GC)
+
+
+@ti.func
+def nearest_setup(task: ti.template(), sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
+    """What nearest.py's searches read: env b's targets, the agents' grid and the targets' grid."""
+    tasks.place_targets(task, sm, f, ib, b)
+    agents_grid(sm, f, ib, b)
+    nearest.targets_grid(f, ib, b)
 
 
 @ti.func
@@ -160,8 +174,7 @@ def obs_grids(
     step's contacts; with NEAREST ``match`` has just built it) and, with landmark lists, the
     landmarks'."""
     if ti.static((lists & AGENT_LISTS) and not (lists & NEAREST)):
-        GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
-        neighbours.build(f, ib, team_size(sm, ib), blocks.pos.env(ib, b), f[P_CELL], ib[H_G], GS, GI, GC)
+        agents_grid(sm, f, ib, b)
     if ti.static(lists & LANDMARK_LISTS):
         GS, GI, GC = blocks.lgrid_start.env(ib, b), blocks.lgrid_items.env(ib, b), blocks.lgrid_cell.env(ib, b)
         L = tasks.landmark_count(task, sm, ib)
@@ -609,10 +622,7 @@ def step_wide_kernel(
         move(f, ib, b, i)
     if ti.static(lists & NEAREST):  # ``match``'s searches, target by target and agent by agent
         for b in range(B):
-            tasks.place_targets(task, sm, f, ib, b)
-            GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
-            neighbours.build(f, ib, M, blocks.pos.env(ib, b), f[P_CELL], ib[H_G], GS, GI, GC)
-            nearest.targets_grid(f, ib, b)
+            nearest_setup(task, sm, f, ib, b)
         for b, t in ti.ndrange(B, M):
             nearest.target_nearest(f, ib, b, t)
         for b, i in ti.ndrange(B, M):

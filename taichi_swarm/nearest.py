@@ -95,11 +95,10 @@ def _dist(f: ti.template(), ib: ti.template(), P0: ti.i32, i: ti.i32, T0: ti.i32
 @ti.func
 def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
     """Env b's d_t (matched_dist), each agent's nearest-target distance (lap_dist) and the
-    maximum threshold matching (assignment). The agents' grid must hold the current
-    positions (kernels.match builds it just before). kernels.step_wide_kernel runs the same
-    pieces with the searches parallel over targets and agents."""
+    maximum threshold matching (assignment). The agents' and the targets' grids must hold the
+    current positions (kernels.nearest_setup builds them just before). kernels.step_wide_kernel
+    runs the same pieces with the searches parallel over targets and agents."""
     M = ib[H_M]
-    targets_grid(f, ib, b)
     for t in range(M):
         target_nearest(f, ib, b, t)
     for i in range(M):
