@@ -44,6 +44,7 @@ from .layout import (
     P_CELL,
     P_COMM_RADIUS,
     P_EPS,
+    P_HOLD,
     P_LCELL,
     P_SENSE,
     P_SUCCESS,
@@ -115,7 +116,9 @@ class SwarmEnv:
     "cuda"/"gpu" or "auto". array: "torch" or "numpy" outputs (numpy needs no
     torch). action_space: "discrete" (the paper's 5 actions, int64 [B, M]) or
     "continuous" (MPE's continuous mode: float32 [B, M, 2], force 5 clip(u, -1, 1)
-    per axis). task_params: ``max_steps`` (50) and ``success_threshold`` for all
+    per axis). task_params: ``max_steps`` (50), ``success_threshold`` and
+    ``hold_reward`` (0: added to an agent's own reward, info["agent_reward"], at each step
+    it is within the threshold of its target; the team reward stays the paper's) for all
     tasks; ``formation_radius`` (formation); ``line_length`` (line).
 
     neighbours: K, each agent's K nearest heard agents as index lists (obs["nbr"],
@@ -394,6 +397,7 @@ class SwarmEnv:
         fparams[P_AGENT_RADIUS] = spec.agent_radius
         fparams[P_SUCCESS] = self.params["success_threshold"]
         fparams[P_TASK_PARAM] = self.params.get(spec.kernel_param, 0.0)
+        fparams[P_HOLD] = self.params["hold_reward"]
         # the agents' grid: cells hold everything an agent hears ("rc") and touches
         contact_reach = 2.0 * spec.agent_radius + CUTOFF_MARGINS * CONTACT_MARGIN
         heard = self.comm_radius if self.comm == "rc" else 0.0

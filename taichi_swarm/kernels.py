@@ -543,7 +543,7 @@ def settle(
     if ti.static(lists & NEAREST):  # d_t per target; agent i's own d: its nearest target (lap_dist)
         MD, ND, A = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b), blocks.assignment.env(ib, b)
         for i in range(M):
-            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f[ND + i])
+            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f, f[ND + i])
             covered += ti.cast(ib[A + i] >= 0, ti.i32)  # the threshold matching's size
             d = f[MD + i]
             sum_d += d
@@ -552,7 +552,7 @@ def settle(
     else:
         for i in range(M):
             d = f[blocks.matched_dist.at(ib, b, i)]
-            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, d)
+            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f, d)
             sum_d += d
             sum_clipped += ti.math.clamp(d, 0.0, 2.0)
             within = d < f[P_SUCCESS]

@@ -214,9 +214,10 @@ blocks = Blocks()
 # --- float32 header: physical and task parameters ------------------------------------
 # P_CELL / P_LCELL / P_TCELL: cell sides of the agents', landmarks' and targets' grids;
 # P_ARENA: the spawn square's half-width (1, or sqrt(M / 10) with scale="density");
-# P_EPS: the auction assignment's eps
-P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA, P_TCELL, P_EPS = range(10)
-FLOAT_HEADER = 10
+# P_EPS: the auction assignment's eps; P_HOLD: the hold_reward parameter (tasks.base.on_target)
+(P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA, P_TCELL, P_EPS,
+ P_HOLD) = range(11)  # fmt: skip
+FLOAT_HEADER = 11
 
 
 # Teams up to this size get kernels compiled for their exact M: every loop over agents

@@ -11,12 +11,15 @@ An unmatched agent means an uncovered landmark (as many agents as landmarks), so
 fractions add up to 1 - covered. For the duplicates it also reports how far the nearest
 uncovered landmark is (the median) and how many of them sense one (among the KL nearest within
 the sensing radius, the policy's lists, or ``--sense KL R``): a duplicate with none in sight has
-nowhere it can see to go. Run in the swarm policies' setting (rc within 1, lists K = 4
+nowhere it can see to go. Over the last ``--window`` steps before it, it reports how many agents
+held a landmark of their own at every step (*held*), at some steps only (*hover*: they pass in
+and out of the threshold), and the most landmarks covered at any one of those steps (*best*):
+success needs them all at once. Run in the swarm policies' setting (rc within 1, lists K = 4
 and KL = 5 within 1, density-scaled; the lists and options a policy trained on take
 precedence, landmark occupancy among them), greedy actions, fresh episodes at the seed:
 
     python tools/coverage_misses.py coverage-rc-m50-swarm --agents 100 --episodes 20
-    python tools/coverage_misses.py formation-rc-m50-lattice --agents 50 100 --steps 100
+    python tools/coverage_misses.py formation-rc-m50-lattice --agents 50 100 --steps 100 --window 20
 """
 
 from __future__ import annotations
@@ -75,13 +78,28 @@ def duplicates_reach(pos: np.ndarray, landmarks: np.ndarray, threshold: float, k
     return dist, in_sight
 
 
+def hovering(inside: np.ndarray) -> dict:
+    """inside [W, M] bool, whether each agent held a landmark of its own (the maximum matching)
+    at each of W steps -> the fractions of agents inside at all W (held) and at some but not all
+    (hover), and the largest fraction covered at one step (best)."""
+    always, ever = inside.all(0), inside.any(0)
+    return {"held": float(always.mean()), "hover": float((ever & ~always).mean()), "best": float(inside.mean(1).max())}
+
+
 def run(
-    policy_name: str, agents: int, episodes: int, seed: int, sense: tuple[int, float] | None = None, steps: int = 50
+    policy_name: str,
+    agents: int,
+    episodes: int,
+    seed: int,
+    sense: tuple[int, float] | None = None,
+    steps: int = 50,
+    window: int = 10,
 ) -> dict:
     """The mean fractions over ``episodes`` episodes (one environment each) that run their ``steps``,
     and where the duplicates' free landmarks are (``sense``: (KL, radius) counted as in sight;
     default the policy's lists); episodes that succeed before the last step are counted apart
-    (every landmark covered). ``steps``: the episode length (the task's is 50)."""
+    (every landmark covered). ``steps``: the episode length (the task's is 50); ``window``: the
+    steps before the last that ``hovering`` reads."""
     import torch
 
     import taichi_swarm
@@ -100,16 +118,23 @@ def run(
         raise SystemExit(f"coverage_misses: {task}'s landmarks are not its {agents} targets here ({env.num_landmarks})")
     obs = env.reset()
     finished = np.zeros(episodes, bool)
-    for _ in range(env.params["max_steps"] - 1):  # stop before the last step: its auto-reset would clear the state
+    threshold = env.params["success_threshold"]
+    last = env.params["max_steps"] - 1  # stop before the last step: its auto-reset would clear the state
+    inside = np.zeros((min(window, last), episodes, agents), bool)
+    for t in range(last):
         with torch.no_grad():
             logits, _ = policy(**policy_inputs(obs, "cpu"), fused=fused)
         obs, _, done, _ = env.step(logits.argmax(-1).contiguous())
         finished |= np.asarray(done, bool)
+        if t >= last - len(inside):
+            state = {k: np.asarray(v) for k, v in env.get_state().items()}
+            for b in np.flatnonzero(~finished):
+                inside[t - last + len(inside), b] = matching(state["pos"][b], state["landmarks"][b], threshold)[1] >= 0
     state = {k: np.asarray(v) for k, v in env.get_state().items()}
-    threshold = env.params["success_threshold"]
     kept = [b for b in range(episodes) if not finished[b]]
-    rows = [classify(state["pos"][b], state["landmarks"][b], threshold) for b in kept]
-    out = {k: float(np.mean([r[k] for r in rows])) if rows else None for k in ("covered", "duplicate", "near", "far")}
+    rows = [{**classify(state["pos"][b], state["landmarks"][b], threshold), **hovering(inside[:, b])} for b in kept]
+    names = ("covered", "duplicate", "near", "far", "held", "hover", "best")
+    out = {k: float(np.mean([r[k] for r in rows])) if rows else None for k in names}
     kl, radius = sense or (swarm["landmark_neighbours"], swarm["sense_radius"])
     reach = [duplicates_reach(state["pos"][b], state["landmarks"][b], threshold, kl, radius) for b in kept]
     dist = np.concatenate([r[0] for r in reach]) if reach else np.zeros(0)
@@ -127,12 +152,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=777, help="evaluation seed (default: 777)")
     ap.add_argument("--steps", type=int, default=50, help="episode length (default: the task's 50)")
     ap.add_argument(
+        "--window", type=int, default=10, help="steps before the last that held, hover, best read (default: 10)"
+    )
+    ap.add_argument(
         "--sense", nargs=2, metavar=("KL", "R"), help="count a free landmark in sight among the KL nearest within R "
         "(default: the policy's landmark lists)",
     )  # fmt: skip
     args = ap.parse_args(argv)
     if args.episodes < 1 or any(m < 1 for m in args.agents):
         ap.error("--episodes and --agents must be >= 1")
+    if args.window < 1:
+        ap.error(f"--window must be >= 1, got {args.window}")
     if args.steps < 2:
         ap.error(f"--steps must be >= 2 (the state is read before the last step), got {args.steps}")
     sense = None
@@ -145,13 +175,14 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"--sense takes KL >= 1 and a radius > 0, got {' '.join(args.sense)}")
     # succeeded: episodes that covered everything before the last step (the fractions are over the others)
     head = f"{'M':>5} {'episodes':>8} {'succeeded':>9} {'covered':>8} {'duplicate':>9} {'near':>6} {'far':>6}"
-    print(f"{head} {'free_distance':>13} {'free_in_sight':>13}")
+    print(f"{head} {'held':>6} {'hover':>6} {'best':>6} {'free_distance':>13} {'free_in_sight':>13}")
     for m in args.agents:
-        r = run(args.policy, m, args.episodes, args.seed, sense, args.steps)
+        r = run(args.policy, m, args.episodes, args.seed, sense, args.steps, args.window)
         if r["covered"] is None:
             print(f"{m:>5} {args.episodes:>8} {r['succeeded_early']:>9}  every episode succeeded before its last step")
             continue
         fractions = f"{r['covered']:>8.3f} {r['duplicate']:>9.3f} {r['near']:>6.3f} {r['far']:>6.3f}"
+        fractions += f" {r['held']:>6.3f} {r['hover']:>6.3f} {r['best']:>6.3f}"
         reach = " ".join(  # (None: no duplicate)
             "-".rjust(13) if r[k] is None else f"{r[k]:>13.2f}" for k in ("free_distance", "free_in_sight")
         )

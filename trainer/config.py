@@ -193,6 +193,11 @@ class TrainConfig:
     terms (the simulator's info["agent_reward"], whose mean the team reward is), each with its
     own running return in the reward normaliser: the signal a team reward gives one agent is
     diluted M times, which matters for large teams (docs/SWARM.md)."""
+    hold_reward: float = 0.0
+    """With reward "agent": added to an agent's reward at each step it is within the task's
+    success threshold of its target (the simulator's ``hold_reward``). Success needs every agent
+    inside at once, and -d*_i barely tells a miss at 0.06 from a hit at 0.04, so large teams
+    hover across the threshold (docs/SWARM.md). 0: the paper's reward."""
     preset: str = "paper"
     """PPO preset, the values of the ``ppo`` options and ``updates`` not given (``with_preset``
     makes a config from one): fast (the recipe behind the model zoo) | paper (the paper's schedule) |
@@ -280,6 +285,10 @@ class TrainConfig:
             raise ValueError(f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
         if self.reward not in ("team", "agent"):
             raise ValueError(f"reward must be 'team' or 'agent', got {self.reward!r}")
+        if not 0 <= self.hold_reward < float("inf"):
+            raise ValueError(f"hold_reward must be a finite number >= 0, got {self.hold_reward}")
+        if self.hold_reward and self.reward != "agent":
+            raise ValueError("hold_reward enters each agent's own reward: set reward='agent' with it")
         if self.model.entity_mode not in ENTITY_MODES:
             raise ValueError(f"model.entity_mode must be one of {ENTITY_MODES}")
         for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):
@@ -375,6 +384,10 @@ class TrainConfig:
             self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
             self.landmark_occupancy,
         )  # fmt: skip
+
+    def task_params(self) -> dict:
+        """The simulator's task parameters this run sets (``make()`` keywords)."""
+        return {"hold_reward": self.hold_reward} if self.hold_reward else {}
 
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""

@@ -144,7 +144,14 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     groups = []
     for size in sizes:
         env = taichi_swarm.make(
-            cfg.task, E, size, comm=cfg.comm, comm_radius=cfg.comm_radius, arch=cfg.arch, **cfg.swarm_options()
+            cfg.task,
+            E,
+            size,
+            comm=cfg.comm,
+            comm_radius=cfg.comm_radius,
+            arch=cfg.arch,
+            **cfg.swarm_options(),
+            **cfg.task_params(),
         )
         # one running return per agent slot when each agent is rewarded on its own terms
         scaler = RewardScaler(

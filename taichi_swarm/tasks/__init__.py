@@ -83,9 +83,9 @@ def reward(task: ti.template(), mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f3
 
 
 @ti.func
-def agent_reward(task: ti.template(), d: ti.f32) -> ti.f32:
+def agent_reward(task: ti.template(), f: ti.template(), d: ti.f32) -> ti.f32:
     """Agent i's own reward from its matched distance d*_i (the task's named terms, summed)."""
-    return _FUNCS_BY_ID[task].agent_reward(d)
+    return _FUNCS_BY_ID[task].agent_reward(f, d)
 
 
 __all__ = [

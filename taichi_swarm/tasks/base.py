@@ -11,11 +11,12 @@ A task module (coverage.py, formation.py, line.py) defines
                                         (the agents are spawned by the caller first)
     ``place_targets(sm, f, ib, b)``     the M targets of env b from its current state
     ``reward(mean_d, mean_clipped_d)``  the team reward from the matched distances
-    ``agent_reward(d) -> f32``          agent i's own reward from its matched distance
+    ``agent_reward(f, d) -> f32``       agent i's own reward from its matched distance
                                         d*_i: the sum of the task's named per-agent
-                                        terms (``Task.reward_terms``, one ti.func each),
-                                        so a new term (a collision penalty, say) is a
-                                        change in the task module alone
+                                        terms (``Task.reward_terms``, one ti.func
+                                        ``term(f, d)`` each; f, the float buffer, holds
+                                        the env's parameters), so a new term (a collision
+                                        penalty, say) is a change in the task module alone
 - and ``TASK = Task(...)``, registered in tasks/__init__.py.
 
 Success is the same rule for every task (every matched distance below
@@ -28,8 +29,14 @@ from dataclasses import dataclass
 
 import taichi as ti
 
+from ..layout import P_HOLD, P_SUCCESS
+
 # Overridable parameters every task has (``taichi_swarm.make(..., max_steps=...)``).
-COMMON_PARAMS = {"max_steps": 50}
+# hold_reward: each step an agent is within success_threshold of its target adds this to its
+# own reward (``on_target``); 0, the default, is the paper's reward. A matched distance of
+# 0.04 and one of 0.06 differ by 0.02 in -d*_i, yet only one counts towards success, which
+# needs every agent inside at the same step: large teams hover across the threshold.
+COMMON_PARAMS = {"max_steps": 50, "hold_reward": 0.0}
 FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward", "agent_reward")
 
 
@@ -64,7 +71,7 @@ class Task:
     ``landmarks`` (formation: its M lattice points, which only ``scale="density"`` has)."""
     reward_terms: tuple[str, ...] = ()
     """The named per-agent reward terms ``agent_reward`` sums, each a Taichi function of
-    the module, ``term(d) -> f32`` (d: the agent's matched distance d*_i)."""
+    the module, ``term(f, d) -> f32`` (d: the agent's matched distance d*_i)."""
     doc: str = ""
 
     def __post_init__(self):
@@ -95,7 +102,14 @@ class Task:
 
 
 @ti.func
-def clipped_matched_distance(d: ti.f32) -> ti.f32:
+def clipped_matched_distance(f: ti.template(), d: ti.f32) -> ti.f32:
     """-clip(d*_i, 0, 2): a per-agent term whose mean is the team reward -mean_clipped_d
     (formation's and line's ``matched_distance``)."""
     return -ti.math.clamp(d, 0.0, 2.0)
+
+
+@ti.func
+def on_target(f: ti.template(), d: ti.f32) -> ti.f32:
+    """hold_reward while the agent is within the success threshold of its target (every task's
+    second term; 0 unless make(..., hold_reward=) sets it)."""
+    return ti.select(d < f[P_SUCCESS], f[P_HOLD], 0.0)

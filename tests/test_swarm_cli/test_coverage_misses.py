@@ -46,11 +46,12 @@ def test_a_duplicates_nearest_free_landmark_and_whether_it_is_in_sight():
 def test_the_tool_runs_a_zoo_policy(capsys):
     misses.main(["coverage-rc-m5-swarm", "--agents", "5", "--episodes", "3"])
     out = capsys.readouterr().out.splitlines()
-    head = ["M", "episodes", "succeeded", "covered", "duplicate", "near", "far", "free_distance", "free_in_sight"]
+    head = ["M", "episodes", "succeeded", "covered", "duplicate", "near", "far", "held", "hover", "best"]
+    head += ["free_distance", "free_in_sight"]
     assert out[0].split() == head
     cells = out[1].split()
     assert cells[:2] == ["5", "3"] and 0 <= int(cells[2]) <= 3
-    if len(cells) == 9:  # (every episode may succeed early at M = 5)
+    if len(cells) == 12:  # (every episode may succeed early at M = 5)
         covered, dup, near, far = map(float, cells[3:7])
         assert abs(covered + dup + near + far - 1.0) < 2e-3
 
@@ -59,9 +60,17 @@ def test_the_tool_runs_a_formation_policy_on_its_sensed_lattice(capsys):
     """Formation's sensed lattice: its landmarks are its targets, the threshold formation's 0.05."""
     misses.main(["formation-rc-m50-lattice", "--agents", "12", "--episodes", "3", "--steps", "4"])
     cells = capsys.readouterr().out.splitlines()[1].split()
-    assert cells[:3] == ["12", "3", "0"] and len(cells) == 9  # no lattice is filled in 4 steps
-    covered, dup, near, far = map(float, cells[3:7])
+    assert cells[:3] == ["12", "3", "0"] and len(cells) == 12  # no lattice is filled in 4 steps
+    covered, dup, near, far, held, hover, best = map(float, cells[3:10])
     assert abs(covered + dup + near + far - 1.0) < 2e-3 and far > 0
+    assert held + hover <= 1.0 and held <= best <= 1.0
+
+
+def test_held_hover_and_best_over_the_window():
+    inside = np.array(
+        [[1, 1, 0, 0], [1, 0, 1, 0], [1, 1, 1, 0]], bool
+    )  # agent 0 held, 1 and 2 hover, 3 never in; at most 3 of 4 at once
+    assert misses.hovering(inside) == {"held": 0.25, "hover": 0.5, "best": 0.75}
 
 
 def test_a_bad_sense_option_is_one_line(capsys):
@@ -74,3 +83,6 @@ def test_a_bad_sense_option_is_one_line(capsys):
     with pytest.raises(SystemExit) as exc:
         misses.main(["coverage-rc-m5-swarm", "--steps", "1"])
     assert exc.value.code == 2 and "--steps must be >= 2" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        misses.main(["coverage-rc-m5-swarm", "--window", "0"])
+    assert exc.value.code == 2 and "--window must be >= 1" in capsys.readouterr().err

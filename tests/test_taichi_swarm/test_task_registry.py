@@ -49,13 +49,13 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
 
 
 @ti.func
-def distance(d: ti.f32) -> ti.f32:  # the one named per-agent term
+def distance(f: ti.template(), d: ti.f32) -> ti.f32:  # the one named per-agent term
     return -2.0 * d
 
 
 @ti.func
-def agent_reward(d: ti.f32) -> ti.f32:
-    return distance(d)
+def agent_reward(f: ti.template(), d: ti.f32) -> ti.f32:
+    return distance(f, d)
 
 
 GATHER = Task(
