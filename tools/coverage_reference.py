@@ -1,7 +1,9 @@
 """Hand-written controllers for density-scaled coverage, as references for the learned policies
 (docs/SWARM.md, "What a hand-written controller reaches"). Same setting as the swarm spec's
 policies: rc within 1, lists of K = 4 teammates and KL = 5 landmarks within 1, scale="density",
-the 50-step limit, the exact assignment's S%, covered and DIST.
+the 50-step limit, the exact assignment's S%, covered and DIST. ``--task formation``: formation's
+lattice with its points sensed as landmarks (the 12 nearest within 1.5, as its policies sense
+them), every agent on one point, success within 0.05.
 
 - planned: the min-sum matching of agents to landmarks at the episode's start (scipy), known to
   every agent (a central plan, not decentralised); each agent then drives to its landmark.
@@ -12,9 +14,11 @@ the 50-step limit, the exact assignment's S%, covered and DIST.
   hears, to find others.
 
     python tools/coverage_reference.py --sizes 10 100 1000 --episodes 100 --save
+    python tools/coverage_reference.py --task formation --sizes 10 100 --episodes 100
 
 --save merges the rows into results/swarm/reference-<controller>.json (a size run again
-replaces its row; reference-<controller>-nearest.json with --assignment nearest), which
+replaces its row; reference-<controller>-nearest.json with --assignment nearest;
+reference-formation-<controller>.json for formation), which
 tools/swarm_curves.py draws beside the policies' zero-shot curves.
 """
 
@@ -35,6 +39,11 @@ import taichi_swarm  # noqa: E402
 from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY  # noqa: E402
 
 CONTROLLERS = ("planned", "greedy")
+# the landmarks each task's policies sense (formation's are the points of its lattice)
+SENSED = {
+    "coverage": dict(landmark_neighbours=5, sense_radius=1.0),
+    "formation": dict(landmark_neighbours=12, sense_radius=1.5),
+}
 # unit force direction of each discrete action: no-op, -x, +x, -y, +y
 DIRECTIONS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], np.float32)
 
@@ -111,7 +120,15 @@ def greedy_goals(state: dict, obs: dict, rounds: int = 3) -> np.ndarray:
     return np.where(has[..., None], goal_free, goal_explore)
 
 
-def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10, assignment: str = "exact") -> dict:
+def run(
+    controller: str,
+    agents: int,
+    episodes: int,
+    seed: int,
+    batch: int = 10,
+    assignment: str = "exact",
+    task: str = "coverage",
+) -> dict:
     """One controller at one team size: S%, covered and DIST over ``episodes`` episodes; covered
     and S% by the min-sum matching (``assignment="exact"``) or by the maximum matching within
     the threshold ("nearest", never below the min-sum one's: docs/SWARM.md)."""
@@ -121,18 +138,17 @@ def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10,
     for first in range(0, episodes, batch):
         # one env per batch, seeded as reset(seed=seed + first) would: make's seed starts the first reset
         env = taichi_swarm.make(
-            "coverage",
+            task,
             num_envs=min(batch, episodes - first),
             num_agents=agents,
             comm="rc",
             comm_radius=1.0,
             seed=seed + first,
             neighbours=4,
-            landmark_neighbours=5,
-            sense_radius=1.0,
             scale="density",
             assignment=assignment,
             array="numpy",
+            **SENSED[task],
         )
         plan = {}
 
@@ -145,16 +161,17 @@ def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10,
             actions = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2))
             return actions.reshape(env.num_envs, agents), None
 
-        tallies.append(run_first_episodes(env, decide).summary("coverage")["per_episode"])
+        tallies.append(run_first_episodes(env, decide).summary(task)["per_episode"])
     per = {k: np.concatenate([t[k] for t in tallies]) for k in ("success", "covered", "dist", "length")}
     return {
+        **({"task": task} if task != "coverage" else {}),
         "controller": controller,
         **({"assignment": assignment} if assignment != "exact" else {}),
         "agents": agents,
         "episodes": len(per["success"]),
         "success_rate": float(np.mean(per["success"])),
         "covered": float(np.mean(per["covered"])),
-        "dist": float(np.mean(per["dist"])),
+        "dist": float(np.mean(per["dist"])) if taichi_swarm.TASK_SPECS[task].reports_dist else None,
         "length": float(np.mean(per["length"])),
     }
 
@@ -162,9 +179,11 @@ def run(controller: str, agents: int, episodes: int, seed: int, batch: int = 10,
 def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
     """Merge ``rows`` into ``directory``/reference-<controller>.json, atomically; returns the paths."""
     paths = []
-    for controller, assignment in sorted({(r["controller"], r.get("assignment", "exact")) for r in rows}):
+    kinds = {(r.get("task", "coverage"), r["controller"], r.get("assignment", "exact")) for r in rows}
+    for task, controller, assignment in sorted(kinds):
         suffix = "" if assignment == "exact" else f"-{assignment}"
-        path = os.path.join(directory, f"reference-{controller}{suffix}.json")
+        name = controller if task == "coverage" else f"{task}-{controller}"
+        path = os.path.join(directory, f"reference-{name}{suffix}.json")
         by_m = {}
         if os.path.exists(path):
             with open(path) as f:
@@ -172,10 +191,15 @@ def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
             if old.get("seed") != seed:
                 raise SystemExit(f"coverage_reference: {path} holds seed {old.get('seed')}, not {seed}: move it away")
             by_m = {r["agents"]: r for r in old["results"]}
-        mine = [r for r in rows if r["controller"] == controller and r.get("assignment", "exact") == assignment]
+        mine = [
+            r
+            for r in rows
+            if (r.get("task", "coverage"), r["controller"], r.get("assignment", "exact"))
+            == (task, controller, assignment)
+        ]
         by_m.update({r["agents"]: r for r in mine})
         data = {
-            "checkpoint": f"reference: {controller}",
+            "checkpoint": f"reference: {name.replace('-', ' ')}",
             "controller": controller,
             "seed": seed,
             "results": [by_m[m] for m in sorted(by_m)],
@@ -191,6 +215,7 @@ def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--task", choices=tuple(SENSED), default="coverage")
     ap.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=list(CONTROLLERS))
     ap.add_argument("--sizes", nargs="+", type=int, default=[10, 20, 50, 100, 1000])
     ap.add_argument("--episodes", type=int, default=100)
@@ -201,7 +226,8 @@ def main(argv: list[str] | None = None) -> None:
     )  # fmt: skip
     ap.add_argument(
         "--save", action="store_true",
-        help="merge the rows into results/swarm/reference-<controller>.json (-nearest.json with --assignment nearest)",
+        help="merge the rows into results/swarm/reference-<controller>.json (-nearest.json with --assignment nearest; "
+        "reference-formation-<controller>.json for formation)",
     )  # fmt: skip
     args = ap.parse_args(argv)
     if args.episodes < 1 or any(m < 2 for m in args.sizes):
@@ -211,11 +237,11 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{'controller':10} {'M':>5} {'episodes':>8} {'S%':>6} {'covered':>8} {'DIST':>7} {'T':>6}")
     for controller in args.controllers:
         for m in args.sizes:
-            r = run(controller, m, args.episodes, args.seed, assignment=args.assignment)
+            r = run(controller, m, args.episodes, args.seed, assignment=args.assignment, task=args.task)
             rows.append(r)
             print(
                 f"{controller:10} {m:5d} {r['episodes']:8d} {100 * r['success_rate']:6.1f} "
-                f"{r['covered']:8.2f} {r['dist']:7.3f} {r['length']:6.2f}",
+                f"{r['covered']:8.2f} {'-' if r['dist'] is None else format(r['dist'], '.3f'):>7} {r['length']:6.2f}",
                 flush=True,
             )
             if args.save:  # after every size: a stopped run keeps what it measured

@@ -58,3 +58,18 @@ def test_save_keeps_the_max_matching_rows_apart(tmp_path):
     row = dict(controller="planned", agents=10, episodes=5, success_rate=1.0, covered=1.0, dist=0.03, length=10.0)
     ref.save([row, dict(row, assignment="nearest")], seed=777, directory=str(tmp_path))
     assert sorted(os.listdir(tmp_path)) == ["reference-planned-nearest.json", "reference-planned.json"]
+
+
+def test_formation_on_its_sensed_lattice_is_planned_and_saved_apart(tmp_path):
+    """--task formation: every agent on one point of the lattice (its landmarks here), success
+    within 0.05 under the same steering; its rows go to a file of their own."""
+    planned = ref.run("planned", agents=5, episodes=10, seed=777, batch=10, task="formation")
+    assert planned["task"] == "formation" and planned["dist"] is None
+    assert planned["success_rate"] >= 0.7 and planned["covered"] >= 0.9, planned
+    ref.save([planned], seed=777, directory=str(tmp_path))
+    assert os.listdir(tmp_path) == ["reference-formation-planned.json"]
+    import json
+
+    assert json.loads((tmp_path / "reference-formation-planned.json").read_text())["checkpoint"] == (
+        "reference: formation planned"
+    )
