@@ -130,7 +130,7 @@ def run(
             state = {k: np.asarray(v) for k, v in env.get_state().items()}
             for b in np.flatnonzero(~finished):
                 inside[t - last + len(inside), b] = matching(state["pos"][b], state["landmarks"][b], threshold)[1] >= 0
-    state = {k: np.asarray(v) for k, v in env.get_state().items()}
+    # (state: read at the window's last step, the one before the episode's last)
     kept = [b for b in range(episodes) if not finished[b]]
     rows = [{**classify(state["pos"][b], state["landmarks"][b], threshold), **hovering(inside[:, b])} for b in kept]
     names = ("covered", "duplicate", "near", "far", "held", "hover", "best")

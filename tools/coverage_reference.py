@@ -176,11 +176,15 @@ def run(
     }
 
 
+def _kind(row: dict) -> tuple[str, str, str]:
+    """A row's (task, controller, assignment): one results file each."""
+    return row.get("task", "coverage"), row["controller"], row.get("assignment", "exact")
+
+
 def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
     """Merge ``rows`` into ``directory``/reference-<controller>.json, atomically; returns the paths."""
     paths = []
-    kinds = {(r.get("task", "coverage"), r["controller"], r.get("assignment", "exact")) for r in rows}
-    for task, controller, assignment in sorted(kinds):
+    for task, controller, assignment in sorted({_kind(r) for r in rows}):
         suffix = "" if assignment == "exact" else f"-{assignment}"
         name = controller if task == "coverage" else f"{task}-{controller}"
         path = os.path.join(directory, f"reference-{name}{suffix}.json")
@@ -191,12 +195,7 @@ def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
             if old.get("seed") != seed:
                 raise SystemExit(f"coverage_reference: {path} holds seed {old.get('seed')}, not {seed}: move it away")
             by_m = {r["agents"]: r for r in old["results"]}
-        mine = [
-            r
-            for r in rows
-            if (r.get("task", "coverage"), r["controller"], r.get("assignment", "exact"))
-            == (task, controller, assignment)
-        ]
+        mine = [r for r in rows if _kind(r) == (task, controller, assignment)]
         by_m.update({r["agents"]: r for r in mine})
         data = {
             "checkpoint": f"reference: {name.replace('-', ' ')}",
