@@ -360,7 +360,7 @@ class Executor:
                 own = entities[b, i] if sensed is None else np.ascontiguousarray(entities[b, i][sensed[b, i]])
                 h[b, i], messages[b, i] = pieces.encode(self_obs[b, i], own)
         pos = self_obs[..., 2:4] if self.model.edge_position == "relative" else None  # true positions [B, M, 2]
-        logits = np.empty((B, M, 5), np.float32)
+        logits = np.empty((B, M, self.model.manifest["num_actions"]), np.float32)
         K = nbr.shape[-1] if lists else 0
         # lists: slot 0 is the agent itself, slot 1 + k its k-th listed neighbour
         attention = np.zeros((B, M, 1 + K) if lists else (B, M, M), np.float32)

@@ -37,7 +37,7 @@ from taichi_swarm import TaskSetting
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
 from trainer.checkpoint import CheckpointError, load_policy
-from trainer.model import NUM_ACTIONS, PADDED_SLOTS, SELF_DIM, SwarmPolicy
+from trainer.model import PADDED_SLOTS, SELF_DIM, SwarmPolicy
 from trainer.zoo import file_sha256
 
 OPSET = 18
@@ -286,8 +286,8 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
             **({"offsets": EDGE_DOC} if edge else {}),
         },
         "contract": {**integrator_contract(setting.to_dict(), cfg.rounds, H), **swarm_contract(payload)},
-        "action_meanings": list(ACTION_MEANINGS),
-        "num_actions": NUM_ACTIONS,
+        "action_meanings": list(ACTION_MEANINGS[: cfg.num_actions]),
+        "num_actions": cfg.num_actions,
         "opset": OPSET,
         "files": files,
         "versions": _versions(),

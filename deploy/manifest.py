@@ -20,6 +20,7 @@ import jsonschema
 
 from taichi_swarm import COMMS, TASKS
 from taichi_swarm.layout import EDGE_POSITIONS, ENTITY_MODES
+from taichi_swarm.physics import NUM_ACTIONS, NUM_FINE_ACTIONS
 
 MANIFEST = "manifest.json"
 FORMAT = "taichi-swarm-onnx"
@@ -65,6 +66,7 @@ SCHEMA = {
                 "num_landmarks": {"type": "integer", "minimum": 0},
                 "self_position": {"enum": ["absolute", "none"]},
                 "edge_position": {"enum": list(EDGE_POSITIONS)},
+                "num_actions": {"enum": [NUM_ACTIONS, NUM_FINE_ACTIONS]},
             },
         },
         "rounds": {"type": "integer", "minimum": 0, "maximum": 64},
@@ -73,7 +75,8 @@ SCHEMA = {
         "edge_position": {"enum": list(EDGE_POSITIONS)},
         "num_landmarks": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
         "max_landmarks": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
-        "num_actions": _POSITIVE_INT,
+        "num_actions": {"enum": [NUM_ACTIONS, NUM_FINE_ACTIONS]},
+        "action_meanings": {"type": "array", "items": {"type": "string"}},
         "files": {
             "type": "object",
             "required": list(PIECES),
@@ -167,8 +170,9 @@ def validate(manifest, where: str = MANIFEST) -> None:
             f"{where} was changed after export (its manifest_sha256 does not match its content): export again"
         )
     own = {**manifest, "edge_position": edge_position(manifest)}
-    mc = {"edge_position": "none", **manifest["model_config"]}  # configs older than it: "none"
-    for key in ("rounds", "hidden", "entity_mode", "edge_position"):
+    # configs older than the fields: "none", the paper's 5 actions
+    mc = {"edge_position": "none", "num_actions": NUM_ACTIONS, **manifest["model_config"]}
+    for key in ("rounds", "hidden", "entity_mode", "edge_position", "num_actions"):
         if own[key] != mc[key]:
             raise ManifestError(f"{where}: {key} {own[key]!r} differs from model_config.{key} {mc[key]!r}")
     for name in ("round", "round_heads"):
@@ -178,6 +182,9 @@ def validate(manifest, where: str = MANIFEST) -> None:
                 f"{where}: edge_position {own['edge_position']!r}, but files.{name} "
                 f"{'takes' if takes else 'does not take'} offsets (the senders' p_j - p_i)"
             )
+    meanings = manifest.get("action_meanings")
+    if meanings is not None and len(meanings) != manifest["num_actions"]:
+        raise ManifestError(f"{where}: {len(meanings)} action_meanings for num_actions {manifest['num_actions']}")
     if manifest["entity_mode"] == "concat" and not manifest.get("num_landmarks"):
         raise ManifestError(f"{where}: entity_mode 'concat' needs num_landmarks")
 

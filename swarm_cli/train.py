@@ -36,7 +36,7 @@ GROUPS = {
     "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst drop_per_round"),
     "training": (
         "what the run learns from",
-        "reward hold_reward team_sizes init_from init_carry trust_unsigned target_success min_updates",
+        "reward hold_reward action_space team_sizes init_from init_carry trust_unsigned target_success min_updates",
     ),
     "evaluation": ("the evaluations during the run", "eval_every eval_episodes transfer_offsets"),
     "run management": ("the run directory and its display", "resume checkpoint_every progress tensorboard"),

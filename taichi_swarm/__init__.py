@@ -4,6 +4,9 @@
     obs = env.reset(seed=0)
     obs, reward, done, info = env.step(actions)  # actions: int64 [B, M] in 0..4
 
+    # the paper's five and four quarter-strength pushes (actions 5..8): int64 [B, M] in 0..8
+    env = taichi_swarm.make("formation", 1024, 3, action_space="fine")
+
     # MPE's continuous mode: actions float32 [B, M, 2], force 5 clip(u, -1, 1) per axis
     env = taichi_swarm.make("coverage", 1024, 3, action_space="continuous")
 
@@ -12,7 +15,7 @@ at import.
 """
 
 from .env import ARRAYS, COMMS, NaNActionsError, SwarmEnv, make
-from .physics import ACTION_DIM, ACTION_MEANINGS, ACTION_SPACES, NUM_ACTIONS
+from .physics import ACTION_DIM, ACTION_MEANINGS, ACTION_SPACES, NUM_ACTIONS, num_actions
 from .runtime import init
 from .setting import TaskSetting
 from .tasks import TASK_SPECS, TASKS
@@ -31,4 +34,5 @@ __all__ = [
     "SwarmEnv",
     "init",
     "make",
+    "num_actions",
 ]

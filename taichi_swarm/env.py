@@ -53,7 +53,7 @@ from .layout import (
     Layout,
     static_team_size,
 )
-from .physics import ACTION_DIM, ACTION_SPACES, CONTACT_MARGIN, CUTOFF_MARGINS, NUM_ACTIONS
+from .physics import ACTION_DIM, ACTION_SPACES, CONTACT_MARGIN, CUTOFF_MARGINS, num_actions
 from .tasks import COMMON_PARAMS, TASK_SPECS
 
 COMMS = ("uc", "rc")
@@ -114,9 +114,10 @@ class SwarmEnv:
     task: one of ``TASKS`` (coverage, formation, line). comm: "uc" (every
     agent hears every agent) or "rc" (within ``comm_radius``). arch: "cpu",
     "cuda"/"gpu" or "auto". array: "torch" or "numpy" outputs (numpy needs no
-    torch). action_space: "discrete" (the paper's 5 actions, int64 [B, M]) or
-    "continuous" (MPE's continuous mode: float32 [B, M, 2], force 5 clip(u, -1, 1)
-    per axis). task_params: ``max_steps`` (50), ``success_threshold`` and
+    torch). action_space: "discrete" (the paper's 5 actions, int64 [B, M]), "fine" (9: the
+    paper's 5, then -x, +x, -y, +y at a quarter of the force, so an agent can park within
+    0.035 of any point: physics.FINE) or "continuous" (MPE's continuous mode: float32
+    [B, M, 2], force 5 clip(u, -1, 1) per axis). task_params: ``max_steps`` (50), ``success_threshold`` and
     ``hold_reward`` (0: added to an agent's own reward, info["agent_reward"], at each step
     it is within the threshold of its target; the team reward stays the paper's) for all
     tasks; ``formation_radius`` (formation); ``line_length`` (line).
@@ -195,7 +196,7 @@ class SwarmEnv:
             k: (_check_int(k, v, 1, INT32_MAX) if k == "max_steps" else _check_float(k, v, 0.0))
             for k, v in params.items()
         }
-        self.num_actions = NUM_ACTIONS  # discrete actions per agent
+        self.num_actions = num_actions(action_space)  # discrete actions per agent (0: continuous)
         self.action_dim = ACTION_DIM  # continuous: float32 [B, M, 2]
         self._task_id = spec.task_id
         self._check_lists(spec, neighbours, landmark_neighbours, sense_radius, scale)
@@ -468,8 +469,9 @@ class SwarmEnv:
 
         ``actions``, a contiguous tensor on the env's device (or a numpy array on
         the CPU): discrete (default) int64 [B, M], values 0..4 (no-op, -x, +x, -y,
-        +y); continuous (``action_space="continuous"``) float32 [B, M, 2], the
-        force on each axis being 5 clip(u, -1, 1) (NaN is refused).
+        +y; "fine" also 5..8, those four at a quarter of the force); continuous
+        (``action_space="continuous"``) float32 [B, M, 2], the force on each axis being
+        5 clip(u, -1, 1) (NaN is refused).
         Finished environments restart inside this call: ``obs`` is then the
         first observation of the new episode, ``info["terminal_obs"]`` the last
         one of the old, ``info["episode"]`` its statistics.
@@ -571,14 +573,14 @@ class SwarmEnv:
                 raise ValueError("actions must be contiguous (call .contiguous())")
             if actions.device.type == "cuda":
                 lo, hi = (int(x) for x in torch.aminmax(actions))
-                if lo < 0 or hi >= NUM_ACTIONS:
-                    raise ValueError(f"actions must be in 0..{NUM_ACTIONS - 1}, got values in [{lo}, {hi}]")
+                if lo < 0 or hi >= self.num_actions:
+                    raise ValueError(f"actions must be in 0..{self.num_actions - 1}, got values in [{lo}, {hi}]")
                 return None
             host = actions.detach().numpy()
-        # one pass: seen as unsigned, a negative value is huge, so max < 5 <=> all in 0..4
-        if host.size and host.view(np.uint64).max() >= NUM_ACTIONS:
+        # one pass: seen as unsigned, a negative value is huge, so max < A <=> all in 0..A-1
+        if host.size and host.view(np.uint64).max() >= self.num_actions:
             lo, hi = int(host.min()), int(host.max())
-            raise ValueError(f"actions must be in 0..{NUM_ACTIONS - 1}, got values in [{lo}, {hi}]")
+            raise ValueError(f"actions must be in 0..{self.num_actions - 1}, got values in [{lo}, {hi}]")
         return host
 
     def snapshot(self) -> dict:
@@ -697,7 +699,7 @@ class SwarmEnv:
             f"SwarmEnv(task={self.task!r}, num_envs={self.num_envs}, num_agents={self.num_agents}, "
             f"num_landmarks={self.num_landmarks}, comm={self.comm!r}, comm_radius={self.comm_radius}, "
             f"arch={self.arch!r}, array={self.array!r}"
-            + (f", action_space={self.action_space!r}" if self.continuous else "")
+            + (f", action_space={self.action_space!r}" if self.action_space != "discrete" else "")
             + "".join(f", {kv}" for kv in self._list_key())
             + ")"
         )

@@ -1,7 +1,8 @@
 """MPE world physics (Lowe et al. 2017, multiagent/core.py), per agent.
 
-See docs/PAPER.md section 1. One step: action force (discrete, the paper's; or
-continuous, MPE's continuous mode: 5 clip(u, -1, 1) per axis),
+See docs/PAPER.md section 1. One step: action force (discrete, the paper's; "fine", the
+paper's five and four quarter-strength pushes; or continuous, MPE's continuous mode:
+5 clip(u, -1, 1) per axis),
 pairwise contact forces between agents, then semi-implicit Euler
     v <- v (1 - damping);  v <- v + F/m dt;  p <- p + v dt.
 """
@@ -14,26 +15,45 @@ MASS = 1.0
 SENSITIVITY = 5.0  # MPE's agent.accel default (discrete and continuous actions alike)
 CONTACT_FORCE = 100.0
 CONTACT_MARGIN = 1e-3
-NUM_ACTIONS = 5
+NUM_ACTIONS = 5  # the paper's discrete actions
+# action_space "fine": actions 5..8 push as 1..4 do at a quarter of the force. From rest one
+# full push moves an agent's resting point by 0.2 (SENSITIVITY / MASS x DT^2 / DAMPING), so
+# with the paper's five an agent at rest parks only on a lattice of side 0.2 round where it
+# stopped, up to 0.141 from a target, and holds a point in between only by alternating pushes
+# (docs/SWARM.md, "An agent at rest parks only on a lattice"); a quarter push moves it by 0.05,
+# so it can park within 0.035 of any point, inside formation's 0.05.
+FINE = 0.25
+NUM_FINE_ACTIONS = 9
 ACTION_DIM = 2  # continuous actions: one force command u per axis
-ACTION_SPACES = ("discrete", "continuous")
+ACTION_SPACES = ("discrete", "continuous", "fine")
 CUTOFF_MARGINS = 20.0  # contact force treated as 0 beyond dist_min + 20 contact margins
-ACTION_MEANINGS = ("noop", "-x", "+x", "-y", "+y")
+ACTION_MEANINGS = ("noop", "-x", "+x", "-y", "+y", "-x/4", "+x/4", "-y/4", "+y/4")  # "discrete": the first 5
+
+
+def num_actions(action_space: str) -> int:
+    """Discrete actions per agent of an action space (continuous: 0, none)."""
+    return {"discrete": NUM_ACTIONS, "fine": NUM_FINE_ACTIONS}.get(action_space, 0)
 
 
 @ti.func
 def action_force(a: ti.i32) -> ti.math.vec2:
-    """Unit direction of discrete action a (0 no-op, 1 -x, 2 +x, 3 -y, 4 +y) times 5."""
+    """Unit direction of discrete action a (0 no-op, 1 -x, 2 +x, 3 -y, 4 +y) times 5; actions
+    5..8 ("fine") the directions of 1..4 at a quarter of that."""
     u = ti.math.vec2(0.0, 0.0)
-    if a == 1:
+    k = a
+    strength = 1.0
+    if a > NUM_ACTIONS - 1:
+        k = a - (NUM_ACTIONS - 1)
+        strength = FINE
+    if k == 1:
         u[0] = -1.0
-    elif a == 2:
+    elif k == 2:
         u[0] = 1.0
-    elif a == 3:
+    elif k == 3:
         u[1] = -1.0
-    elif a == 4:
+    elif k == 4:
         u[1] = 1.0
-    return u * SENSITIVITY
+    return u * (strength * SENSITIVITY)
 
 
 @ti.func

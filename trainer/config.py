@@ -13,7 +13,7 @@ import os
 from dataclasses import dataclass, field
 from typing import ClassVar, Literal
 
-from taichi_swarm import COMMS, TASK_SPECS, TASKS
+from taichi_swarm import COMMS, NUM_ACTIONS, TASK_SPECS, TASKS, num_actions
 from trainer.checkpoint import MAX_HIDDEN, MAX_ROUNDS
 from trainer.model import ENTITY_MODES, ModelConfig
 
@@ -175,6 +175,12 @@ class TrainConfig:
     the default), auction (eps-optimal) or nearest (with neighbour lists: each target's nearest
     agent, local and flat in cost per agent; success from the exact matching within the
     threshold). docs/SWARM.md."""
+    action_space: Literal["discrete", "fine"] = "discrete"
+    """discrete: the paper's 5 actions; fine: 9, the paper's and four pushes at a quarter of the
+    force, with which an agent at rest can park within 0.035 of any point, where with the
+    paper's it parks only on a lattice of side 0.2 and holds a point in between by alternating
+    pushes (taichi_swarm.physics.FINE, docs/SWARM.md). The policy records it; ``--init-from`` a
+    5-action policy starts the four new actions as copies of the full pushes, less likely."""
     message_drop: float = 0.0
     """Train through a lossy radio: every rollout draws, per environment, a drop rate uniformly
     from [0, message_drop], and every step drops each message (an edge of the communication
@@ -345,6 +351,8 @@ class TrainConfig:
             raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
         if self.model.landmark_occupancy and not self.landmark_occupancy:
             raise ValueError("model.landmark_occupancy follows landmark_occupancy (the simulator's): set that instead")
+        if self.model.num_actions not in (NUM_ACTIONS, num_actions(self.action_space)):
+            raise ValueError("model.num_actions follows action_space (the simulator's): set that instead")
         self.ppo.validate()
         self.swarm_options()
         self.validate_memory()
@@ -378,12 +386,12 @@ class TrainConfig:
             raise ValueError(f"init_carry={self.init_carry!r} needs init_from (a checkpoint.pt to carry it from)")
 
     def swarm_options(self) -> dict:
-        """The simulator's neighbour-list and density options that are set (``make()`` keywords)."""
+        """The simulator's neighbour-list, density and action-set options that are set (``make()`` keywords)."""
         from trainer.evaluate import swarm_options
 
         return swarm_options(
             self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
-            self.landmark_occupancy,
+            self.landmark_occupancy, self.action_space,
         )  # fmt: skip
 
     def task_params(self) -> dict:

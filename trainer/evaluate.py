@@ -10,17 +10,27 @@ from taichi_swarm.metrics import format_results, result_header, run_first_episod
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 
 ACTION_MODES = ("greedy", "sampled")
-SWARM_KEYS = ("neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy")
+SWARM_KEYS = (
+    "neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy", "action_space",
+)  # fmt: skip
+ACTION_SETS = ("discrete", "fine")  # the discrete action spaces a policy can be trained on
 
 
 def swarm_options(
-    neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None
+    neighbours=None,
+    landmark_neighbours=None,
+    sense_radius=None,
+    scale=None,
+    assignment=None,
+    landmark_occupancy=None,
+    action_space=None,
 ) -> dict:
-    """The simulator's neighbour-list, scaling, assignment and occupancy options that are set, as
-    ``make()`` keywords (none set: the dense layout, the paper's geometry, the exact assignment)."""
+    """The simulator's neighbour-list, scaling, assignment, occupancy and action-set options that
+    are set, as ``make()`` keywords (none set: the dense layout, the paper's geometry, the exact
+    assignment, the paper's 5 actions)."""
     given = dict(
         neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale,
-        assignment=assignment, landmark_occupancy=landmark_occupancy,
+        assignment=assignment, landmark_occupancy=landmark_occupancy, action_space=action_space,
     )  # fmt: skip
     for key in ("neighbours", "landmark_neighbours"):
         v = given[key]
@@ -45,6 +55,10 @@ def swarm_options(
         )
     if not landmark_occupancy:  # off: recorded as unset, like the exact assignment
         given["landmark_occupancy"] = None
+    if action_space is not None and action_space not in ACTION_SETS:
+        raise ValueError(f"action_space must be one of {ACTION_SETS}, got {action_space!r}")
+    if action_space == "discrete":  # the paper's: recorded as unset
+        given["action_space"] = None
     return {k: v for k, v in given.items() if v is not None}
 
 
@@ -156,4 +170,4 @@ def parse_sizes(spec: list[str]) -> list[int]:
     return list(dict.fromkeys(sizes))
 
 
-__all__ = ["ACTION_MODES", "SWARM_KEYS", "evaluate", "format_table", "parse_sizes", "swarm_options"]
+__all__ = ["ACTION_MODES", "ACTION_SETS", "SWARM_KEYS", "evaluate", "format_table", "parse_sizes", "swarm_options"]

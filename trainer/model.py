@@ -32,7 +32,7 @@ from torch import nn
 
 # the observation layout and the actions are defined once, there
 from taichi_swarm.layout import EDGE_POSITIONS, ENTITY_MODES, SELF_DIM
-from taichi_swarm.physics import NUM_ACTIONS
+from taichi_swarm.physics import NUM_ACTIONS, NUM_FINE_ACTIONS
 
 PADDED_SLOTS = 10  # the paper's "without EMP" baseline: 10 landmarks x 2 = 20 inputs
 MASK_FILL = -1e9  # finite: an all-masked row must not turn into NaN (and exports cleanly)
@@ -132,7 +132,13 @@ class ModelConfig:
     which start at zero, so a policy without it is the same function with it and may be
     fine-tuned into it ("emp" only; the trainer sets it from ``landmark_occupancy``)."""
 
+    num_actions: int = NUM_ACTIONS
+    """Logits of the policy head: the simulator's actions, 5 (the paper's) or 9 with
+    ``action_space="fine"`` (the trainer sets it from that)."""
+
     def __post_init__(self):
+        if self.num_actions not in (NUM_ACTIONS, NUM_FINE_ACTIONS):
+            raise ValueError(f"num_actions must be {NUM_ACTIONS} or {NUM_FINE_ACTIONS}, got {self.num_actions!r}")
         if self.entity_mode not in ENTITY_MODES:
             raise ValueError(f"entity_mode must be one of {ENTITY_MODES}, got {self.entity_mode!r}")
         if self.self_position not in SELF_POSITIONS:
@@ -216,7 +222,7 @@ class SwarmPolicy(nn.Module):
     ``forward(self_obs, entities, nbr=..., nbr_mask=..., entity_mask=...)`` on lists.
 
     self_obs [N, M, 4], entities [N, M, L, 2], adj [N, M, M] bool (adj[n, i, j]: i hears j)
-    -> logits [N, M, 5], value [N, M].
+    -> logits [N, M, A] (A = config.num_actions), value [N, M].
     """
 
     def __init__(self, config: ModelConfig = ModelConfig()):
@@ -237,7 +243,7 @@ class SwarmPolicy(nn.Module):
         if config.edge_position == "relative":
             self.edge_key = nn.Linear(2, H, bias=False)
             self.edge_value = nn.Linear(2, H, bias=False)
-        self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, NUM_ACTIONS))
+        self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, config.num_actions))
         self.value_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, 1))
         self._init_weights()
 
@@ -437,7 +443,7 @@ class SwarmPolicy(nn.Module):
     ):
         """self_obs [N, M, 4], entities [N, M, L, 2], and the graph: adj [N, M, M] or
         nbr, nbr_mask [N, M, K] (``entity_mask`` [N, M, L] with landmark lists)
-        -> logits [N, M, 5], value [N, M] (and the K rounds' attention with
+        -> logits [N, M, A] (A = config.num_actions), value [N, M].(and the K rounds' attention with
         ``return_attention``: [N, M, M] dense, [N, M, 1 + K] on [self; listed] with lists).
 
         The same function as ``forward_reference`` (to float rounding), rearranged so that

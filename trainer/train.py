@@ -71,15 +71,36 @@ def check_arch(arch: str) -> str:
 
 
 def model_config_for(cfg: TrainConfig) -> ModelConfig:
-    """The model config with the task's L filled in for the "concat" entity mode, and the
-    landmark inputs' occupancy feature where the simulator gives it."""
+    """The model config with the task's L filled in for the "concat" entity mode, the
+    landmark inputs' occupancy feature where the simulator gives it, and the action set's logits."""
     m = cfg.model
     if cfg.landmark_occupancy != m.landmark_occupancy:
         m = dataclasses.replace(m, landmark_occupancy=cfg.landmark_occupancy)
+    if taichi_swarm.num_actions(cfg.action_space) != m.num_actions:
+        m = dataclasses.replace(m, num_actions=taichi_swarm.num_actions(cfg.action_space))
     if m.entity_mode == "concat":
         L = taichi_swarm.TASK_SPECS[cfg.task].num_landmarks(cfg.agents)
         m = dataclasses.replace(m, num_landmarks=L)  # every other field as configured
     return m
+
+
+FINE_START_GAP = 2.0  # a fine action starts this much below its full push's logit: sampled e^-2 as often
+
+
+def grow_actions(weights: dict, num_actions: int) -> dict:
+    """A 5-action policy's weights for ``num_actions`` logits: the four fine pushes (actions
+    5..8) start as copies of the full ones (1..4), ``FINE_START_GAP`` lower, so the greedy
+    policy is the same and the sampled one tries them from the first rollout."""
+    w, b = weights["policy_head.2.weight"], weights["policy_head.2.bias"]
+    extra = num_actions - w.shape[0]
+    if extra <= 0:
+        return weights
+    full = slice(1, 1 + extra)
+    return {
+        **weights,
+        "policy_head.2.weight": torch.cat([w, w[full]]),
+        "policy_head.2.bias": torch.cat([b, b[full] - FINE_START_GAP]),
+    }
 
 
 def transfer_sizes(cfg: TrainConfig) -> list[int]:
@@ -125,18 +146,22 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
         init_policy, init_payload = checkpoint.load_policy(cfg.init_from, trust_unsigned=cfg.trust_unsigned)
         # the same shapes; self_position only changes what the encoder is fed, and relative
         # edges and landmark occupancy add weights that start at zero (the same function), so
-        # a policy may be fine-tuned into relative inputs, edges and occupancy
-        grown = ("self_position", "edge_position", "landmark_occupancy")
+        # a policy may be fine-tuned into relative inputs, edges and occupancy; the fine
+        # actions' logits start from the full pushes' (greedy: the same function)
+        grown = ("self_position", "edge_position", "landmark_occupancy", "num_actions")
         relative = {k: getattr(policy.config, k) for k in grown}
-        dropped = (init_policy.config.edge_position == "relative" and policy.config.edge_position == "none") or (
-            init_policy.config.landmark_occupancy and not policy.config.landmark_occupancy
+        dropped = (
+            (init_policy.config.edge_position == "relative" and policy.config.edge_position == "none")
+            or (init_policy.config.landmark_occupancy and not policy.config.landmark_occupancy)
+            or init_policy.config.num_actions > policy.config.num_actions
         )
         if dropped or dataclasses.replace(init_policy.config, **relative) != policy.config:
             raise checkpoint.CheckpointError(
                 f"--init-from {cfg.init_from} has model {init_policy.config}, this run wants {policy.config}"
             )
         own = policy.state_dict()
-        policy.load_state_dict({**own, **{k: v for k, v in init_policy.state_dict().items() if k in own}})
+        weights = grow_actions(init_policy.state_dict(), policy.config.num_actions)
+        policy.load_state_dict({**own, **{k: v for k, v in weights.items() if k in own}})
     # fused: one kernel for every parameter (the per-tensor loop cost ~1.4 ms per minibatch)
     optimizer = torch.optim.Adam(policy.parameters(), lr=p.lr, eps=1e-5, fused=True)
     sizes = cfg.training_sizes()

@@ -226,9 +226,11 @@ class World:
         import taichi_swarm
 
         s = self.s
+        fine = self.model.manifest["num_actions"] == taichi_swarm.physics.NUM_FINE_ACTIONS
         env = taichi_swarm.make(
-            s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy"
-        )
+            s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed,
+            array="numpy", action_space="fine" if fine else "discrete",
+        )  # fmt: skip
         t0 = time.perf_counter()
         tally = run_first_episodes(env, self.decide, recorder)
         wall = time.perf_counter() - t0
