@@ -55,6 +55,9 @@ SINGLES = (
     ("formation-rc-m50-lattice", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50", 50,
      "formation RC at M = 50 on its density-scaled lattice, the points sensed as landmarks with their occupancy, "
      "from coverage-rc-m50-wide (s-formation-rc-lattice-m50)"),
+    ("formation-rc-m50-fine", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine", 50,
+     "formation-rc-m50-lattice on the fine action set, four quarter-strength pushes beside the paper's five "
+     "(s-formation-rc-lattice-m50-fine)"),
 )  # fmt: skip
 
 
