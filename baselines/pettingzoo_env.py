@@ -38,7 +38,7 @@ class SwarmParallelEnv(ParallelEnv):
     """One team of ``num_agents`` agents on ``task`` as a PettingZoo ParallelEnv.
 
     task: coverage, formation or line. obs_mode: "local" (the paper's) or "full" (its
-    baselines'). action_space: "discrete" or "continuous". comm, comm_radius: the
+    baselines'). action_space: "discrete", "fine" (9 actions) or "continuous". comm, comm_radius: the
     communication graph reported in infos (local mode). seed: the first reset's seed
     (``reset(seed=...)`` overrides). task_params: ``max_steps`` (50) and the task's
     parameters, as for ``taichi_swarm.make``.

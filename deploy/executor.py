@@ -8,7 +8,7 @@ step (K rounds, manifest "schedule"):
 
     encode(own obs)               -> h, message            (message = key [H], value [H])
     rounds 1..K-1: send message along the graph, round(h, heard) -> h, next message
-    round K:       send message,  round_heads(h, heard)  -> logits [5]; action = argmax
+    round K:       send message,  round_heads(h, heard)  -> logits [A]; action = argmax
 
 Communication goes through ``MessageBus``, the in-process radio: it delivers a
 message from j to i only along an edge of the simulator's communication graph
@@ -337,7 +337,7 @@ class Executor:
     ):
         """self_obs [B, M, 4], entities [B, M, L, 2] and the graph: adj [B, M, M] bool, or the
         lists nbr, nbr_mask [B, M, K] (``entity_mask`` [B, M, L]: the sensed landmark slots) ->
-        (logits [B, M, 5], actions int64 [B, M], attention of the last round: [B, M, M] dense,
+        (logits [B, M, A], actions int64 [B, M], attention of the last round: [B, M, M] dense,
         [B, M, 1 + K] on [self; listed] with lists)."""
         if (adj is None) == (nbr is None) or (nbr is not None and nbr_mask is None):
             raise DeployError("decide takes the graph either dense (adj) or as lists (nbr with nbr_mask)")

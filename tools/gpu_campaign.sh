@@ -32,6 +32,7 @@ swarm="--neighbours 4 --landmark-neighbours 5 --sense-radius 1.0 --landmark-occu
 lattice="--neighbours 4 --landmark-neighbours 12 --sense-radius 1.5 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
 wider="--neighbours 4 --landmark-neighbours 16 --sense-radius 2.0 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
 form50=results/reproduce-swarm/s-formation-rc-lattice-m50/s0/stage-m50/policy.pt
+fine50=results/reproduce-swarm/s-formation-rc-lattice-m50-fine/s0/stage-m50/policy.pt
 wider50=results/reproduce-swarm/s-coverage-rc-rel-m50-occupancy-wider/s0/stage-m50/policy.pt
 tune="--ppo.num-envs 512 --ppo.lr 1.5e-4 --ppo.lr-end 3e-5 --updates 150"
 curr="--max-updates-per-stage 200 --fresh-eval-episodes 500 --fresh-eval-seed 777 --transfer-offsets"
@@ -52,11 +53,12 @@ declare -A JOBS=(
     [swarm-cov-m100-occ]="train --task coverage --agents 100 --comm rc $swarm --init-from coverage-rc-m50-occupancy --ppo.lr 1e-4 --updates 200 --transfer-offsets 100"
     [swarm-form-m50]="train --task formation --agents 50 --comm rc $lattice --init-from $form50 $tune --transfer-offsets 50"
     [swarm-form-m100]="train --task formation --agents 100 --comm rc $lattice --init-from $form50 $tune --transfer-offsets -50"
+    [swarm-form-m100-fine]="train --task formation --agents 100 --comm rc $lattice --action-space fine --init-from $fine50 $tune --transfer-offsets -50"
     [swarm-line-m50]="train --task line --agents 50 --comm rc $lattice --init-from coverage-rc-m50-wide $tune --transfer-offsets 50"
     [swarm-line-m100]="train --task line --agents 100 --comm rc $lattice --init-from coverage-rc-m50-wide $tune --transfer-offsets -50"
     [swarm-cov-m100-wider]="train --task coverage --agents 100 --comm rc $wider --init-from $wider50 $tune --transfer-offsets -50 100"
 )
-ORDER="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat table1-cov6-uc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc swarm-cov-m100-occ swarm-form-m50 swarm-form-m100 swarm-line-m50 swarm-line-m100 swarm-cov-m100-wider"
+ORDER="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat table1-cov6-uc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc swarm-cov-m100-occ swarm-form-m50 swarm-form-m100-fine swarm-form-m100 swarm-line-m50 swarm-line-m100 swarm-cov-m100-wider"
 DEFAULT="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat"
 
 dry_run=0

@@ -64,7 +64,7 @@ def test_observation_mode_is_checked():
     [
         dict(task="coverage", num_agents=3),
         dict(task="line", num_agents=4, obs_mode="full", action_space="continuous", max_steps=12),
-        dict(task="formation", num_agents=3, comm="rc", comm_radius=0.5),
+        dict(task="formation", num_agents=3, comm="rc", comm_radius=0.5, action_space="fine"),
     ],
 )
 def test_pettingzoo_parallel_api(kwargs):

@@ -197,7 +197,7 @@ def test_gpu_campaign_script_arguments(tmp_path):
     r = subprocess.run([script, "--list"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     jobs = dict(line.split(": swarm ", 1) for line in r.stdout.splitlines())
-    assert len(jobs) == 19 and {"table1-cov6-uc", "curr-cov-rc", "curr-cov-uc-noemp", "swarm-cov-m100-occ"} <= set(jobs)
+    assert len(jobs) == 20 and {"table1-cov6-uc", "curr-cov-rc", "curr-cov-uc-noemp", "swarm-cov-m100-occ"} <= set(jobs)
     for name, command in jobs.items():
         argv = shlex.split(command)
         config_type = TrainConfig if argv[0] == "train" else CurriculumConfig
