@@ -58,6 +58,8 @@ SINGLES = (
     ("formation-rc-m50-fine", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine", 50,
      "formation-rc-m50-lattice on the fine action set, four quarter-strength pushes beside the paper's five "
      "(s-formation-rc-lattice-m50-fine)"),
+    ("formation-rc-m100-fine", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-fine", 100,
+     "formation-rc-m50-fine trained on at M = 100 (s-formation-rc-lattice-m100-fine)"),
 )  # fmt: skip
 
 

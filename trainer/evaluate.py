@@ -17,14 +17,9 @@ ACTION_SETS = ("discrete", "fine")  # the discrete action spaces a policy can be
 
 
 def swarm_options(
-    neighbours=None,
-    landmark_neighbours=None,
-    sense_radius=None,
-    scale=None,
-    assignment=None,
-    landmark_occupancy=None,
+    neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None,
     action_space=None,
-) -> dict:
+) -> dict:  # fmt: skip
     """The simulator's neighbour-list, scaling, assignment, occupancy and action-set options that
     are set, as ``make()`` keywords (none set: the dense layout, the paper's geometry, the exact
     assignment, the paper's 5 actions)."""
