@@ -13,7 +13,8 @@ ACTION_MODES = ("greedy", "sampled")
 SWARM_KEYS = (
     "neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy", "action_space",
 )  # fmt: skip
-ACTION_SETS = ("discrete", "fine")  # the discrete action spaces a policy can be trained on
+# the simulator's discrete action spaces, those a policy (a head of logits) can be trained on
+ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swarm.num_actions(space))
 
 
 def swarm_options(
