@@ -274,6 +274,8 @@ def zero_shot_main(argv: list[str]) -> int:
             {
                 "checkpoint": opts.checkpoint,
                 "trained_agents": payload.get("task", {}).get("agents"),
+                # the lists the policy trained on: a curve run on others is told apart by them
+                "trained_swarm": payload.get("swarm") or {},
                 "results": [{k: v for k, v in r.items() if k != "per_episode"} for r in rows],
             },
         )

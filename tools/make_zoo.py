@@ -60,6 +60,8 @@ SINGLES = (
      "(s-formation-rc-lattice-m50-fine)"),
     ("formation-rc-m100-fine", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-fine", 100,
      "formation-rc-m50-fine trained on at M = 100 (s-formation-rc-lattice-m100-fine)"),
+    ("formation-rc-m50-kl24", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine-kl24", 50,
+     "formation-rc-m50-fine seeing the 24 nearest lattice points instead of 12 (s-formation-rc-lattice-m50-fine-kl24)"),
 )  # fmt: skip
 
 

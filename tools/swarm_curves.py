@@ -34,6 +34,10 @@ def read(path: str) -> dict:
     name = data.get("checkpoint", os.path.basename(path))
     # a spec cell's policy (results/reproduce-<spec>/<cell>/s<seed>/stage-m<M>/policy.pt) by its cell id
     name = re.sub(r"^(?:.*/)?results/reproduce-[\w-]+/([\w-]+)/s\d+/.*$", r"\1", name)
+    own = (data.get("trained_swarm") or {}).get("landmark_neighbours")
+    sensed = {r.get("landmark_neighbours") for r in rows}
+    if own is not None and sensed != {own}:  # the policy run on other landmark lists than its own
+        name += " (KL = " + ", ".join(str(k) for k in sorted(sensed, key=str)) + ")"
     if any(r.get("assignment") == "nearest" for r in rows):  # covered by the maximum matching within the threshold
         name += " (max matching)"
     return {"name": name, "rows": rows, "reference": "controller" in data}

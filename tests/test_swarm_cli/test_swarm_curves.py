@@ -55,3 +55,16 @@ def test_the_swarm_doc_table_is_generated_from_the_committed_results(capsys):
     assert swarm_curves.main(["--no-plot"]) == 0
     table = capsys.readouterr().out.strip()
     assert table in open(os.path.join(ROOT, "docs", "SWARM.md")).read(), "run python tools/swarm_curves.py"
+
+
+def test_a_policy_run_on_other_landmark_lists_is_labelled(tmp_path, capsys):
+    """The same policy on its own lists and on wider ones are two rows that read apart."""
+    rows = [dict(agents=100, success_rate=0.2, covered=0.97, landmark_neighbours=24)]
+    other = tmp_path / "kl24.json"
+    other.write_text(json.dumps({"checkpoint": "p", "trained_swarm": {"landmark_neighbours": 12}, "results": rows}))
+    own = tmp_path / "own.json"
+    rows = [dict(agents=100, success_rate=0.13, covered=0.96, landmark_neighbours=12)]
+    own.write_text(json.dumps({"checkpoint": "p", "trained_swarm": {"landmark_neighbours": 12}, "results": rows}))
+    assert swarm_curves.main([str(other), str(own), "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert "| `p (KL = 24)` | S% | 20.0 |" in text and "| `p` | S% | 13.0 |" in text

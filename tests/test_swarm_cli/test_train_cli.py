@@ -180,9 +180,14 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     assert r.returncode == 0, r.stderr
     result = json.load(open(tmp_path / "ev.json"))
     assert "formation" in r.stdout and result["agents"] == 4 and result["actions"] == "greedy"
-    r = swarm("zero-shot", "run/checkpoint.pt", "--sizes", "2-3", "--episodes", "3", "--sampled", cwd=tmp_path)
+    r = swarm(
+        "zero-shot", "run/checkpoint.pt", "--sizes", "2-3", "--episodes", "3", "--sampled", "--json", "zs.json",
+        cwd=tmp_path,
+    )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert "sampled actions" in r.stdout
+    zs = json.load(open(tmp_path / "zs.json"))  # the dense layout: no lists of its own
+    assert zs["trained_agents"] == 3 and zs["trained_swarm"] == {} and len(zs["results"]) == 2
     curriculum = [
         "curriculum",
         "--task",
