@@ -31,7 +31,7 @@ swarm="--neighbours 4 --landmark-neighbours 5 --sense-radius 1.0 --landmark-occu
 # 512 environments x 16 steps: at M = 100 that is 0.8 M agent-samples per update
 lattice="--neighbours 4 --landmark-neighbours 12 --sense-radius 1.5 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
 # the fine M = 100 policy on the 24 nearest points, on which it reads 20.8% at M = 100 (12: 14.4%)
-lattice24="--neighbours 4 --landmark-neighbours 24 --sense-radius 1.5 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
+lattice24="${lattice/--landmark-neighbours 12/--landmark-neighbours 24}"
 wider="--neighbours 4 --landmark-neighbours 16 --sense-radius 2.0 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
 form50=results/reproduce-swarm/s-formation-rc-lattice-m50/s0/stage-m50/policy.pt
 fine100=results/reproduce-swarm/s-formation-rc-lattice-m100-fine/s0/stage-m100/policy.pt
