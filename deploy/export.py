@@ -313,6 +313,7 @@ def swarm_contract(payload: dict) -> dict:
         "(within comm_radius under rc), never more; landmark_neighbours KL: entities holds the KL nearest "
         "landmarks within sense_radius, nearest first (unsensed slots left out of entities); "
         "landmark_occupancy: each landmark row adds its distance to the nearest other agent; "
+        "landmark_order free: the landmarks no other agent holds within the success threshold listed first; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

@@ -154,6 +154,8 @@ class SwarmOptions:
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10"""
     assignment: Annotated[Literal["exact", "auction", "nearest"] | None, Default(OWN)] = None
     """targets to agents: exact (min-sum), auction or nearest (local, covered by max matching; needs --neighbours)"""
+    landmark_order: Annotated[Literal["nearest", "free"] | None, Default(OWN)] = None
+    """landmark lists: the nearest, or the landmarks no other agent holds first (needs the policy's occupancy input)"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")
@@ -169,6 +171,7 @@ class SwarmOptions:
                 ("sense_radius", self.sense_radius),
                 ("scale", self.scale),
                 ("assignment", self.assignment),
+                ("landmark_order", self.landmark_order),
             )
             if v is not None
         }

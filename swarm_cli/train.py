@@ -31,7 +31,7 @@ GROUPS = {
     ),
     "large teams": (
         "neighbour lists and density scaling (docs/SWARM.md)",
-        "neighbours landmark_neighbours sense_radius landmark_occupancy scale assignment",
+        "neighbours landmark_neighbours sense_radius landmark_occupancy landmark_order scale assignment",
     ),
     "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst drop_per_round"),
     "training": (

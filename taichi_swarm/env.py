@@ -16,6 +16,8 @@ Shapes: B environments, M agents, L landmarks.
     obs["entities"]  float32 [B, M, KL, 3] (dx, dy, occupancy): occupancy is the landmark's
                                            distance to its nearest agent other than the
                                            observer, capped at sense_radius
+  and with ``landmark_order="free"`` the free landmarks (no other agent within
+  success_threshold) in range listed before the held ones, each kind nearest first
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
@@ -60,6 +62,7 @@ COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "auction", "nearest")
+LANDMARK_ORDERS = ("nearest", "free")  # landmark lists: the KL nearest, or the free ones first
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -131,6 +134,10 @@ class SwarmEnv:
     landmark_occupancy (with neighbours and landmark_neighbours): obs["entities"] [B, M, KL, 3],
     the third feature each listed landmark's distance to its nearest agent other than the
     observer, capped at sense_radius: whether someone else already holds it.
+    landmark_order (with landmark_occupancy): "nearest" (the default), the KL nearest landmarks
+    within sense_radius; or "free", every landmark in range that no other agent holds within
+    success_threshold listed before any held one, each kind nearest first: an agent on a held
+    landmark senses the nearest free ones, however many held ones lie nearer.
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -163,6 +170,7 @@ class SwarmEnv:
         scale: str | None = None,
         assignment: str = "exact",
         landmark_occupancy: bool = False,
+        landmark_order: str = "nearest",
         agent_parallel: bool | None = None,
         **task_params,
     ):
@@ -208,6 +216,14 @@ class SwarmEnv:
                 "cell grid for each listed landmark"
             )
         self.landmark_occupancy = landmark_occupancy
+        if not isinstance(landmark_order, str) or landmark_order not in LANDMARK_ORDERS:
+            raise ValueError(f"landmark_order must be one of {LANDMARK_ORDERS}, got {landmark_order!r}")
+        if landmark_order == "free" and not landmark_occupancy:
+            raise ValueError(
+                "landmark_order='free' needs landmark_occupancy=True: a landmark is free when no other agent "
+                "is within success_threshold of it, which the occupancy pass finds"
+            )
+        self.landmark_order = landmark_order
         if assignment is None:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
@@ -231,6 +247,7 @@ class SwarmEnv:
             | (kernels.AUCTION if auctioned else 0)
             | (kernels.NEAREST if assignment == "nearest" else 0)
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
+            | (kernels.FREE_FIRST if landmark_order == "free" else 0)
         )
 
         self.arch = runtime.init(arch)
@@ -646,6 +663,7 @@ class SwarmEnv:
             ("scale", self.scale),
             ("assignment", None if self.assignment_method == "exact" else self.assignment_method),
             ("landmark_occupancy", True if self.landmark_occupancy else None),
+            ("landmark_order", None if self.landmark_order == "nearest" else self.landmark_order),
         )
         return tuple(f"{k}={v}" for k, v in opts if v is not None)
 

@@ -46,8 +46,9 @@ from .layout import (
 
 # bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment,
 # nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS), landmark
-# occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid)
-AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY = 1, 2, 4, 8, 16
+# occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), landmark lists with the
+# landmarks no other agent holds first (needs OCCUPANCY: ``free_first``)
+AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_FIRST = 1, 2, 4, 8, 16, 32
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -207,7 +208,9 @@ def agent_list(
     found = ti.math.ivec2(0, 0)  # (listed, in range)
     if ib[H_COMM_RC] != 0:
         r2 = f[P_COMM_RADIUS] * f[P_COMM_RADIUS]
-        found = neighbours.nearest_in_grid(f, ib, p[0], p[1], i, P0, r2, h, G, GS, GI, GC, row_d2, row, K)
+        found = neighbours.nearest_in_grid(
+            f, ib, p[0], p[1], i, P0, r2, h, G, GS, GI, GC, row_d2, row, K, neighbours.by_distance, ti.math.ivec2(0, 0)
+        )
     else:  # "uc": everyone is heard; the K nearest of all
         kept = 0
         for j in range(M):
@@ -252,7 +255,11 @@ def agent_landmarks(
     row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
     # the search's indices go in row i of ent_idx (one row per agent: agents may search at once)
     idx = blocks.ent_idx.row(ib, IDX, i)
-    found = neighbours.nearest_in_grid(f, ib, p[0], p[1], -1, LM, s2, f[P_LCELL], G, GS, GI, GC, row_d2, idx, KL)
+    rank = ti.static(free_first if lists & FREE_FIRST else neighbours.by_distance)
+    ctx = ti.math.ivec2(b, i)
+    found = neighbours.nearest_in_grid(
+        f, ib, p[0], p[1], -1, LM, s2, f[P_LCELL], G, GS, GI, GC, row_d2, idx, KL, rank, ctx
+    )
     for k in range(KL):
         listed = k < found[0]
         u8[row_mask + k] = ti.cast(listed, ti.u8)
@@ -262,6 +269,16 @@ def agent_landmarks(
         f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
         if ti.static(lists & OCCUPANCY):
             f[row + EF * k + 2] = occupancy(f, ib, b, ib[idx + k], i) if listed else 0.0
+
+
+@ti.func
+def free_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
+    """FREE_FIRST's rank of landmark l for agent ctx[1] of environment ctx[0]: its squared
+    distance, plus more than any listed one has (sense_radius^2) where another agent holds it
+    (within the success threshold), so that every free landmark in range is listed before any
+    held one: a duplicate senses the nearest free landmarks, however many held ones lie nearer."""
+    held = occupancy(f, ib, ctx[0], l, ctx[1]) < f[P_SUCCESS]
+    return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
 
 
 @ti.func
@@ -276,7 +293,9 @@ def landmark_occupants(f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32
     s2 = f[P_SENSE] * f[P_SENSE]
     q = blocks.landmarks.get2(f, ib, LM, l)
     d2, idx = blocks.occ_d2.row(ib, OD, l), blocks.occ_idx.row(ib, OI, l)
-    found = neighbours.nearest_in_grid(f, ib, q[0], q[1], -1, P0, s2, f[P_CELL], G, GS, GI, GC, d2, idx, 2)
+    found = neighbours.nearest_in_grid(
+        f, ib, q[0], q[1], -1, P0, s2, f[P_CELL], G, GS, GI, GC, d2, idx, 2, neighbours.by_distance, ti.math.ivec2(0, 0)
+    )
     ib[OF + l] = found[0]
 
 

@@ -211,6 +211,12 @@ def insert(
 
 
 @ti.func
+def by_distance(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, j: ti.i32, d2: ti.f32) -> ti.f32:
+    """The rank of ``nearest_in_grid``'s plain lists: nearest first."""
+    return d2
+
+
+@ti.func
 def nearest_in_grid(
     f: ti.template(),
     ib: ti.template(),
@@ -227,9 +233,13 @@ def nearest_in_grid(
     D2: ti.i32,
     IDX: ti.i32,
     K: ti.i32,
+    rank: ti.template(),
+    ctx: ti.math.ivec2,
 ) -> ti.math.ivec2:
-    """The K nearest points (not ``skip``) with squared distance <= r2 from (px, py), into
-    the sorted list at IDX / D2; returns (listed, in range)."""
+    """The K points (not ``skip``) with squared distance <= r2 from (px, py) that rank first,
+    into the sorted list at IDX (their ranks at D2); returns (listed, in range). ``rank(f, ib,
+    ctx, j, d2)`` orders them: ``by_distance``, the K nearest; a rank that adds to d2 moves some
+    points behind others (kernels.free_first), with ``ctx`` what it needs besides (b, i)."""
     rp = padded(ti.sqrt(r2))
     span_y = rows(py, rp, h)
     kept, in_range = 0, 0
@@ -243,7 +253,7 @@ def nearest_in_grid(
                 d2 = dx * dx + dy * dy
                 if d2 <= r2:
                     in_range += 1
-                    kept = insert(f, ib, D2, IDX, kept, K, d2, j)
+                    kept = insert(f, ib, D2, IDX, kept, K, rank(f, ib, ctx, j, d2), j)
     return ti.math.ivec2(kept, in_range)
 
 

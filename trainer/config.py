@@ -167,6 +167,10 @@ class TrainConfig:
     """With neighbours and landmark_neighbours: each sensed landmark also carries its distance
     to the nearest other agent (capped at sense_radius), whether a teammate already holds it;
     the network takes it as a third landmark input (docs/SWARM.md)."""
+    landmark_order: Literal["nearest", "free"] = "nearest"
+    """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; free, the
+    landmarks no other agent holds listed before the held ones, so that an agent on a held
+    landmark senses the nearest free ones within sense_radius (docs/SWARM.md)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
@@ -391,7 +395,7 @@ class TrainConfig:
 
         return swarm_options(
             self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
-            self.landmark_occupancy, self.action_space,
+            self.landmark_occupancy, self.action_space, self.landmark_order,
         )  # fmt: skip
 
     def task_params(self) -> dict:

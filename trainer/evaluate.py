@@ -5,13 +5,14 @@ from __future__ import annotations
 import torch
 
 import taichi_swarm
-from taichi_swarm.env import ASSIGNMENTS
+from taichi_swarm.env import ASSIGNMENTS, LANDMARK_ORDERS
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 
 ACTION_MODES = ("greedy", "sampled")
 SWARM_KEYS = (
     "neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy", "action_space",
+    "landmark_order",
 )  # fmt: skip
 # the simulator's discrete action spaces, those a policy (a head of logits) can be trained on
 ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swarm.num_actions(space))
@@ -19,14 +20,15 @@ ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swar
 
 def swarm_options(
     neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None,
-    action_space=None,
+    action_space=None, landmark_order=None,
 ) -> dict:  # fmt: skip
-    """The simulator's neighbour-list, scaling, assignment, occupancy and action-set options that
-    are set, as ``make()`` keywords (none set: the dense layout, the paper's geometry, the exact
-    assignment, the paper's 5 actions)."""
+    """The simulator's neighbour-list, scaling, assignment, occupancy, landmark-order and action-set
+    options that are set, as ``make()`` keywords (none set: the dense layout, the paper's geometry,
+    the exact assignment, the paper's 5 actions)."""
     given = dict(
         neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale,
         assignment=assignment, landmark_occupancy=landmark_occupancy, action_space=action_space,
+        landmark_order=landmark_order,
     )  # fmt: skip
     for key in ("neighbours", "landmark_neighbours"):
         v = given[key]
@@ -51,6 +53,15 @@ def swarm_options(
         )
     if not landmark_occupancy:  # off: recorded as unset, like the exact assignment
         given["landmark_occupancy"] = None
+    if landmark_order is not None and landmark_order not in LANDMARK_ORDERS:
+        raise ValueError(f"landmark_order must be one of {LANDMARK_ORDERS}, got {landmark_order!r}")
+    if landmark_order == "free" and not landmark_occupancy:
+        raise ValueError(
+            "landmark_order 'free' needs landmark occupancy: a policy trained with landmark_occupancy "
+            "(--landmark-occupancy)"
+        )
+    if landmark_order == "nearest":  # the default: recorded as unset
+        given["landmark_order"] = None
     if action_space is not None and action_space not in ACTION_SETS:
         raise ValueError(f"action_space must be one of {ACTION_SETS}, got {action_space!r}")
     if action_space == "discrete":  # the paper's: recorded as unset

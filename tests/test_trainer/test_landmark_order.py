@@ -1,0 +1,60 @@
+"""landmark_order: a run trained on free-first landmark lists records them, and its policy is
+evaluated and exported on them; the option is refused where it cannot apply."""
+
+import dataclasses
+import json
+import os
+
+import pytest
+
+from deploy.export import export
+from trainer import checkpoint
+from trainer.config import PRESETS, TrainConfig
+from trainer.evaluate import evaluate, swarm_options
+from trainer.model import ModelConfig
+from trainer.train import train
+
+LISTS = dict(neighbours=3, landmark_neighbours=3, sense_radius=1.5, scale="density")
+
+
+def test_swarm_options_take_the_landmark_order():
+    assert swarm_options(landmark_occupancy=True, landmark_order="nearest", **LISTS) == {
+        **LISTS,
+        "landmark_occupancy": True,
+    }  # the default, "nearest", is recorded as unset
+    free = swarm_options(landmark_occupancy=True, landmark_order="free", **LISTS)
+    assert free["landmark_order"] == "free"
+    with pytest.raises(ValueError, match="landmark_order 'free' needs landmark occupancy"):
+        swarm_options(landmark_order="free", **LISTS)
+    with pytest.raises(ValueError, match="landmark_order must be one of"):
+        swarm_options(landmark_occupancy=True, landmark_order="held", **LISTS)
+
+
+def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path):
+    cfg = TrainConfig(
+        task="coverage",
+        agents=6,
+        comm="rc",
+        updates=1,
+        eval_every=1,
+        eval_episodes=2,
+        run_dir=str(tmp_path / "free"),
+        progress=False,
+        transfer_offsets=(),
+        model=ModelConfig(hidden=16, rounds=1),
+        ppo=dataclasses.replace(PRESETS["fast"], num_envs=2, num_steps=4, epochs=1, minibatches=1),
+        compile=False,
+        landmark_occupancy=True,
+        landmark_order="free",
+        **LISTS,
+    )
+    train(cfg)
+    policy, payload = checkpoint.load_policy(os.path.join(cfg.run_dir, "policy.pt"))
+    assert payload["swarm"]["landmark_order"] == "free"
+    out = evaluate(policy, "coverage", 6, comm="rc", episodes=2, seed=9, swarm=payload["swarm"])
+    assert 0 <= out["success_rate"] <= 1
+    export(os.path.join(cfg.run_dir, "policy.pt"), str(tmp_path / "export"))
+    manifest = json.load(open(tmp_path / "export" / "manifest.json"))
+    assert manifest["contract"]["swarm"]["landmark_order"] == "free"
+    with pytest.raises(ValueError, match="landmark_order 'free' needs landmark occupancy"):
+        dataclasses.replace(cfg, landmark_occupancy=False).validate()
