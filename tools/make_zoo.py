@@ -52,6 +52,9 @@ SINGLES = (
      "coverage-rc-m50-occupancy on landmark lists of 12 within 1.5 (s-coverage-rc-rel-m50-occupancy-wide)"),
     ("coverage-rc-m50-wider", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy-wider", 50,
      "coverage-rc-m50-wide on landmark lists of 16 within 2 (s-coverage-rc-rel-m50-occupancy-wider)"),
+    ("coverage-rc-m50-free", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-free", 50,
+     "coverage-rc-m50-wider on the fine action set, the free landmarks within 3 listed first "
+     "(s-coverage-rc-rel-m50-free)"),
     ("formation-rc-m50-lattice", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50", 50,
      "formation RC at M = 50 on its density-scaled lattice, the points sensed as landmarks with their occupancy, "
      "from coverage-rc-m50-wide (s-formation-rc-lattice-m50)"),

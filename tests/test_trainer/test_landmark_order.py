@@ -6,12 +6,11 @@ import json
 import os
 
 import pytest
+from test_train_lists import tiny
 
 from deploy.export import export
 from trainer import checkpoint
-from trainer.config import PRESETS, TrainConfig
 from trainer.evaluate import evaluate, swarm_options
-from trainer.model import ModelConfig
 from trainer.train import train
 
 LISTS = dict(neighbours=3, landmark_neighbours=3, sense_radius=1.5, scale="density")
@@ -31,23 +30,7 @@ def test_swarm_options_take_the_landmark_order():
 
 
 def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path):
-    cfg = TrainConfig(
-        task="coverage",
-        agents=6,
-        comm="rc",
-        updates=1,
-        eval_every=1,
-        eval_episodes=2,
-        run_dir=str(tmp_path / "free"),
-        progress=False,
-        transfer_offsets=(),
-        model=ModelConfig(hidden=16, rounds=1),
-        ppo=dataclasses.replace(PRESETS["fast"], num_envs=2, num_steps=4, epochs=1, minibatches=1),
-        compile=False,
-        landmark_occupancy=True,
-        landmark_order="free",
-        **LISTS,
-    )
+    cfg = tiny(tmp_path, "free", agents=6, updates=1, landmark_occupancy=True, landmark_order="free", **LISTS)
     train(cfg)
     policy, payload = checkpoint.load_policy(os.path.join(cfg.run_dir, "policy.pt"))
     assert payload["swarm"]["landmark_order"] == "free"
