@@ -65,6 +65,8 @@ SINGLES = (
      "formation-rc-m50-fine trained on at M = 100 (s-formation-rc-lattice-m100-fine)"),
     ("formation-rc-m50-kl24", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine-kl24", 50,
      "formation-rc-m50-fine seeing the 24 nearest lattice points instead of 12 (s-formation-rc-lattice-m50-fine-kl24)"),
+    ("formation-rc-m50-kl24-on", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine-kl24-on", 50,
+     "formation-rc-m50-kl24 trained on at a third of the step (s-formation-rc-lattice-m50-fine-kl24-on)"),
 )  # fmt: skip
 
 
