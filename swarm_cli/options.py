@@ -152,8 +152,9 @@ class SwarmOptions:
     """landmark sensing radius of --landmark-neighbours"""
     scale: Annotated[Literal["density"] | None, Default("the paper's geometry")] = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10"""
-    assignment: Annotated[Literal["exact", "auction", "nearest"] | None, Default(OWN)] = None
-    """targets to agents: exact (min-sum), auction or nearest (local, covered by max matching; needs --neighbours)"""
+    assignment: Annotated[Literal["exact", "auction", "nearest", "free"] | None, Default(OWN)] = None
+    """targets to agents: exact (min-sum), auction, nearest (local, covered by max matching; needs
+    --neighbours) or free (nearest, each agent paid by its matched or nearest free target)"""
     landmark_order: Annotated[Literal["nearest", "free"] | None, Default(OWN)] = None
     """landmark lists: the nearest, or the landmarks no other agent holds first (needs the policy's occupancy input)"""
 

@@ -22,7 +22,7 @@ Shapes: B environments, M agents, L landmarks.
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
     info["agent_reward"] float32 [B, M]    each agent's own reward terms (their mean: reward,
-                                           except with assignment="nearest")
+                                           except with assignment="nearest" / "free")
     done             bool    [B]           the episode ended at this step
 Every returned array is a zero-copy view of the env's preallocated buffers and
 is overwritten by the next ``step``/``reset``: copy what you keep.
@@ -61,7 +61,8 @@ from .tasks import COMMON_PARAMS, TASK_SPECS
 COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
-ASSIGNMENTS = ("exact", "auction", "nearest")
+ASSIGNMENTS = ("exact", "auction", "nearest", "free")
+LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
 LANDMARK_ORDERS = ("nearest", "free")  # landmark lists: the KL nearest, or the free ones first
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
@@ -146,7 +147,10 @@ class SwarmEnv:
     quantity local and exact: the team reward from each target's nearest-agent distance d_t, as
     in MPE's simple_spread, in matched_dist [B, M] per target; success and covered from a maximum
     matching within success_threshold, in assignment [B, M], -1 where unmatched; each agent's
-    reward from its nearest target: nearest.py, docs/SWARM.md).
+    reward from its nearest target: nearest.py, docs/SWARM.md) or "free" ("nearest", with each
+    agent's reward from the target the matching gives it or, where it has none, from the nearest
+    target the matching leaves free: a duplicate is paid for crossing to a free target, where its
+    nearest target pays it for staying).
     agent_parallel (with neighbours): step every agent of every environment in parallel
     (kernels.step_wide_kernel), not one environment per thread; the same results bit for bit.
     None (default): on CUDA, where one thread per environment leaves the GPU idle at small B,
@@ -228,9 +232,9 @@ class SwarmEnv:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
             raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
-        if assignment == "nearest" and self.neighbours is None:
+        if assignment in LOCAL_ASSIGNMENTS and self.neighbours is None:
             raise ValueError(
-                "assignment='nearest' needs neighbours=K: it finds each target's nearest agent through the "
+                f"assignment={assignment!r} needs neighbours=K: it finds each target's nearest agent through the "
                 "agents' cell grid the neighbour lists build"
             )
         self.assignment_method = assignment
@@ -245,7 +249,8 @@ class SwarmEnv:
             (kernels.AGENT_LISTS if self.neighbours is not None else 0)
             | (kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0)
             | (kernels.AUCTION if auctioned else 0)
-            | (kernels.NEAREST if assignment == "nearest" else 0)
+            | (kernels.NEAREST if assignment in LOCAL_ASSIGNMENTS else 0)
+            | (kernels.FREE_TARGET if assignment == "free" else 0)
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
             | (kernels.FREE_FIRST if landmark_order == "free" else 0)
         )
@@ -320,7 +325,8 @@ class SwarmEnv:
             )
             if self.landmark_occupancy:
                 dims.update(EF=3, LO=L)
-        if self.assignment_method in ("auction", "nearest"):  # a grid of the targets instead of the M x M costs
+        # a grid of the targets instead of the M x M costs
+        if self.assignment_method in ("auction", *LOCAL_ASSIGNMENTS):
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
         return dims
 

@@ -47,8 +47,9 @@ from .layout import (
 # bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment,
 # nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS), landmark
 # occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), landmark lists with the
-# landmarks no other agent holds first (needs OCCUPANCY: ``free_first``)
-AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_FIRST = 1, 2, 4, 8, 16, 32
+# landmarks no other agent holds first (needs OCCUPANCY: ``free_first``), each agent's own reward
+# from its matched or nearest free target (needs NEAREST: nearest.agent_free)
+AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_FIRST, FREE_TARGET = 1, 2, 4, 8, 16, 32, 64
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -72,7 +73,7 @@ def match(
     observations and the next step's contacts: every caller writes the observations next)."""
     if ti.static(lists & NEAREST):
         nearest_setup(task, sm, f, ib, b)
-        nearest.solve(f, ib, b)
+        nearest.solve(f, ib, b, ti.static((lists & FREE_TARGET) != 0))
     else:
         tasks.place_targets(task, sm, f, ib, b)
         if ti.static(lists & AUCTION):
@@ -556,10 +557,13 @@ def settle(
     ib[blocks.step.env(ib, b)] = t
     if ti.static(searched):
         nearest.matching(f, ib, b)
+        if ti.static(lists & FREE_TARGET):  # after the matching: the targets it leaves free
+            for i in range(M):
+                nearest.agent_free(f, ib, b, i)
     else:
         match(task, cap, sm, lists, f, ib, b)
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
-    if ti.static(lists & NEAREST):  # d_t per target; agent i's own d: its nearest target (lap_dist)
+    if ti.static(lists & NEAREST):  # d_t per target; agent i's own d: its nearest (or free) target (lap_dist)
         MD, ND, A = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b), blocks.assignment.env(ib, b)
         for i in range(M):
             f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f, f[ND + i])
@@ -644,8 +648,9 @@ def step_wide_kernel(
             nearest_setup(task, sm, f, ib, b)
         for b, t in ti.ndrange(B, M):
             nearest.target_nearest(f, ib, b, t)
-        for b, i in ti.ndrange(B, M):
-            nearest.agent_nearest(f, ib, b, i)
+        if ti.static(not (lists & FREE_TARGET)):  # FREE_TARGET: in ``settle``, after the matching
+            for b, i in ti.ndrange(B, M):
+                nearest.agent_nearest(f, ib, b, i)
     for b in range(B):
         settle(task, cap, sm, lists, f, ib, u8, b, ti.static((lists & NEAREST) != 0))
         obs_grids(task, sm, lists, f, ib, b)

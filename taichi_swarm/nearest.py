@@ -11,7 +11,9 @@ computes instead, per env and step, only quantities that are local and exact:
   agents) every agent is scanned. Written to matched_dist [M] (per target t).
 - the distance from each agent to its nearest target, the same search through the
   targets' cell grid (the one the auction builds), into lap_dist [M] (per agent i): the
-  per-agent reward's d.
+  per-agent reward's d. With ``assignment="free"`` (kernels.FREE_TARGET) d is instead the
+  distance to the target the matching below gives the agent or, where it has none, to the
+  nearest target the matching leaves free (``agent_free``).
 - a maximum bipartite matching of agents to targets over the edges |p_i - t_t| <
   success_threshold (strict, as the success rule): augmenting paths by breadth-first
   search from each free target (Kuhn), warm-started from the last step's matching (the
@@ -49,11 +51,14 @@ def nearest(
     S: ti.i32,
     I: ti.i32,
     CELL: ti.i32,
+    Y: ti.i32,
 ) -> ti.f32:
     """The distance from (px, py) to the nearest of the n points f[P + 2k], f[P + 2k + 1],
-    through their cell grid (side h, G buckets at S, I, CELL: neighbours.build). Exact: a
-    ring at Chebyshev distance rho holds no point nearer than (rho - 1) h, a cell farther
-    than the nearest so far is skipped, and past RING_LIMIT rings every point is scanned."""
+    through their cell grid (side h, G buckets at S, I, CELL: neighbours.build); with Y >= 0,
+    only the points k with ib[Y + k] < 0 count (the targets the matching leaves free). Exact:
+    a ring at Chebyshev distance rho holds no point nearer than (rho - 1) h, a cell farther
+    than the nearest so far is skipped, and past RING_LIMIT rings every point is scanned
+    (INF where no point counts)."""
     best = INF  # squared
     finished = False
     if n >= SCAN_BELOW:
@@ -74,14 +79,15 @@ def nearest(
                     g = bucket(q[0], q[1], G)
                     for s in range(ib[S + g], ib[S + g + 1]):
                         j = ib[I + s]
-                        if ib[CELL + 2 * j] == q[0] and ib[CELL + 2 * j + 1] == q[1]:
+                        if ib[CELL + 2 * j] == q[0] and ib[CELL + 2 * j + 1] == q[1] and (Y < 0 or ib[Y + j] < 0):
                             dx, dy = f[P + 2 * j] - px, f[P + 2 * j + 1] - py
                             best = ti.min(best, dx * dx + dy * dy)
     if not finished:  # few points, or none near: every point
         best = INF
         for j in range(n):
-            dx, dy = f[P + 2 * j] - px, f[P + 2 * j + 1] - py
-            best = ti.min(best, dx * dx + dy * dy)
+            if Y < 0 or ib[Y + j] < 0:
+                dx, dy = f[P + 2 * j] - px, f[P + 2 * j + 1] - py
+                best = ti.min(best, dx * dx + dy * dy)
     return ti.sqrt(best)
 
 
@@ -93,17 +99,22 @@ def _dist(f: ti.template(), ib: ti.template(), P0: ti.i32, i: ti.i32, T0: ti.i32
 
 
 @ti.func
-def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
-    """Env b's d_t (matched_dist), each agent's nearest-target distance (lap_dist) and the
-    maximum threshold matching (assignment). The agents' and the targets' grids must hold the
-    current positions (kernels.nearest_setup builds them just before). kernels.step_wide_kernel
-    runs the same pieces with the searches parallel over targets and agents."""
+def solve(f: ti.template(), ib: ti.template(), b: ti.i32, free: ti.template()):
+    """Env b's d_t (matched_dist), each agent's own d (lap_dist: its nearest target's distance,
+    or with ``free`` ``agent_free``'s) and the maximum threshold matching (assignment). The
+    agents' and the targets' grids must hold the current positions (kernels.nearest_setup
+    builds them just before). kernels.step_wide_kernel runs the same pieces with the searches
+    parallel over targets and agents."""
     M = ib[H_M]
     for t in range(M):
         target_nearest(f, ib, b, t)
-    for i in range(M):
-        agent_nearest(f, ib, b, i)
+    if ti.static(not free):
+        for i in range(M):
+            agent_nearest(f, ib, b, i)
     matching(f, ib, b)
+    if ti.static(free):
+        for i in range(M):
+            agent_free(f, ib, b, i)
 
 
 @ti.func
@@ -117,7 +128,7 @@ def target_nearest(f: ti.template(), ib: ti.template(), b: ti.i32, t: ti.i32):
     """d_t: target t's distance to its nearest agent, through the agents' grid."""
     GS, GI, GC = blocks.grid_start.env(ib, b), blocks.grid_items.env(ib, b), blocks.grid_cell.env(ib, b)
     tp = blocks.targets.get2(f, ib, blocks.targets.env(ib, b), t)
-    d = nearest(f, ib, tp[0], tp[1], blocks.pos.env(ib, b), ib[H_M], f[P_CELL], ib[H_G], GS, GI, GC)
+    d = nearest(f, ib, tp[0], tp[1], blocks.pos.env(ib, b), ib[H_M], f[P_CELL], ib[H_G], GS, GI, GC, -1)
     f[blocks.matched_dist.env(ib, b) + t] = d
 
 
@@ -126,7 +137,27 @@ def agent_nearest(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
     """Agent i's distance to its nearest target, through the targets' grid."""
     TS, TI, TC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
     p = blocks.pos.get2(f, ib, blocks.pos.env(ib, b), i)
-    d = nearest(f, ib, p[0], p[1], blocks.targets.env(ib, b), ib[H_M], f[P_TCELL], ib[H_GT], TS, TI, TC)
+    d = nearest(f, ib, p[0], p[1], blocks.targets.env(ib, b), ib[H_M], f[P_TCELL], ib[H_GT], TS, TI, TC, -1)
+    f[blocks.lap_dist.env(ib, b) + i] = d
+
+
+@ti.func
+def agent_free(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
+    """assignment="free": agent i's own d is its distance to the target the threshold matching
+    gives it or, where it has none, to the nearest target the matching leaves free. An agent
+    that stands on a held target (a duplicate) is then measured to a target it alone can fill,
+    where its nearest target (``agent_nearest``) would pay it for staying. Needs ``matching``
+    first. There is a free target whenever an agent is unmatched (M agents, M targets)."""
+    A = blocks.assignment.env(ib, b)
+    j = ib[A + i]
+    d = 0.0
+    if j >= 0:
+        d = _dist(f, ib, blocks.pos.env(ib, b), i, blocks.targets.env(ib, b), j)
+    else:
+        TS, TI, TC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
+        p = blocks.pos.get2(f, ib, blocks.pos.env(ib, b), i)
+        T0, Y = blocks.targets.env(ib, b), blocks.lap_y.env(ib, b)
+        d = nearest(f, ib, p[0], p[1], T0, ib[H_M], f[P_TCELL], ib[H_GT], TS, TI, TC, Y)
     f[blocks.lap_dist.env(ib, b) + i] = d
 
 

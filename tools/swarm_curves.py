@@ -38,7 +38,8 @@ def read(path: str) -> dict:
     sensed = {r.get("landmark_neighbours") for r in rows}
     if own is not None and sensed != {own}:  # the policy run on other landmark lists than its own
         name += " (KL = " + ", ".join(str(k) for k in sorted(sensed, key=str)) + ")"
-    if any(r.get("assignment") == "nearest" for r in rows):  # covered by the maximum matching within the threshold
+    # covered by the maximum matching within the threshold
+    if any(r.get("assignment") in ("nearest", "free") for r in rows):
         name += " (max matching)"
     return {"name": name, "rows": rows, "reference": "controller" in data}
 

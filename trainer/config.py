@@ -174,11 +174,12 @@ class TrainConfig:
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
-    assignment: Literal["exact", "auction", "nearest"] | None = None
+    assignment: Literal["exact", "auction", "nearest", "free"] | None = None
     """How targets are matched to agents for the reward: exact (the paper's min-sum matching,
     the default), auction (eps-optimal) or nearest (with neighbour lists: each target's nearest
     agent, local and flat in cost per agent; success from the exact matching within the
-    threshold). docs/SWARM.md."""
+    threshold), or free (nearest, with each agent's own reward from its matched target or,
+    unmatched, the nearest free one: a duplicate is paid to cross to a free target). docs/SWARM.md."""
     action_space: Literal["discrete", "fine"] = "discrete"
     """discrete: the paper's 5 actions; fine: 9, the paper's and four pushes at a quarter of the
     force, with which an agent at rest can park within 0.035 of any point, where with the

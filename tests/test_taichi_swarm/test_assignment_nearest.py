@@ -15,10 +15,10 @@ from scipy.spatial import cKDTree
 import taichi_swarm
 
 
-def _make(M, B=2, task="coverage", **kw):
+def _make(M, B=2, task="coverage", assignment="nearest", **kw):
     opts = {"scale": "density"} if task == "coverage" else {}
     return taichi_swarm.make(
-        task, B, M, comm="rc", comm_radius=1.0, neighbours=16, assignment="nearest", seed=M, array="numpy",
+        task, B, M, comm="rc", comm_radius=1.0, neighbours=16, assignment=assignment, seed=M, array="numpy",
         **opts, **kw,
     )  # fmt: skip
 
@@ -219,8 +219,71 @@ def test_line_targets():
             assert _check_matching(env, b, s["pos"][b], env.targets[b]) == size
 
 
+def _free_reference(pos, targets, a):
+    """assignment="free"'s d per agent: to its matched target, else to the nearest unmatched one."""
+    pos, targets = pos.astype(np.float64), targets.astype(np.float64)
+    free = np.setdiff1d(np.arange(len(targets)), a[a >= 0])
+    d = np.empty(len(pos))
+    on = a >= 0
+    d[on] = np.linalg.norm(pos[on] - targets[a[on]], axis=-1)
+    if (~on).any():
+        d[~on] = cKDTree(targets[free]).query(pos[~on])[0]
+    return d
+
+
+@pytest.mark.parametrize("wide", [False, True])
+def test_free_rewards_each_agent_by_its_matched_or_nearest_free_target(wide):
+    """assignment="free" is "nearest" but for each agent's own reward: an agent the threshold
+    matching holds is measured to its target, an unmatched one to the nearest target the matching
+    leaves free (scipy over the free targets); everything else is the same bit for bit. Both
+    kernels (one env per thread and every agent in parallel). A duplicate on a held landmark is
+    measured to the free one across the arena, where "nearest" pays it 0 for staying."""
+    M, B = 200, 2
+    kw = dict(max_steps=50, agent_parallel=wide)
+    free, near = _make(M, B, assignment="free", **kw), _make(M, B, **kw)
+    rng = np.random.default_rng(11)
+    free.reset(), near.reset()
+    lmk = free.get_state()["landmarks"]
+    near_targets = lmk + rng.normal(0, 0.06, size=lmk.shape)  # many threshold edges, duplicates among them
+    for env in (free, near):
+        env.set_state(pos=near_targets, vel=np.zeros((B, M, 2)))
+    for _ in range(4):
+        actions = rng.integers(0, 5, size=(B, M))
+        free.step(actions), near.step(actions)
+        s = free.get_state()
+        for key in ("pos", "vel"):
+            np.testing.assert_array_equal(s[key], near.get_state()[key])
+        np.testing.assert_array_equal(free.reward, near.reward)
+        np.testing.assert_array_equal(free.assignment, near.assignment)
+        np.testing.assert_array_equal(free.matched_dist, near.matched_dist)
+        for b in range(B):
+            assert (free.assignment[b] < 0).any()  # some agents unmatched: the free search runs
+            want = np.clip(-_free_reference(s["pos"][b], free.targets[b], free.assignment[b]), -15, 15)
+            np.testing.assert_allclose(free.info["agent_reward"][b], want, rtol=1e-5, atol=1e-5)
+
+    # every agent on its own landmark of a lattice, then agent a moved onto c's landmark
+    lat = np.broadcast_to(_lattice(M), (B, M, 2)).copy()
+    pos = lat.copy()
+    a, c = 3, 150
+    pos[:, a] = lat[:, c] + (0.02, 0.0)
+    for env in (free, near):  # the lattice held first, so that the warm start keeps c on its landmark
+        env.set_state(pos=lat, vel=np.zeros((B, M, 2)), landmarks=lat, step=np.zeros(B, dtype=np.int64))
+        env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
+        env.step(np.zeros((B, M), dtype=np.int64))
+    s = free.get_state()  # the step's contact pushed a and c apart a little
+    for b in range(B):
+        assert free.assignment[b, a] == -1 and free.assignment[b, c] == c  # c holds it from before
+        far, own = np.linalg.norm(s["pos"][b, a] - lat[b, a]), np.linalg.norm(s["pos"][b, a] - lat[b, c])
+        assert far > 6 and own < 0.1
+        assert free.info["agent_reward"][b, a] == pytest.approx(-far, rel=1e-4)  # a's own landmark, the one free
+        assert near.info["agent_reward"][b, a] == pytest.approx(-own, abs=1e-5)  # nearest: paid for staying
+        others = np.delete(free.info["agent_reward"][b], a), np.delete(near.info["agent_reward"][b], a)
+        np.testing.assert_array_equal(*others)
+
+
 def test_nearest_needs_neighbour_lists():
-    with pytest.raises(ValueError, match="assignment='nearest' needs neighbours=K"):
-        taichi_swarm.make("coverage", 2, 5, assignment="nearest", array="numpy")
+    for method in ("nearest", "free"):
+        with pytest.raises(ValueError, match=f"assignment='{method}' needs neighbours=K"):
+            taichi_swarm.make("coverage", 2, 5, assignment=method, array="numpy")
     with pytest.raises(ValueError, match="assignment must be one of"):
         taichi_swarm.make("coverage", 2, 5, assignment="greedy", array="numpy")

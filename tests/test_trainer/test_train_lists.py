@@ -110,17 +110,19 @@ def test_bad_list_options_are_refused(tmp_path, bad, match):
 
 def test_a_run_trains_and_evaluates_on_the_assignment_it_names(tmp_path):
     """--assignment flows from the CLI to the simulator, into the policy's record and back to
-    swarm eval (whose --assignment overrides it); "exact", the default, is recorded as unset."""
+    swarm eval (whose --assignment overrides it); "exact", the default, is recorded as unset.
+    "free" (nearest.py's searches, each agent paid by its matched or nearest free target) is the
+    newest of the local ones."""
     from swarm_cli.main import main as swarm_main
 
     run = str(tmp_path / "near")
     args = ["train", "--task", "coverage", "--agents", "3", "--comm", "rc", "--neighbours", "2", "--updates", "1"]
-    args += ["--assignment", "nearest", "--ppo.num-envs", "2", "--ppo.num-steps", "4", "--ppo.minibatches", "1"]
+    args += ["--assignment", "free", "--ppo.num-envs", "2", "--ppo.num-steps", "4", "--ppo.minibatches", "1"]
     args += ["--eval-every", "100", "--model.hidden", "8", "--run-dir", run, "--no-progress", "--transfer-offsets"]
     assert swarm_main(args) == 0
     policy = os.path.join(run, "policy.pt")
-    assert checkpoint.load(policy)["swarm"] == {"neighbours": 2, "assignment": "nearest"}
-    for extra, want in (([], "nearest"), (["--assignment", "exact"], None)):
+    assert checkpoint.load(policy)["swarm"] == {"neighbours": 2, "assignment": "free"}
+    for extra, want in (([], "free"), (["--assignment", "nearest"], "nearest"), (["--assignment", "exact"], None)):
         out = str(tmp_path / f"eval-{want}.json")
         assert swarm_main(["eval", policy, "--episodes", "2", "--json", out, *extra]) == 0
         with open(out) as f:
@@ -129,7 +131,11 @@ def test_a_run_trains_and_evaluates_on_the_assignment_it_names(tmp_path):
 
 @pytest.mark.parametrize(
     "bad,match",
-    [(dict(assignment="greedy"), "assignment must be one of"), (dict(assignment="nearest"), "needs neighbour lists")],
+    [
+        (dict(assignment="greedy"), "assignment must be one of"),
+        (dict(assignment="nearest"), "needs neighbour lists"),
+        (dict(assignment="free"), "needs neighbour lists"),
+    ],
 )
 def test_bad_assignments_are_refused(tmp_path, bad, match):
     with pytest.raises(ValueError, match=match):
