@@ -67,6 +67,15 @@ SINGLES = (
      "formation-rc-m50-fine seeing the 24 nearest lattice points instead of 12 (s-formation-rc-lattice-m50-fine-kl24)"),
     ("formation-rc-m50-kl24-on", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine-kl24-on", 50,
      "formation-rc-m50-kl24 trained on at a third of the step (s-formation-rc-lattice-m50-fine-kl24-on)"),
+    ("coverage-rc-m50-free-reward", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-free-reward", 50,
+     "coverage-rc-m50-free paid by its matched or nearest free landmark, assignment free "
+     "(s-coverage-rc-rel-m50-free-reward)"),
+    ("formation-rc-m50-free-reward", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-free-reward", 50,
+     "formation-rc-m50-kl24-on paid by its matched or nearest free lattice point, assignment free "
+     "(s-formation-rc-lattice-m50-free-reward)"),
+    ("formation-rc-m100-free-reward", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-free-reward-on",
+     100, "formation-rc-m50-free-reward trained on at M = 100, 500 updates in two cells "
+     "(s-formation-rc-lattice-m100-free-reward, then s-formation-rc-lattice-m100-free-reward-on)"),
 )  # fmt: skip
 
 
