@@ -76,6 +76,12 @@ SINGLES = (
     ("formation-rc-m100-free-reward", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-free-reward-on",
      100, "formation-rc-m50-free-reward trained on at M = 100, 500 updates in two cells "
      "(s-formation-rc-lattice-m100-free-reward, then s-formation-rc-lattice-m100-free-reward-on)"),
+    ("formation-rc-m100-k8", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-free-reward-k8", 100,
+     "formation-rc-m100-free-reward on at M = 100 hearing its 8 nearest teammates instead of 4 "
+     "(s-formation-rc-lattice-m100-free-reward-k8)"),
+    ("coverage-rc-m100-free-far", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-free-far", 100,
+     "coverage-rc-m50-free-reward on at M = 100, hearing 8 teammates and sensing free landmarks within 6 "
+     "(s-coverage-rc-rel-m100-free-far)"),
 )  # fmt: skip
 
 
