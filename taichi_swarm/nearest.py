@@ -17,9 +17,12 @@ computes instead, per env and step, only quantities that are local and exact:
 - a maximum bipartite matching of agents to targets over the edges |p_i - t_t| <
   success_threshold (strict, as the success rule): augmenting paths by breadth-first
   search from each free target (Kuhn), warm-started from the last step's matching (the
-  pairs that are still edges). A free target with no augmenting path keeps none after
-  later augmentations, so one search per free target gives a maximum matching. Edges are
-  found through the agents' grid (within ceil(threshold / h) rings of the target's cell).
+  pairs that are still edges and whose agent is still its target's nearest) and from each
+  free target's nearest unmatched agent within the threshold (so that of two agents on one
+  target the nearer holds it, which each of them can tell from its occupancy reading). A
+  free target with no augmenting path keeps none after later augmentations, so one search
+  per free target gives a maximum matching. Edges are found through the agents' grid
+  (within ceil(threshold / h) rings of the target's cell).
   assignment [M]: agent i's matched target, -1 where unmatched.
 
 Work arrays: lap_y (target -> agent), lap_cols (the search's queue of targets), lap_pred
@@ -181,13 +184,39 @@ def matching(f: ti.template(), ib: ti.template(), b: ti.i32):
         keep = False
         if 0 <= j < M:
             if ib[Y + j] < 0 and f[MD + j] < thr:
-                keep = _dist(f, ib, P0, i, T0, j) < thr
+                d = _dist(f, ib, P0, i, T0, j)
+                # ... and whose agent is still the target's nearest (d_t, the same float32
+                # computation): a nearer newcomer takes the target over (the holders' pass below)
+                keep = d < thr and d <= f[MD + j]
         if keep:
             ib[Y + j] = i
         else:
             ib[A + i] = -1
     rings = ti.max(1, ti.cast(ti.ceil(thr / h * 1.001), ti.i32))  # an edge is within this many rings
     side = 2 * rings + 1
+    # Holders: each target left free takes its nearest unmatched agent within the threshold (ties
+    # by index). Of two agents on one target the nearer then holds it, the one whose occupancy
+    # reading (the other agent farther than itself) tells it so, and the other is the one
+    # assignment="free" pays for leaving: a rule an agent can see, where the incumbent (who came
+    # first) is not. The searches below only augment, so the matching stays maximum.
+    for t in range(M):
+        if ib[Y + t] >= 0 or f[MD + t] >= thr:
+            continue
+        tp = blocks.targets.get2(f, ib, T0, t)
+        c = cell_of(tp[0], tp[1], h)
+        best, holder = thr, -1
+        for q in range(side * side):
+            qx, qy = c[0] + q % side - rings, c[1] + q // side - rings
+            g = bucket(qx, qy, G)
+            for s in range(ib[GS + g], ib[GS + g + 1]):
+                i = ib[GI + s]
+                if ib[A + i] < 0 and ib[GC + 2 * i] == qx and ib[GC + 2 * i + 1] == qy:
+                    d = _dist(f, ib, P0, i, T0, t)
+                    if d < best or (d == best and i < holder):
+                        best, holder = d, i
+        if holder >= 0:
+            ib[Y + t] = holder
+            ib[A + holder] = t
     for root in range(M):  # one breadth-first search per free target with an edge
         if ib[Y + root] >= 0 or f[MD + root] >= thr:
             continue

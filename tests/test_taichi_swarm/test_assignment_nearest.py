@@ -281,6 +281,50 @@ def test_free_rewards_each_agent_by_its_matched_or_nearest_free_target(wide):
         np.testing.assert_array_equal(*others)
 
 
+@pytest.mark.parametrize("wide", [False, True])
+def test_the_nearer_of_two_agents_on_a_target_holds_it(wide):
+    """Of two agents within the threshold of one target the nearer holds it, whichever came
+    first: an incumbent that a newcomer gets nearer than loses the target, and under "free" it is
+    the one paid for crossing to a free target. On random near-target scatters every matched
+    agent that is its target's nearest agent stays matched to it (unless another target's
+    nearest it is), and the matching stays maximum (scipy)."""
+    M, B = 200, 2
+    env = _make(M, B, assignment="free", max_steps=50, agent_parallel=wide)
+    env.reset()
+    lat = np.broadcast_to(_lattice(M), (B, M, 2)).copy()
+    a, c = 3, 150
+    env.set_state(pos=lat, vel=np.zeros((B, M, 2)), landmarks=lat, step=np.zeros(B, dtype=np.int64))
+    assert (env.assignment == np.arange(M)).all()  # everyone on its own landmark
+    pos = lat.copy()
+    pos[:, c] = lat[:, c] + (0.06, 0.0)  # c, the incumbent, 0.06 off its landmark
+    pos[:, a] = lat[:, c] - (0.03, 0.0)  # a arrives nearer: 0.03 from it
+    env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
+    for b in range(B):
+        assert env.assignment[b, a] == c and env.assignment[b, c] == -1  # the nearer holds it
+        assert _check_matching(env, b, pos[b], env.targets[b]) == M - 1
+    env.step(np.zeros((B, M), dtype=np.int64))
+    s = env.get_state()
+    for b in range(B):
+        assert env.assignment[b, a] == c and env.assignment[b, c] == -1
+        far = np.linalg.norm(s["pos"][b, c] - lat[b, a])  # c is paid by a's landmark, the one free
+        assert far > 6 and env.info["agent_reward"][b, c] == pytest.approx(-far, rel=1e-4)
+
+    rng = np.random.default_rng(4)
+    env.reset()
+    lmk = env.get_state()["landmarks"]
+    pos = lmk + rng.normal(0, 0.06, size=lmk.shape)
+    env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
+    for b in range(B):
+        assign, targets = env.assignment[b], env.targets[b]
+        _check_matching(env, b, pos[b], targets)
+        d = np.linalg.norm(pos[b][:, None] - targets[None], axis=-1)
+        thr = env.params["success_threshold"]
+        for t in np.flatnonzero(d.min(0) < thr):
+            i = int(d[:, t].argmin())  # the target's nearest agent
+            if (d[i] < thr).sum() == 1:  # an edge to this target only: it holds the target
+                assert assign[i] == t
+
+
 def test_nearest_needs_neighbour_lists():
     for method in ("nearest", "free"):
         with pytest.raises(ValueError, match=f"assignment='{method}' needs neighbours=K"):
