@@ -79,6 +79,9 @@ SINGLES = (
     ("formation-rc-m100-k8", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-free-reward-k8", 100,
      "formation-rc-m100-free-reward on at M = 100 hearing its 8 nearest teammates instead of 4 "
      "(s-formation-rc-lattice-m100-free-reward-k8)"),
+    ("formation-rc-m100-k8-sharp", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k8-sharp", 100,
+     "formation-rc-m100-k8 on at M = 100 with 12 environments an update and a third of the entropy bonus "
+     "(s-formation-rc-lattice-m100-k8-sharp)"),
     ("coverage-rc-m100-free-far", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-free-far", 100,
      "coverage-rc-m50-free-reward on at M = 100, hearing 8 teammates and sensing free landmarks within 6 "
      "(s-coverage-rc-rel-m100-free-far)"),

@@ -266,13 +266,13 @@ def test_free_rewards_each_agent_by_its_matched_or_nearest_free_target(wide):
     pos = lat.copy()
     a, c = 3, 150
     pos[:, a] = lat[:, c] + (0.02, 0.0)
-    for env in (free, near):  # the lattice held first, so that the warm start keeps c on its landmark
+    for env in (free, near):  # the lattice held first: c keeps its landmark (held, and nearer than a)
         env.set_state(pos=lat, vel=np.zeros((B, M, 2)), landmarks=lat, step=np.zeros(B, dtype=np.int64))
         env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
         env.step(np.zeros((B, M), dtype=np.int64))
     s = free.get_state()  # the step's contact pushed a and c apart a little
     for b in range(B):
-        assert free.assignment[b, a] == -1 and free.assignment[b, c] == c  # c holds it from before
+        assert free.assignment[b, a] == -1 and free.assignment[b, c] == c  # c, the nearer, holds it
         far, own = np.linalg.norm(s["pos"][b, a] - lat[b, a]), np.linalg.norm(s["pos"][b, a] - lat[b, c])
         assert far > 6 and own < 0.1
         assert free.info["agent_reward"][b, a] == pytest.approx(-far, rel=1e-4)  # a's own landmark, the one free
