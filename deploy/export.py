@@ -314,6 +314,7 @@ def swarm_contract(payload: dict) -> dict:
         "landmarks within sense_radius, nearest first (unsensed slots left out of entities); "
         "landmark_occupancy: each landmark row adds its distance to the nearest other agent; "
         "landmark_order free: the landmarks no other agent holds within the success threshold listed first; "
+        "open: the same, held only by an agent nearer the landmark than the observer; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

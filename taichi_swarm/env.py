@@ -17,7 +17,8 @@ Shapes: B environments, M agents, L landmarks.
                                            distance to its nearest agent other than the
                                            observer, capped at sense_radius
   and with ``landmark_order="free"`` the free landmarks (no other agent within
-  success_threshold) in range listed before the held ones, each kind nearest first
+  success_threshold) in range listed before the held ones, each kind nearest first;
+  ``"open"`` the same with a landmark held only by an agent nearer it than the observer
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
@@ -63,7 +64,7 @@ ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "auction", "nearest", "free")
 LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
-LANDMARK_ORDERS = ("nearest", "free")  # landmark lists: the KL nearest, or the free ones first
+LANDMARK_ORDERS = ("nearest", "free", "open")  # landmark lists: the KL nearest, or the free (open) ones first
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -138,7 +139,9 @@ class SwarmEnv:
     landmark_order (with landmark_occupancy): "nearest" (the default), the KL nearest landmarks
     within sense_radius; or "free", every landmark in range that no other agent holds within
     success_threshold listed before any held one, each kind nearest first: an agent on a held
-    landmark senses the nearest free ones, however many held ones lie nearer.
+    landmark senses the nearest free ones, however many held ones lie nearer; or "open", the
+    same with a landmark held only where that other agent is nearer it than the observer, so
+    that of two agents on one landmark the nearer lists it first and the farther sees it held.
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -222,10 +225,10 @@ class SwarmEnv:
         self.landmark_occupancy = landmark_occupancy
         if not isinstance(landmark_order, str) or landmark_order not in LANDMARK_ORDERS:
             raise ValueError(f"landmark_order must be one of {LANDMARK_ORDERS}, got {landmark_order!r}")
-        if landmark_order == "free" and not landmark_occupancy:
+        if landmark_order != "nearest" and not landmark_occupancy:
             raise ValueError(
-                "landmark_order='free' needs landmark_occupancy=True: a landmark is free when no other agent "
-                "is within success_threshold of it, which the occupancy pass finds"
+                f"landmark_order={landmark_order!r} needs landmark_occupancy=True: a landmark is free when no other "
+                "agent is within success_threshold of it, which the occupancy pass finds"
             )
         self.landmark_order = landmark_order
         if assignment is None:
@@ -252,7 +255,8 @@ class SwarmEnv:
             | (kernels.NEAREST if assignment in LOCAL_ASSIGNMENTS else 0)
             | (kernels.FREE_TARGET if assignment == "free" else 0)
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
-            | (kernels.FREE_FIRST if landmark_order == "free" else 0)
+            | (kernels.FREE_FIRST if landmark_order != "nearest" else 0)
+            | (kernels.OPEN_FIRST if landmark_order == "open" else 0)
         )
 
         self.arch = runtime.init(arch)

@@ -48,8 +48,10 @@ from .layout import (
 # nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS), landmark
 # occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), landmark lists with the
 # landmarks no other agent holds first (needs OCCUPANCY: ``free_first``), each agent's own reward
-# from its matched or nearest free target (needs NEAREST: nearest.agent_free)
+# from its matched or nearest free target (needs NEAREST: nearest.agent_free), and with FREE_FIRST a
+# landmark held only by an agent nearer it than the observer (OPEN_FIRST: landmark_order="open")
 AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_FIRST, FREE_TARGET = 1, 2, 4, 8, 16, 32, 64
+OPEN_FIRST = 128
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -256,7 +258,8 @@ def agent_landmarks(
     row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
     # the search's indices go in row i of ent_idx (one row per agent: agents may search at once)
     idx = blocks.ent_idx.row(ib, IDX, i)
-    rank = ti.static(free_first if lists & FREE_FIRST else neighbours.by_distance)
+    first = ti.static(open_first if lists & OPEN_FIRST else free_first)
+    rank = ti.static(first if lists & FREE_FIRST else neighbours.by_distance)
     ctx = ti.math.ivec2(b, i)
     found = neighbours.nearest_in_grid(
         f, ib, p[0], p[1], -1, LM, s2, f[P_LCELL], G, GS, GI, GC, row_d2, idx, KL, rank, ctx
@@ -279,6 +282,19 @@ def free_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i3
     (within the success threshold), so that every free landmark in range is listed before any
     held one: a duplicate senses the nearest free landmarks, however many held ones lie nearer."""
     held = occupancy(f, ib, ctx[0], l, ctx[1]) < f[P_SUCCESS]
+    return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
+
+
+@ti.func
+def open_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
+    """OPEN_FIRST's rank: free_first's, but a landmark counts as held only where the other agent
+    within the threshold is nearer it than the observer. Under free_first two agents on one
+    landmark both see it held, so in a crowd of free ones it drops out of both lists and the pair
+    observe the same; here the nearer sees it first in its list, as the matching's holder
+    (nearest.matching gives a shared target to the nearer agent), and the farther sees it held,
+    as the duplicate that ``assignment="free"`` pays for leaving."""
+    occ = occupancy(f, ib, ctx[0], l, ctx[1])
+    held = occ < f[P_SUCCESS] and occ * occ < d2
     return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
 
 

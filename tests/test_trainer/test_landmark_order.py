@@ -25,6 +25,9 @@ def test_swarm_options_take_the_landmark_order():
     assert free["landmark_order"] == "free"
     with pytest.raises(ValueError, match="landmark_order 'free' needs landmark occupancy"):
         swarm_options(landmark_order="free", **LISTS)
+    assert swarm_options(landmark_occupancy=True, landmark_order="open", **LISTS)["landmark_order"] == "open"
+    with pytest.raises(ValueError, match="landmark_order 'open' needs landmark occupancy"):
+        swarm_options(landmark_order="open", **LISTS)
     with pytest.raises(ValueError, match="landmark_order must be one of"):
         swarm_options(landmark_occupancy=True, landmark_order="held", **LISTS)
 
