@@ -275,27 +275,31 @@ def agent_landmarks(
             f[row + EF * k + 2] = occupancy(f, ib, b, ib[idx + k], i) if listed else 0.0
 
 
-@ti.func
-def free_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
+def held_last(nearer_only: bool):
     """FREE_FIRST's rank of landmark l for agent ctx[1] of environment ctx[0]: its squared
     distance, plus more than any listed one has (sense_radius^2) where another agent holds it
     (within the success threshold), so that every free landmark in range is listed before any
-    held one: a duplicate senses the nearest free landmarks, however many held ones lie nearer."""
-    held = occupancy(f, ib, ctx[0], l, ctx[1]) < f[P_SUCCESS]
-    return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
+    held one: a duplicate senses the nearest free landmarks, however many held ones lie nearer.
+
+    ``nearer_only`` (OPEN_FIRST): held only where that other agent is nearer the landmark than
+    the observer. Without it two agents on one landmark both see it held, so in a crowd of free
+    ones it drops out of both lists and the pair observe the same; with it the nearer sees it
+    first, as the matching's holder (nearest.matching gives a shared target to the nearer
+    agent), and the farther sees it held, as the duplicate that ``assignment="free"`` pays for
+    leaving."""
+
+    @ti.func
+    def rank(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
+        occ = occupancy(f, ib, ctx[0], l, ctx[1])
+        held = occ < f[P_SUCCESS]
+        if ti.static(nearer_only):
+            held = held and occ * occ < d2
+        return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
+
+    return rank
 
 
-@ti.func
-def open_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
-    """OPEN_FIRST's rank: free_first's, but a landmark counts as held only where the other agent
-    within the threshold is nearer it than the observer. Under free_first two agents on one
-    landmark both see it held, so in a crowd of free ones it drops out of both lists and the pair
-    observe the same; here the nearer sees it first in its list, as the matching's holder
-    (nearest.matching gives a shared target to the nearer agent), and the farther sees it held,
-    as the duplicate that ``assignment="free"`` pays for leaving."""
-    occ = occupancy(f, ib, ctx[0], l, ctx[1])
-    held = occ < f[P_SUCCESS] and occ * occ < d2
-    return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
+free_first, open_first = held_last(False), held_last(True)
 
 
 @ti.func

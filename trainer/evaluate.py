@@ -55,7 +55,7 @@ def swarm_options(
         given["landmark_occupancy"] = None
     if landmark_order is not None and landmark_order not in LANDMARK_ORDERS:
         raise ValueError(f"landmark_order must be one of {LANDMARK_ORDERS}, got {landmark_order!r}")
-    if landmark_order in ("free", "open") and not landmark_occupancy:
+    if landmark_order not in (None, "nearest") and not landmark_occupancy:
         raise ValueError(
             f"landmark_order {landmark_order!r} needs landmark occupancy: a policy trained with landmark_occupancy "
             "(--landmark-occupancy)"
