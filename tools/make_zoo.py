@@ -82,6 +82,9 @@ SINGLES = (
     ("formation-rc-m100-k8-sharp", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k8-sharp", 100,
      "formation-rc-m100-k8 on at M = 100 with 12 environments an update and a third of the entropy bonus "
      "(s-formation-rc-lattice-m100-k8-sharp)"),
+    ("formation-rc-m100-k12", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k12-sharp", 100,
+     "formation-rc-m100-k8-sharp on at M = 100 hearing its 12 nearest teammates instead of 8 "
+     "(s-formation-rc-lattice-m100-k12-sharp)"),
     ("coverage-rc-m100-free-far", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-free-far", 100,
      "coverage-rc-m50-free-reward on at M = 100, hearing 8 teammates and sensing free landmarks within 6 "
      "(s-coverage-rc-rel-m100-free-far)"),
