@@ -315,6 +315,7 @@ def swarm_contract(payload: dict) -> dict:
         "landmark_occupancy: each landmark row adds its distance to the nearest other agent; "
         "landmark_order free: the landmarks no other agent holds within the success threshold listed first; "
         "open: the same, held only by an agent nearer the landmark than the observer; "
+        "claim: held by the agent the threshold matching gives it, its occupancy that agent's distance; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

@@ -64,7 +64,8 @@ ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "auction", "nearest", "free")
 LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
-LANDMARK_ORDERS = ("nearest", "free", "open")  # landmark lists: the KL nearest, or the free (open) ones first
+# landmark lists: the KL nearest, or the free (open, unclaimed) ones first
+LANDMARK_ORDERS = ("nearest", "free", "open", "claim")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -141,7 +142,12 @@ class SwarmEnv:
     success_threshold listed before any held one, each kind nearest first: an agent on a held
     landmark senses the nearest free ones, however many held ones lie nearer; or "open", the
     same with a landmark held only where that other agent is nearer it than the observer, so
-    that of two agents on one landmark the nearer lists it first and the farther sees it held.
+    that of two agents on one landmark the nearer lists it first and the farther sees it held;
+    or "claim" (with assignment "nearest" or "free"), the same with a landmark held where the
+    threshold matching gives it to another agent, who keeps it while it stays within
+    success_threshold (incumbent, not nearer, holds), and the occupancy reading that agent's
+    distance: of two agents on one landmark the holder reads it free and the other held, and
+    jostling does not swap them.
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -235,6 +241,11 @@ class SwarmEnv:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
             raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
+        if landmark_order == "claim" and assignment not in LOCAL_ASSIGNMENTS:
+            raise ValueError(
+                f"landmark_order='claim' needs assignment 'nearest' or 'free', got {assignment!r}: a landmark is "
+                "claimed by the agent the threshold matching gives it"
+            )
         if assignment in LOCAL_ASSIGNMENTS and self.neighbours is None:
             raise ValueError(
                 f"assignment={assignment!r} needs neighbours=K: it finds each target's nearest agent through the "
@@ -257,6 +268,7 @@ class SwarmEnv:
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
             | (kernels.FREE_FIRST if landmark_order != "nearest" else 0)
             | (kernels.OPEN_FIRST if landmark_order == "open" else 0)
+            | (kernels.CLAIM if landmark_order == "claim" else 0)
         )
 
         self.arch = runtime.init(arch)

@@ -49,9 +49,11 @@ from .layout import (
 # occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), landmark lists with the
 # landmarks no other agent holds first (needs OCCUPANCY: ``free_first``), each agent's own reward
 # from its matched or nearest free target (needs NEAREST: nearest.agent_free), and with FREE_FIRST a
-# landmark held only by an agent nearer it than the observer (OPEN_FIRST: landmark_order="open")
+# landmark held only by an agent nearer it than the observer (OPEN_FIRST: landmark_order="open"), or
+# held by the agent the threshold matching gives it, who keeps it while it stays within the threshold
+# (CLAIM: landmark_order="claim"; needs NEAREST and FREE_FIRST)
 AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_FIRST, FREE_TARGET = 1, 2, 4, 8, 16, 32, 64
-OPEN_FIRST = 128
+OPEN_FIRST, CLAIM = 128, 256
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -75,7 +77,7 @@ def match(
     observations and the next step's contacts: every caller writes the observations next)."""
     if ti.static(lists & NEAREST):
         nearest_setup(task, sm, f, ib, b)
-        nearest.solve(f, ib, b, ti.static((lists & FREE_TARGET) != 0))
+        nearest.solve(f, ib, b, ti.static((lists & FREE_TARGET) != 0), ti.static((lists & CLAIM) != 0))
     else:
         tasks.place_targets(task, sm, f, ib, b)
         if ti.static(lists & AUCTION):
@@ -245,7 +247,8 @@ def agent_landmarks(
     and entity_mask [M, KL]. With OCCUPANCY, entities [M, KL, 3]: the third feature is the
     landmark's distance to its nearest agent other than this one, capped at sense_radius
     (sense_radius where none is nearer; 0 where none is listed), from each landmark's two
-    nearest agents (``landmark_occupants``)."""
+    nearest agents (``landmark_occupants``); with CLAIM, the distance of the agent the threshold
+    matching gives it where that is another agent, else sense_radius (``claimed``)."""
     KL, G = ib[H_KL], ib[H_GL]
     EF = 3 if ti.static(lists & OCCUPANCY) else 2
     ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
@@ -258,7 +261,7 @@ def agent_landmarks(
     row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
     # the search's indices go in row i of ent_idx (one row per agent: agents may search at once)
     idx = blocks.ent_idx.row(ib, IDX, i)
-    first = ti.static(open_first if lists & OPEN_FIRST else free_first)
+    first = ti.static(claim_first if lists & CLAIM else open_first if lists & OPEN_FIRST else free_first)
     rank = ti.static(first if lists & FREE_FIRST else neighbours.by_distance)
     ctx = ti.math.ivec2(b, i)
     found = neighbours.nearest_in_grid(
@@ -272,10 +275,16 @@ def agent_landmarks(
             d = blocks.landmarks.get2(f, ib, LM, ib[idx + k]) - p
         f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
         if ti.static(lists & OCCUPANCY):
-            f[row + EF * k + 2] = occupancy(f, ib, b, ib[idx + k], i) if listed else 0.0
+            occ = 0.0
+            if listed:
+                if ti.static(lists & CLAIM):
+                    occ = claimed(f, ib, b, ib[idx + k], i)
+                else:
+                    occ = occupancy(f, ib, b, ib[idx + k], i)
+            f[row + EF * k + 2] = occ
 
 
-def held_last(nearer_only: bool):
+def held_last(nearer_only: bool, claim: bool = False):
     """FREE_FIRST's rank of landmark l for agent ctx[1] of environment ctx[0]: its squared
     distance, plus more than any listed one has (sense_radius^2) where another agent holds it
     (within the success threshold), so that every free landmark in range is listed before any
@@ -286,11 +295,17 @@ def held_last(nearer_only: bool):
     ones it drops out of both lists and the pair observe the same; with it the nearer sees it
     first, as the matching's holder (nearest.matching gives a shared target to the nearer
     agent), and the farther sees it held, as the duplicate that ``assignment="free"`` pays for
-    leaving."""
+    leaving.
+
+    ``claim`` (CLAIM): held where the threshold matching gives it to another agent (``claimed``)."""
 
     @ti.func
     def rank(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
-        occ = occupancy(f, ib, ctx[0], l, ctx[1])
+        occ = 0.0
+        if ti.static(claim):
+            occ = claimed(f, ib, ctx[0], l, ctx[1])
+        else:
+            occ = occupancy(f, ib, ctx[0], l, ctx[1])
         held = occ < f[P_SUCCESS]
         if ti.static(nearer_only):
             held = held and occ * occ < d2
@@ -299,7 +314,28 @@ def held_last(nearer_only: bool):
     return rank
 
 
-free_first, open_first = held_last(False), held_last(True)
+free_first, open_first, claim_first = held_last(False), held_last(True), held_last(False, claim=True)
+
+
+@ti.func
+def claimed(f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
+    """CLAIM's occupancy of landmark l for agent i: the distance to l of the agent the threshold
+    matching gives it (lap_y: target -> agent; the list tasks' landmarks are their targets), where
+    that is another agent; else ``occupancy``'s reading, the nearest other agent's distance,
+    floored at the success threshold (it never reads held). Under the matching's incumbent rule a
+    holder keeps its landmark while it stays within the threshold, so the reading is stable where
+    the nearer of two jostling agents is not: a second agent on a claimed landmark reads it held
+    and is the one ``assignment="free"`` pays for leaving, and the holder reads it free. The floor
+    keeps every other reading ``occupancy``'s, so an occupancy policy starts from what it knows
+    (all-free landmarks reading sense_radius take its coverage to 0.08 at M = 100)."""
+    h = ib[blocks.lap_y.env(ib, b) + l]
+    out = 0.0
+    if h >= 0 and h != i:
+        q = blocks.landmarks.get2(f, ib, blocks.landmarks.env(ib, b), l)
+        out = ti.min((q - blocks.pos.get2(f, ib, blocks.pos.env(ib, b), h)).norm(), f[P_SENSE])
+    else:
+        out = ti.max(occupancy(f, ib, b, l, i), f[P_SUCCESS])
+    return out
 
 
 @ti.func
@@ -576,7 +612,7 @@ def settle(
     t = ib[blocks.step.env(ib, b)] + 1
     ib[blocks.step.env(ib, b)] = t
     if ti.static(searched):
-        nearest.matching(f, ib, b)
+        nearest.matching(f, ib, b, ti.static((lists & CLAIM) != 0))
         if ti.static(lists & FREE_TARGET):  # after the matching: the targets it leaves free
             for i in range(M):
                 nearest.agent_free(f, ib, b, i)

@@ -102,19 +102,19 @@ def _dist(f: ti.template(), ib: ti.template(), P0: ti.i32, i: ti.i32, T0: ti.i32
 
 
 @ti.func
-def solve(f: ti.template(), ib: ti.template(), b: ti.i32, free: ti.template()):
+def solve(f: ti.template(), ib: ti.template(), b: ti.i32, free: ti.template(), incumbent: ti.template()):
     """Env b's d_t (matched_dist), each agent's own d (lap_dist: its nearest target's distance,
     or with ``free`` ``agent_free``'s) and the maximum threshold matching (assignment). The
     agents' and the targets' grids must hold the current positions (kernels.nearest_setup
     builds them just before). kernels.step_wide_kernel runs the same pieces with the searches
-    parallel over targets and agents."""
+    parallel over targets and agents. ``incumbent``: ``matching``'s."""
     M = ib[H_M]
     for t in range(M):
         target_nearest(f, ib, b, t)
     if ti.static(not free):
         for i in range(M):
             agent_nearest(f, ib, b, i)
-    matching(f, ib, b)
+    matching(f, ib, b, incumbent)
     if ti.static(free):
         for i in range(M):
             agent_free(f, ib, b, i)
@@ -165,9 +165,12 @@ def agent_free(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
 
 
 @ti.func
-def matching(f: ti.template(), ib: ti.template(), b: ti.i32):
+def matching(f: ti.template(), ib: ti.template(), b: ti.i32, incumbent: ti.template()):
     """The maximum threshold matching, from the d_t just computed (a target farther than the
-    threshold from every agent has no edge)."""
+    threshold from every agent has no edge). ``incumbent`` (landmark_order="claim"): last step's
+    pairs that are still edges are kept, nearer newcomer or not, so that who holds a target
+    changes only when its holder leaves (kernels.claimed shows it to the agents); otherwise a
+    nearer newcomer takes it over."""
     M = ib[H_M]
     P0, T0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b)
     G, h = ib[H_G], f[P_CELL]
@@ -187,7 +190,9 @@ def matching(f: ti.template(), ib: ti.template(), b: ti.i32):
                 d = _dist(f, ib, P0, i, T0, j)
                 # ... and whose agent is still the target's nearest (d_t, the same float32
                 # computation): a nearer newcomer takes the target over (the holders' pass below)
-                keep = d < thr and d <= f[MD + j]
+                keep = d < thr
+                if ti.static(not incumbent):
+                    keep = keep and d <= f[MD + j]
         if keep:
             ib[Y + j] = i
         else:

@@ -325,6 +325,58 @@ def test_the_nearer_of_two_agents_on_a_target_holds_it(wide):
                 assert assign[i] == t
 
 
+@pytest.mark.parametrize("wide", [False, True])
+def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_holds_it(wide):
+    """landmark_order="claim": a newcomer nearer a held target does not take it over (the
+    incumbent keeps it while within the threshold), the incumbent reads its landmark free (the
+    newcomer's distance, floored at the threshold) and the newcomer reads it held at the
+    incumbent's distance, and "free" pays the newcomer for crossing to the free target. Once the
+    incumbent leaves, the newcomer holds it. Under "nearest" order the nearer takes it over (the
+    test above)."""
+    M, B, KL, sense = 200, 2, 4, 1.0
+    env = _make(
+        M, B, assignment="free", max_steps=50, agent_parallel=wide, landmark_neighbours=KL, sense_radius=sense,
+        landmark_occupancy=True, landmark_order="claim",
+    )  # fmt: skip
+    env.reset()
+    lat = np.broadcast_to(_lattice(M), (B, M, 2)).copy()
+    a, c = 3, 150
+    env.set_state(pos=lat, vel=np.zeros((B, M, 2)), landmarks=lat, step=np.zeros(B, dtype=np.int64))
+    assert (env.assignment == np.arange(M)).all()
+    pos = lat.copy()
+    pos[:, c] = lat[:, c] + (0.06, 0.0)  # c, the incumbent, 0.06 off its landmark
+    pos[:, a] = lat[:, c] - (0.03, 0.0)  # a arrives nearer: 0.03 from it
+    obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
+    for b in range(B):
+        assert env.assignment[b, c] == c and env.assignment[b, a] == -1  # the incumbent keeps it
+        assert _check_matching(env, b, pos[b], env.targets[b]) == M - 1
+        ent, mask = obs["entities"][b], obs["entity_mask"][b]
+        mine = np.flatnonzero(mask[c] & (np.abs(ent[c, :, :2] - (lat[b, c] - pos[b, c])).sum(-1) < 1e-5))
+        # c reads it free: a's distance, under the threshold, floored at it
+        assert len(mine) == 1 and ent[c, mine[0], 2] == pytest.approx(env.params["success_threshold"])
+        theirs = np.flatnonzero(mask[a] & (np.abs(ent[a, :, :2] - (lat[b, c] - pos[b, a])).sum(-1) < 1e-5))
+        # a reads it held at c's distance, listed after every free landmark in range
+        assert len(theirs) == 1 and ent[a, theirs[0], 2] == pytest.approx(0.06, abs=1e-5)
+        assert (ent[a, : theirs[0], 2] >= env.params["success_threshold"]).all()
+    env.step(np.zeros((B, M), dtype=np.int64))
+    s = env.get_state()
+    for b in range(B):
+        assert env.assignment[b, c] == c and env.assignment[b, a] == -1
+        far = np.linalg.norm(s["pos"][b, a] - lat[b, a])  # a is paid by its own landmark, the one free
+        assert env.info["agent_reward"][b, a] == pytest.approx(-far, rel=1e-4)
+    pos = env.get_state()["pos"]
+    pos[:, c] = lat[:, c] + (0.5, 0.0)  # the incumbent leaves: a, within the threshold, takes it
+    env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
+    for b in range(B):
+        assert env.assignment[b, a] == c and env.assignment[b, c] == -1
+
+
+def test_claim_needs_the_threshold_matching():
+    with pytest.raises(ValueError, match="landmark_order='claim' needs assignment 'nearest' or 'free'"):
+        _make(20, assignment="exact", landmark_neighbours=4, sense_radius=1.0, landmark_occupancy=True,
+              landmark_order="claim")  # fmt: skip
+
+
 def test_nearest_needs_neighbour_lists():
     for method in ("nearest", "free"):
         with pytest.raises(ValueError, match=f"assignment='{method}' needs neighbours=K"):
