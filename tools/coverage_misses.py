@@ -14,12 +14,17 @@ the sensing radius, the policy's lists, or ``--sense KL R``): a duplicate with n
 nowhere it can see to go. Over the last ``--window`` steps before it, it reports how many agents
 held a landmark of their own at every step (*held*), at some steps only (*hover*: they pass in
 and out of the threshold), and the most landmarks covered at any one of those steps (*best*):
-success needs them all at once. Run in the swarm policies' setting (rc within 1, lists K = 4
+success needs them all at once. With ``--jostle`` it adds, over the same window, how often the
+nearer agent of each duplicate's pair changes (*swaps*, per pair: the agent the duplicate shares
+its landmark with) and the share of full pushes (actions 1-4) among the pairs' actions
+(*pair_push*) and the lone holders' (*lone_push*, agents alone within the threshold of the
+landmark the matching gives them). Run in the swarm policies' setting (rc within 1, lists K = 4
 and KL = 5 within 1, density-scaled; the lists and options a policy trained on take
 precedence, landmark occupancy among them), greedy actions, fresh episodes at the seed:
 
     python tools/coverage_misses.py coverage-rc-m50-swarm --agents 100 --episodes 20
     python tools/coverage_misses.py formation-rc-m50-lattice --agents 50 100 --steps 100 --window 20
+    python tools/coverage_misses.py coverage-rc-m100-free-far --agents 100 --window 15 --jostle
 """
 
 from __future__ import annotations
@@ -86,6 +91,39 @@ def hovering(inside: np.ndarray) -> dict:
     return {"held": float(always.mean()), "hover": float((ever & ~always).mean()), "best": float(inside.mean(1).max())}
 
 
+FULL_PUSHES = (1, 2, 3, 4)  # the paper's four pushes, at full force in either action set
+
+
+def jostling(pos: np.ndarray, actions: np.ndarray, landmarks: np.ndarray, threshold: float) -> dict:
+    """pos [W, M, 2] and actions [W, M] of one environment over a window, landmarks [M, 2] -> for
+    the duplicates at the window's last step (as ``classify`` counts them) and the agent each
+    shares its landmark with: the changes of which of the two is nearer the landmark over the
+    window (summed over pairs, with their count), their full pushes and actions counted, and the
+    same counts for the lone holders (alone within the threshold of their matched landmark)."""
+    d, match = matching(pos[-1], landmarks, threshold)
+    full = np.isin(actions, FULL_PUSHES)
+    out = {"pairs": 0, "swaps": 0, "pair_full": 0, "pair_actions": 0, "lone_full": 0, "lone_actions": 0}
+    within = d < threshold
+    for i in np.flatnonzero((match < 0) & (d.min(1) < threshold)):
+        lm = int(d[i].argmin())
+        others = [j for j in np.flatnonzero(within[:, lm]) if j != i]
+        if not others:
+            continue
+        h = min(others, key=lambda j: d[j, lm])
+        di = np.linalg.norm(pos[:, i] - landmarks[lm], axis=-1)
+        dh = np.linalg.norm(pos[:, h] - landmarks[lm], axis=-1)
+        nearer = di < dh
+        out["pairs"] += 1
+        out["swaps"] += int((nearer[1:] != nearer[:-1]).sum())
+        out["pair_full"] += int(full[:, [i, h]].sum())
+        out["pair_actions"] += 2 * len(actions)
+    for i in np.flatnonzero(match >= 0):
+        if within[:, match[i]].sum() == 1:
+            out["lone_full"] += int(full[:, i].sum())
+            out["lone_actions"] += len(actions)
+    return out
+
+
 def run(
     policy_name: str,
     agents: int,
@@ -94,6 +132,7 @@ def run(
     sense: tuple[int, float] | None = None,
     steps: int = 50,
     window: int = 10,
+    jostle: bool = False,
 ) -> dict:
     """The mean fractions over ``episodes`` episodes (one environment each) that run their ``steps``,
     and where the duplicates' free landmarks are (``sense``: (KL, radius) counted as in sight;
@@ -121,13 +160,17 @@ def run(
     threshold = env.params["success_threshold"]
     last = env.params["max_steps"] - 1  # stop before the last step: its auto-reset would clear the state
     inside = np.zeros((min(window, last), episodes, agents), bool)
+    pos_w, act_w = np.zeros((len(inside), episodes, agents, 2)), np.zeros((len(inside), episodes, agents), int)
     for t in range(last):
         with torch.no_grad():
             logits, _ = policy(**policy_inputs(obs, "cpu"), fused=fused)
-        obs, _, done, _ = env.step(logits.argmax(-1).contiguous())
+        action = logits.argmax(-1).contiguous()
+        obs, _, done, _ = env.step(action)
         finished |= np.asarray(done, bool)
         if t >= last - len(inside):
             state = {k: np.asarray(v) for k, v in env.get_state().items()}
+            # the action that led to this step's positions
+            pos_w[t - last + len(inside)], act_w[t - last + len(inside)] = state["pos"], action.numpy()
             for b in np.flatnonzero(~finished):
                 inside[t - last + len(inside), b] = matching(state["pos"][b], state["landmarks"][b], threshold)[1] >= 0
     # (state: read at the window's last step, the one before the episode's last)
@@ -141,6 +184,15 @@ def run(
     sight = np.concatenate([r[1] for r in reach]) if reach else np.zeros(0, bool)
     out["free_distance"] = float(np.median(dist)) if len(dist) else None
     out["free_in_sight"] = float(sight.mean()) if len(sight) else None
+    if jostle:
+        j = [jostling(pos_w[:, b], act_w[:, b], state["landmarks"][b], threshold) for b in kept]
+        total = {
+            k: sum(r[k] for r in j)
+            for k in ("pairs", "swaps", "pair_full", "pair_actions", "lone_full", "lone_actions")
+        }
+        out["swaps"] = total["swaps"] / total["pairs"] if total["pairs"] else None
+        out["pair_push"] = total["pair_full"] / total["pair_actions"] if total["pair_actions"] else None
+        out["lone_push"] = total["lone_full"] / total["lone_actions"] if total["lone_actions"] else None
     return {"agents": agents, "episodes": episodes, "succeeded_early": int(finished.sum()), **out}
 
 
@@ -158,6 +210,9 @@ def main(argv: list[str] | None = None) -> None:
         "--sense", nargs=2, metavar=("KL", "R"), help="count a free landmark in sight among the KL nearest within R "
         "(default: the policy's landmark lists)",
     )  # fmt: skip
+    ap.add_argument(
+        "--jostle", action="store_true", help="add swaps, pair_push and lone_push over the window (the docstring)"
+    )
     args = ap.parse_args(argv)
     if args.episodes < 1 or any(m < 1 for m in args.agents):
         ap.error("--episodes and --agents must be >= 1")
@@ -175,9 +230,10 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"--sense takes KL >= 1 and a radius > 0, got {' '.join(args.sense)}")
     # succeeded: episodes that covered everything before the last step (the fractions are over the others)
     head = f"{'M':>5} {'episodes':>8} {'succeeded':>9} {'covered':>8} {'duplicate':>9} {'near':>6} {'far':>6}"
-    print(f"{head} {'held':>6} {'hover':>6} {'best':>6} {'free_distance':>13} {'free_in_sight':>13}")
+    head += f" {'held':>6} {'hover':>6} {'best':>6} {'free_distance':>13} {'free_in_sight':>13}"
+    print(head + (f" {'swaps':>6} {'pair_push':>9} {'lone_push':>9}" if args.jostle else ""))
     for m in args.agents:
-        r = run(args.policy, m, args.episodes, args.seed, sense, args.steps, args.window)
+        r = run(args.policy, m, args.episodes, args.seed, sense, args.steps, args.window, args.jostle)
         if r["covered"] is None:
             print(f"{m:>5} {args.episodes:>8} {r['succeeded_early']:>9}  every episode succeeded before its last step")
             continue
@@ -186,6 +242,11 @@ def main(argv: list[str] | None = None) -> None:
         reach = " ".join(  # (None: no duplicate)
             "-".rjust(13) if r[k] is None else f"{r[k]:>13.2f}" for k in ("free_distance", "free_in_sight")
         )
+        if args.jostle:
+            reach += " " + " ".join(
+                "-".rjust(w) if r[k] is None else f"{r[k]:>{w}.{p}f}"
+                for k, w, p in (("swaps", 6, 2), ("pair_push", 9, 3), ("lone_push", 9, 3))
+            )
         print(f"{m:>5} {args.episodes:>8} {r['succeeded_early']:>9} {fractions} {reach}")
 
 

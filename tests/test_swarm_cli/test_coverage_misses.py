@@ -86,3 +86,29 @@ def test_a_bad_sense_option_is_one_line(capsys):
     with pytest.raises(SystemExit) as exc:
         misses.main(["coverage-rc-m5-swarm", "--window", "0"])
     assert exc.value.code == 2 and "--window must be >= 1" in capsys.readouterr().err
+
+
+def test_jostling_counts_a_pairs_swaps_and_full_pushes():
+    landmarks = np.array([[0, 0], [1, 0], [3, 0]], np.float32)
+    # agents 0 and 1 share landmark 0, the nearer swapping at every step, both pushing at full
+    # force; agent 2 alone on landmark 1, parked (no-op, then a quarter push); landmark 2 free
+    pos = np.array(
+        [
+            [[0.01, 0], [0.03, 0], [1.0, 0.01]],
+            [[0.04, 0], [0.02, 0], [1.0, 0.01]],
+            [[0.02, 0], [0.05, 0], [1.0, 0.01]],
+        ],
+        np.float32,
+    )
+    actions = np.array([[1, 2, 0], [3, 4, 5], [2, 0, 0]])
+    r = misses.jostling(pos, actions, landmarks, 0.1)
+    assert r["pairs"] == 1 and r["swaps"] == 2  # nearer: 0, then 1, then 0
+    assert (r["pair_full"], r["pair_actions"]) == (5, 6) and (r["lone_full"], r["lone_actions"]) == (0, 3)
+
+
+def test_the_tool_adds_the_jostle_columns(capsys):
+    misses.main(["coverage-rc-m5-swarm", "--agents", "8", "--episodes", "2", "--jostle"])
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].split()[-3:] == ["swaps", "pair_push", "lone_push"]
+    cells = out[1].split()
+    assert len(cells) in (4, 15)  # (every episode may succeed early)
