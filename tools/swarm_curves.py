@@ -54,7 +54,7 @@ def table(curves: list[dict]) -> str:
             for m in sizes:
                 r = by_m.get(m)
                 v = None if r is None else r[key]
-                cells.append("-" if v is None else (f"{100 * v:.1f}" if key == "success_rate" else f"{v:.2f}"))
+                cells.append("-" if v is None else (f"{100 * v:.1f}" if key == "success_rate" else f"{v:.3f}"))
             lines.append(f"| `{c['name']}` | {label} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

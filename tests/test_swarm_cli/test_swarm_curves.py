@@ -26,7 +26,7 @@ def test_table_and_plot(tmp_path, capsys):
     assert swarm_curves.main([a, b, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| policy | | M = 10 | M = 100 |" in text
-    assert "| `a` | S% | 90.0 | 0.0 |" in text and "| `a` | covered | 0.98 | 0.22 |" in text
+    assert "| `a` | S% | 90.0 | 0.0 |" in text and "| `a` | covered | 0.980 | 0.220 |" in text
     assert "| `b` | covered | - | - |" in text  # a size not run and a metric not reported
     assert out.stat().st_size > 1000 and not list(tmp_path.glob("*.tmp.png"))
 
@@ -48,7 +48,7 @@ def test_max_matching_rows_are_labelled(tmp_path, capsys):
     rows = [dict(agents=100, success_rate=0.0, covered=0.6, assignment="nearest")]
     path.write_text(json.dumps({"checkpoint": "p", "results": rows}))
     assert swarm_curves.main([str(path), "--no-plot"]) == 0
-    assert "| `p (max matching)` | covered | 0.60 |" in capsys.readouterr().out
+    assert "| `p (max matching)` | covered | 0.600 |" in capsys.readouterr().out
 
 
 def test_the_swarm_doc_table_is_generated_from_the_committed_results(capsys):
