@@ -88,10 +88,10 @@ SINGLES = (
     ("coverage-rc-m100-free-far", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-free-far", 100,
      "coverage-rc-m50-free-reward on at M = 100, hearing 8 teammates and sensing free landmarks within 6 "
      "(s-coverage-rc-rel-m100-free-far)"),
-    ("coverage-rc-m100-claim", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-claim-sharp", 100,
+    ("coverage-rc-m100-claim", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-claim-sharp-on", 100,
      "coverage-rc-m100-free-far on at M = 100 on claim lists (the matching's holder keeps its landmark, and "
-     "every agent reads who holds it), 12 environments an update, a third of the entropy bonus "
-     "(s-coverage-rc-rel-m100-claim-sharp)"),
+     "every agent reads who holds it), 12 environments an update, a third of the entropy bonus, 200 updates "
+     "(s-coverage-rc-rel-m100-claim-sharp, then s-coverage-rc-rel-m100-claim-sharp-on)"),
 )  # fmt: skip
 
 
