@@ -248,7 +248,8 @@ def agent_landmarks(
     landmark's distance to its nearest agent other than this one, capped at sense_radius
     (sense_radius where none is nearer; 0 where none is listed), from each landmark's two
     nearest agents (``landmark_occupants``); with CLAIM, the distance of the agent the threshold
-    matching gives it where that is another agent, else sense_radius (``claimed``)."""
+    matching gives it where that is another agent, else the nearest other agent's distance floored
+    at the success threshold (``claimed``)."""
     KL, G = ib[H_KL], ib[H_GL]
     EF = 3 if ti.static(lists & OCCUPANCY) else 2
     ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
@@ -275,13 +276,7 @@ def agent_landmarks(
             d = blocks.landmarks.get2(f, ib, LM, ib[idx + k]) - p
         f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
         if ti.static(lists & OCCUPANCY):
-            occ = 0.0
-            if listed:
-                if ti.static(lists & CLAIM):
-                    occ = claimed(f, ib, b, ib[idx + k], i)
-                else:
-                    occ = occupancy(f, ib, b, ib[idx + k], i)
-            f[row + EF * k + 2] = occ
+            f[row + EF * k + 2] = reading(ti.static((lists & CLAIM) != 0), f, ib, b, ib[idx + k], i) if listed else 0.0
 
 
 def held_last(nearer_only: bool, claim: bool = False):
@@ -301,11 +296,7 @@ def held_last(nearer_only: bool, claim: bool = False):
 
     @ti.func
     def rank(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
-        occ = 0.0
-        if ti.static(claim):
-            occ = claimed(f, ib, ctx[0], l, ctx[1])
-        else:
-            occ = occupancy(f, ib, ctx[0], l, ctx[1])
+        occ = reading(claim, f, ib, ctx[0], l, ctx[1])
         held = occ < f[P_SUCCESS]
         if ti.static(nearer_only):
             held = held and occ * occ < d2
@@ -315,6 +306,17 @@ def held_last(nearer_only: bool, claim: bool = False):
 
 
 free_first, open_first, claim_first = held_last(False), held_last(True), held_last(False, claim=True)
+
+
+@ti.func
+def reading(claim: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
+    """Landmark l's occupancy reading for agent i: ``claimed`` under CLAIM, else ``occupancy``."""
+    out = 0.0
+    if ti.static(claim):
+        out = claimed(f, ib, b, l, i)
+    else:
+        out = occupancy(f, ib, b, l, i)
+    return out
 
 
 @ti.func
