@@ -316,6 +316,7 @@ def swarm_contract(payload: dict) -> dict:
         "landmark_order free: the landmarks no other agent holds within the success threshold listed first; "
         "open: the same, held only by an agent nearer the landmark than the observer; "
         "claim: held by the agent the threshold matching gives it, its occupancy that agent's distance; "
+        "claim-zero: the same, a claimed landmark's occupancy 0; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

@@ -65,7 +65,8 @@ SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "auction", "nearest", "free")
 LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
 # landmark lists: the KL nearest, or the free (open, unclaimed) ones first
-LANDMARK_ORDERS = ("nearest", "free", "open", "claim")
+LANDMARK_ORDERS = ("nearest", "free", "open", "claim", "claim-zero")
+CLAIM_ORDERS = ("claim", "claim-zero")  # held by the threshold matching's holder
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -147,7 +148,8 @@ class SwarmEnv:
     threshold matching gives it to another agent, who keeps it while it stays within
     success_threshold (incumbent, not nearer, holds), and the occupancy reading that agent's
     distance: of two agents on one landmark the holder reads it free and the other held, and
-    jostling does not swap them.
+    jostling does not swap them; or "claim-zero", "claim" with a claimed landmark's reading 0
+    (held by someone nearer, to an occupancy policy, whichever of the two is nearer).
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -241,10 +243,10 @@ class SwarmEnv:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
             raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
-        if landmark_order == "claim" and assignment not in LOCAL_ASSIGNMENTS:
+        if landmark_order in CLAIM_ORDERS and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
-                f"landmark_order='claim' needs assignment 'nearest' or 'free', got {assignment!r}: a landmark is "
-                "claimed by the agent the threshold matching gives it"
+                f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "
+                "landmark is claimed by the agent the threshold matching gives it"
             )
         if assignment in LOCAL_ASSIGNMENTS and self.neighbours is None:
             raise ValueError(
@@ -268,7 +270,8 @@ class SwarmEnv:
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
             | (kernels.FREE_FIRST if landmark_order != "nearest" else 0)
             | (kernels.OPEN_FIRST if landmark_order == "open" else 0)
-            | (kernels.CLAIM if landmark_order == "claim" else 0)
+            | (kernels.CLAIM if landmark_order in CLAIM_ORDERS else 0)
+            | (kernels.CLAIM_ZERO if landmark_order == "claim-zero" else 0)
         )
 
         self.arch = runtime.init(arch)

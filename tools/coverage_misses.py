@@ -10,17 +10,18 @@ maximum matching within the success threshold leaves without a landmark is a
 An unmatched agent means an uncovered landmark (as many agents as landmarks), so the three
 fractions add up to 1 - covered. For the duplicates it also reports how far the nearest
 uncovered landmark is (the median) and how many of them sense one (among the KL nearest within
-the sensing radius, the policy's lists, or ``--sense KL R``): a duplicate with none in sight has
-nowhere it can see to go. Over the last ``--window`` steps before it, it reports how many agents
-held a landmark of their own at every step (*held*), at some steps only (*hover*: they pass in
-and out of the threshold), and the most landmarks covered at any one of those steps (*best*):
-success needs them all at once. With ``--jostle`` it adds, over the same window, how often the
-nearer agent of each duplicate's pair changes (*swaps*, per pair: the agent the duplicate shares
-its landmark with) and the share of full pushes (actions 1-4) among the pairs' actions
-(*pair_push*) and the lone holders' (*lone_push*, agents alone within the threshold of the
-landmark the matching gives them). Run in the swarm policies' setting (rc within 1, lists K = 4
-and KL = 5 within 1, density-scaled; the lists and options a policy trained on take
-precedence, landmark occupancy among them), greedy actions, fresh episodes at the seed:
+the sensing radius, the policy's lists, or ``--sense KL R``; on free-first lists, any within the
+radius): a duplicate with none in sight has nowhere it can see to go. Over the last ``--window``
+steps before it, it reports how many agents held a landmark of their own at every step (*held*),
+at some steps only (*hover*: they pass in and out of the threshold), and the most landmarks
+covered at any one of those steps (*best*): success needs them all at once. With ``--jostle`` it
+adds, over the same window, how often the nearer agent of each duplicate's pair changes
+(*swaps*, per pair: the agent the duplicate shares its landmark with) and the share of full
+pushes (actions 1-4) among the pairs' actions (*pair_push*) and the lone holders' (*lone_push*,
+agents alone within the threshold of the landmark the matching gives them). Run in the swarm
+policies' setting (rc within 1, lists K = 4 and KL = 5 within 1, density-scaled; the lists and
+options a policy trained on take precedence, landmark occupancy among them), greedy actions,
+fresh episodes at the seed:
 
     python tools/coverage_misses.py coverage-rc-m50-swarm --agents 100 --episodes 20
     python tools/coverage_misses.py formation-rc-m50-lattice --agents 50 100 --steps 100 --window 20
@@ -66,10 +67,15 @@ def classify(pos: np.ndarray, landmarks: np.ndarray, threshold: float) -> dict:
     }
 
 
-def duplicates_reach(pos: np.ndarray, landmarks: np.ndarray, threshold: float, kl: int, radius: float):
+def duplicates_reach(
+    pos: np.ndarray, landmarks: np.ndarray, threshold: float, kl: int, radius: float, free_first: bool = False
+):
     """pos, landmarks [M, 2] of one environment -> for each duplicate agent (as ``classify``
     counts them): (distance to the nearest landmark the maximum matching leaves uncovered,
-    whether one is among its ``kl`` nearest landmarks within ``radius``), as two arrays."""
+    whether one is among its ``kl`` nearest landmarks within ``radius``), as two arrays. With
+    ``free_first`` (the lists of ``landmark_order`` "free", "open" and the claim ones, which hold the
+    landmarks no other agent holds before the held ones) any uncovered landmark within ``radius``
+    is in sight, however many held ones lie nearer."""
     d, match = matching(pos, landmarks, threshold)
     uncovered = np.ones(len(landmarks), bool)
     uncovered[match[match >= 0]] = False
@@ -77,6 +83,8 @@ def duplicates_reach(pos: np.ndarray, landmarks: np.ndarray, threshold: float, k
     if not uncovered.any() or not len(dup):
         return np.zeros(0), np.zeros(0, bool)
     dist = d[dup][:, uncovered].min(1)
+    if free_first:
+        return dist, dist < radius
     sensed = np.argsort(d[dup], axis=1)[:, :kl]  # each duplicate's kl nearest landmarks
     rows = np.arange(len(dup))[:, None]
     in_sight = (uncovered[sensed] & (d[dup][rows, sensed] < radius)).any(1)
@@ -179,7 +187,8 @@ def run(
     names = ("covered", "duplicate", "near", "far", "held", "hover", "best")
     out = {k: float(np.mean([r[k] for r in rows])) if rows else None for k in names}
     kl, radius = sense or (swarm["landmark_neighbours"], swarm["sense_radius"])
-    reach = [duplicates_reach(state["pos"][b], state["landmarks"][b], threshold, kl, radius) for b in kept]
+    free_first = swarm.get("landmark_order") in ("free", "open", "claim", "claim-zero")
+    reach = [duplicates_reach(state["pos"][b], state["landmarks"][b], threshold, kl, radius, free_first) for b in kept]
     dist = np.concatenate([r[0] for r in reach]) if reach else np.zeros(0)
     sight = np.concatenate([r[1] for r in reach]) if reach else np.zeros(0, bool)
     out["free_distance"] = float(np.median(dist)) if len(dist) else None

@@ -12,6 +12,12 @@ them), every agent on one point, success within 0.05.
   to the nearest landmark it senses that no teammate it hears heads for from nearer; when it
   has given up every landmark it senses (or senses none), it moves away from the teammates it
   hears, to find others.
+- claim: greedy on claim lists (8 teammates heard, the 16 nearest landmarks within 6 sensed, the
+  free ones first, each with its claim reading: ``landmark_order="claim"``), the setting of the
+  zoo's ``coverage-rc-m100-claim``. A landmark that reads held (a teammate the threshold matching
+  gives it, within the threshold: a reading below it) is never a goal; of the rest, the agent
+  drives to the nearest that no teammate it hears heads for from nearer (3 rounds, as greedy).
+  An agent the matching holds reads its own landmark free and nearest, so it stays on it.
 
     python tools/coverage_reference.py --sizes 10 100 1000 --episodes 100 --save
     python tools/coverage_reference.py --task formation --sizes 10 100 --episodes 100
@@ -38,12 +44,14 @@ sys.path.insert(0, ROOT)
 import taichi_swarm  # noqa: E402
 from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY  # noqa: E402
 
-CONTROLLERS = ("planned", "greedy")
+CONTROLLERS = ("planned", "greedy", "claim")
 # the landmarks each task's policies sense (formation's are the points of its lattice)
 SENSED = {
     "coverage": dict(landmark_neighbours=5, sense_radius=1.0),
     "formation": dict(landmark_neighbours=12, sense_radius=1.5),
 }
+# what the claim controller senses: the zoo's coverage-rc-m100-claim's lists
+CLAIM = dict(neighbours=8, landmark_neighbours=16, sense_radius=6.0, landmark_occupancy=True, landmark_order="claim")
 # unit force direction of each discrete action: no-op, -x, +x, -y, +y
 DIRECTIONS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], np.float32)
 
@@ -81,13 +89,14 @@ def planned_goals(state: dict) -> np.ndarray:
     return goals
 
 
-def greedy_goals(state: dict, obs: dict, rounds: int = 3) -> np.ndarray:
+def greedy_goals(state: dict, obs: dict, rounds: int = 3, taken: np.ndarray | None = None) -> np.ndarray:
     """[B, M, 2] from each agent's own lists and 3 rounds of messages, as the network has:
     obs["entities"] (offsets to its KL nearest sensed landmarks, nearest first), obs["nbr"] /
     obs["nbr_mask"] (the teammates it hears). Each round every agent tells the teammates that
     hear it which landmark it is heading for and how far it is; an agent gives a landmark up to
     a teammate that heads for it and is nearer, and takes its next nearest. (Landmarks are
-    compared by position here, which a message would carry as an offset.)"""
+    compared by position here, which a message would carry as an offset.) ``taken`` [B, M, KL]:
+    listed landmarks never to head for (claim's held ones)."""
     pos = state["pos"]  # [B, M, 2]
     ent, emask = np.asarray(obs["entities"]), np.asarray(obs["entity_mask"])  # [B, M, KL, 2], [B, M, KL]
     nbr, nmask = np.asarray(obs["nbr"]), np.asarray(obs["nbr_mask"])  # [B, M, K]
@@ -102,7 +111,7 @@ def greedy_goals(state: dict, obs: dict, rounds: int = 3) -> np.ndarray:
         has = free.any(-1)
         return goal, np.where(has, np.take_along_axis(mine, choice, axis=2)[..., 0], np.inf), has
 
-    given_up = ~emask
+    given_up = ~emask if taken is None else ~emask | taken
     for _ in range(rounds):
         goal, dist, _ = heading(given_up)
         # what each heard teammate heads for, and how far it is from it
@@ -120,6 +129,14 @@ def greedy_goals(state: dict, obs: dict, rounds: int = 3) -> np.ndarray:
     return np.where(has[..., None], goal_free, goal_explore)
 
 
+def claim_goals(state: dict, obs: dict, threshold: float) -> np.ndarray:
+    """greedy over the landmarks that do not read held on claim lists: obs["entities"]
+    [B, M, KL, 3], whose third feature is below ``threshold`` exactly where the threshold
+    matching gives the landmark to another agent (kernels.claimed)."""
+    ent = np.asarray(obs["entities"])
+    return greedy_goals(state, {**obs, "entities": ent[..., :2]}, taken=ent[..., 2] < threshold)
+
+
 def run(
     controller: str,
     agents: int,
@@ -128,6 +145,7 @@ def run(
     batch: int = 10,
     assignment: str = "exact",
     task: str = "coverage",
+    steps: int | None = None,
 ) -> dict:
     """One controller at one team size: S%, covered and DIST over ``episodes`` episodes; covered
     and S% by the min-sum matching (``assignment="exact"``) or by the maximum matching within
@@ -137,6 +155,7 @@ def run(
     tallies = []
     for first in range(0, episodes, batch):
         # one env per batch, seeded as reset(seed=seed + first) would: make's seed starts the first reset
+        sensed = CLAIM if controller == "claim" else dict(neighbours=4, **SENSED[task])
         env = taichi_swarm.make(
             task,
             num_envs=min(batch, episodes - first),
@@ -144,11 +163,11 @@ def run(
             comm="rc",
             comm_radius=1.0,
             seed=seed + first,
-            neighbours=4,
             scale="density",
             assignment=assignment,
             array="numpy",
-            **SENSED[task],
+            **({"max_steps": steps} if steps else {}),
+            **sensed,
         )
         plan = {}
 
@@ -156,6 +175,8 @@ def run(
             state = env.get_state()
             if controller == "planned":  # the plan of the first episode's start (only first episodes count)
                 goals = plan.setdefault("goals", planned_goals(state))
+            elif controller == "claim":
+                goals = claim_goals(state, obs, env.params["success_threshold"])
             else:
                 goals = greedy_goals(state, obs)
             actions = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2))
@@ -223,6 +244,7 @@ def main(argv: list[str] | None = None) -> None:
         "--assignment", choices=("exact", "nearest"), default="exact",
         help="covered and S%% by the min-sum matching (exact) or the maximum matching within the threshold (nearest)",
     )  # fmt: skip
+    ap.add_argument("--steps", type=int, help="episode length (default: the task's 50); not with --save")
     ap.add_argument(
         "--save", action="store_true",
         help="merge the rows into results/swarm/reference-<controller>.json (-nearest.json with --assignment nearest; "
@@ -231,12 +253,16 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if args.episodes < 1 or any(m < 2 for m in args.sizes):
         ap.error("--episodes must be >= 1 and every size >= 2")
+    if args.steps is not None and (args.steps < 1 or args.save):
+        ap.error("--steps must be >= 1, and the saved rows are 50-step episodes: --steps goes without --save")
     taichi_swarm.init("cpu")
     rows = []
     print(f"{'controller':10} {'M':>5} {'episodes':>8} {'S%':>6} {'covered':>8} {'DIST':>7} {'T':>6}")
     for controller in args.controllers:
         for m in args.sizes:
-            r = run(controller, m, args.episodes, args.seed, assignment=args.assignment, task=args.task)
+            r = run(
+                controller, m, args.episodes, args.seed, assignment=args.assignment, task=args.task, steps=args.steps
+            )
             rows.append(r)
             print(
                 f"{controller:10} {m:5d} {r['episodes']:8d} {100 * r['success_rate']:6.1f} "

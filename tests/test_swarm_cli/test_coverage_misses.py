@@ -39,6 +39,11 @@ def test_a_duplicates_nearest_free_landmark_and_whether_it_is_in_sight():
     assert sight[0]  # landmark 3 is its third nearest
     _, sight = misses.duplicates_reach(pos, landmarks, 0.1, kl=3, radius=0.5)
     assert not sight[0]  # ... but outside the radius
+    # free-first lists hold the free landmark 3 before the held landmark 1, nearer: in sight at KL = 2
+    _, sight = misses.duplicates_reach(pos, landmarks, 0.1, kl=2, radius=1.0, free_first=True)
+    assert sight[0]
+    _, sight = misses.duplicates_reach(pos, landmarks, 0.1, kl=2, radius=0.5, free_first=True)
+    assert not sight[0]  # the radius still bounds them
     none = misses.duplicates_reach(pos[[0, 2, 3]], landmarks[[0, 1, 2]], 0.1, kl=2, radius=1.0)
     assert len(none[0]) == 0 and len(none[1]) == 0  # no duplicate
 

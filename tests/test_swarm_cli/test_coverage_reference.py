@@ -39,6 +39,36 @@ def test_the_central_plan_covers_small_teams_and_the_greedy_one_runs():
     assert greedy["episodes"] == 10 and 0.0 < greedy["covered"] <= 1.0 and greedy["dist"] > 0, greedy
 
 
+def test_claim_never_heads_for_a_landmark_read_held_and_covers_small_teams():
+    # one env, two agents far apart (neither hears the other); each lists two landmarks
+    state = {"pos": np.array([[[0.0, 0.0], [5.0, 5.0]]], np.float32)}
+    ent = np.zeros((1, 2, 2, 3), np.float32)
+    ent[0, :, 0] = [0.05, 0.0, 0.02]  # the nearest reads held: a teammate 0.02 from it
+    ent[0, :, 1] = [0.0, 0.5, 0.3]  # the next reads free
+    obs = {
+        "entities": ent,
+        "entity_mask": np.ones((1, 2, 2), bool),
+        "nbr": np.array([[[0], [1]]], np.int32),
+        "nbr_mask": np.zeros((1, 2, 1), bool),
+    }
+    goals = ref.claim_goals(state, obs, threshold=0.1)
+    np.testing.assert_allclose(goals[0], [[0.0, 0.5], [5.0, 5.5]])
+    ent[0, 0, 0, 2] = 0.1  # at the threshold it reads free (claim floors free readings there)
+    assert np.allclose(ref.claim_goals(state, obs, threshold=0.1)[0, 0], [0.05, 0.0])
+    claim = ref.run("claim", agents=10, episodes=10, seed=777, batch=10, assignment="nearest")
+    assert claim["success_rate"] >= 0.8 and claim["covered"] >= 0.95, claim
+
+
+def test_steps_set_the_episode_length_and_are_never_saved(capsys):
+    import pytest
+
+    short = ref.run("greedy", agents=5, episodes=2, seed=777, batch=2, steps=5)
+    assert short["length"] <= 5, short
+    with pytest.raises(SystemExit):
+        ref.main(["--steps", "80", "--save", "--sizes", "10"])
+    assert "--steps goes without --save" in capsys.readouterr().err
+
+
 def test_save_merges_rows_by_size_and_refuses_another_seed(tmp_path):
     import json
 

@@ -325,18 +325,19 @@ def test_the_nearer_of_two_agents_on_a_target_holds_it(wide):
                 assert assign[i] == t
 
 
+@pytest.mark.parametrize("order", ["claim", "claim-zero"])
 @pytest.mark.parametrize("wide", [False, True])
-def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_holds_it(wide):
+def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_holds_it(wide, order):
     """landmark_order="claim": a newcomer nearer a held target does not take it over (the
     incumbent keeps it while within the threshold), the incumbent reads its landmark free (the
     newcomer's distance, floored at the threshold) and the newcomer reads it held at the
     incumbent's distance, and "free" pays the newcomer for crossing to the free target. Once the
     incumbent leaves, the newcomer holds it. Under "nearest" order the nearer takes it over (the
-    test above)."""
+    test above). "claim-zero" is the same but for the newcomer's reading, 0."""
     M, B, KL, sense = 200, 2, 4, 1.0
     env = _make(
         M, B, assignment="free", max_steps=50, agent_parallel=wide, landmark_neighbours=KL, sense_radius=sense,
-        landmark_occupancy=True, landmark_order="claim",
+        landmark_occupancy=True, landmark_order=order,
     )  # fmt: skip
     env.reset()
     lat = np.broadcast_to(_lattice(M), (B, M, 2)).copy()
@@ -355,8 +356,9 @@ def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_hol
         # c reads it free: a's distance, under the threshold, floored at it
         assert len(mine) == 1 and ent[c, mine[0], 2] == pytest.approx(env.params["success_threshold"])
         theirs = np.flatnonzero(mask[a] & (np.abs(ent[a, :, :2] - (lat[b, c] - pos[b, a])).sum(-1) < 1e-5))
-        # a reads it held at c's distance, listed after every free landmark in range
-        assert len(theirs) == 1 and ent[a, theirs[0], 2] == pytest.approx(0.06, abs=1e-5)
+        # a reads it held at c's distance (0 under claim-zero), listed after every free landmark in range
+        held = 0.06 if order == "claim" else 0.0
+        assert len(theirs) == 1 and ent[a, theirs[0], 2] == pytest.approx(held, abs=1e-5)
         assert (ent[a, : theirs[0], 2] >= env.params["success_threshold"]).all()
     env.step(np.zeros((B, M), dtype=np.int64))
     s = env.get_state()
@@ -371,10 +373,11 @@ def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_hol
         assert env.assignment[b, a] == c and env.assignment[b, c] == -1
 
 
-def test_claim_needs_the_threshold_matching():
-    with pytest.raises(ValueError, match="landmark_order='claim' needs assignment 'nearest' or 'free'"):
+@pytest.mark.parametrize("order", ["claim", "claim-zero"])
+def test_claim_needs_the_threshold_matching(order):
+    with pytest.raises(ValueError, match=f"landmark_order='{order}' needs assignment 'nearest' or 'free'"):
         _make(20, assignment="exact", landmark_neighbours=4, sense_radius=1.0, landmark_occupancy=True,
-              landmark_order="claim")  # fmt: skip
+              landmark_order=order)  # fmt: skip
 
 
 def test_nearest_needs_neighbour_lists():
