@@ -92,6 +92,9 @@ SINGLES = (
      "coverage-rc-m100-free-far on at M = 100 on claim lists (the matching's holder keeps its landmark, and "
      "every agent reads who holds it), 12 environments an update, a third of the entropy bonus, 200 updates "
      "(s-coverage-rc-rel-m100-claim-sharp, then s-coverage-rc-rel-m100-claim-sharp-on)"),
+    ("coverage-rc-m100-claim-zero", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-claim-zero-k12", 100,
+     "coverage-rc-m100-claim on at M = 100 on claim-zero lists (a claimed landmark reads 0: held by someone "
+     "nearer), hearing its 12 nearest teammates, 100 updates (s-coverage-rc-rel-m100-claim-zero-k12)"),
 )  # fmt: skip
 
 

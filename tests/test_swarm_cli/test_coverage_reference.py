@@ -55,7 +55,7 @@ def test_claim_never_heads_for_a_landmark_read_held_and_covers_small_teams():
     np.testing.assert_allclose(goals[0], [[0.0, 0.5], [5.0, 5.5]])
     ent[0, 0, 0, 2] = 0.1  # at the threshold it reads free (claim floors free readings there)
     assert np.allclose(ref.claim_goals(state, obs, threshold=0.1)[0, 0], [0.05, 0.0])
-    claim = ref.run("claim", agents=10, episodes=10, seed=777, batch=10, assignment="nearest")
+    claim = ref.run("claim", agents=10, episodes=5, seed=777, batch=5, assignment="nearest")
     assert claim["success_rate"] >= 0.8 and claim["covered"] >= 0.95, claim
 
 
