@@ -187,7 +187,7 @@ def run(
     names = ("covered", "duplicate", "near", "far", "held", "hover", "best")
     out = {k: float(np.mean([r[k] for r in rows])) if rows else None for k in names}
     kl, radius = sense or (swarm["landmark_neighbours"], swarm["sense_radius"])
-    free_first = swarm.get("landmark_order") in ("free", "open", "claim", "claim-zero")
+    free_first = swarm.get("landmark_order") not in (None, "nearest")  # env's FREE_FIRST rule
     reach = [duplicates_reach(state["pos"][b], state["landmarks"][b], threshold, kl, radius, free_first) for b in kept]
     dist = np.concatenate([r[0] for r in reach]) if reach else np.zeros(0)
     sight = np.concatenate([r[1] for r in reach]) if reach else np.zeros(0, bool)
