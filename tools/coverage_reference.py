@@ -3,11 +3,17 @@
 policies: rc within 1, lists of K = 4 teammates and KL = 5 landmarks within 1, scale="density",
 the 50-step limit, the exact assignment's S%, covered and DIST. ``--task formation``: formation's
 lattice with its points sensed as landmarks (the 12 nearest within 1.5, as its policies sense
-them), every agent on one point, success within 0.05.
+them), every agent on one point, success within 0.05. ``--task line``: line's rows, their
+targets sensed the same way (the 24 nearest within 1.5, as the line policies sense them).
 
 - planned: the min-sum matching of agents to landmarks at the episode's start (scipy), known to
   every agent (a central plan, not decentralised); each agent then drives to its landmark.
   What the dynamics allow in 50 steps: the ceiling.
+- nearest-first: central too, re-planned every step: the greedy matching of the current
+  positions (the nearest agent-landmark pair first, then the nearest pair left, and so on),
+  known to every agent. It is the best any rule can do that never gives a landmark to an agent
+  other than the nearest one left, with every agent seeing everything: a bound for the local
+  rules below, which approximate it from their lists.
 - greedy: decentralised, from what the agent's lists hold and 3 rounds of messages. It drives
   to the nearest landmark it senses that no teammate it hears heads for from nearer; when it
   has given up every landmark it senses (or senses none), it moves away from the teammates it
@@ -21,10 +27,11 @@ them), every agent on one point, success within 0.05.
 
     python tools/coverage_reference.py --sizes 10 100 1000 --episodes 100 --save
     python tools/coverage_reference.py --task formation --sizes 10 100 --episodes 100
+    python tools/coverage_reference.py --task line --controllers nearest-first --sizes 50 100 --episodes 100
 
 --save merges the rows into results/swarm/reference-<controller>.json (a size run again
 replaces its row; reference-<controller>-nearest.json with --assignment nearest;
-reference-formation-<controller>.json for formation), which
+reference-<task>-<controller>.json for formation and line), which
 tools/swarm_curves.py draws beside the policies' zero-shot curves.
 """
 
@@ -44,11 +51,12 @@ sys.path.insert(0, ROOT)
 import taichi_swarm  # noqa: E402
 from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY  # noqa: E402
 
-CONTROLLERS = ("planned", "greedy", "claim")
+CONTROLLERS = ("planned", "nearest-first", "greedy", "claim")
 # the landmarks each task's policies sense (formation's are the points of its lattice)
 SENSED = {
     "coverage": dict(landmark_neighbours=5, sense_radius=1.0),
     "formation": dict(landmark_neighbours=12, sense_radius=1.5),
+    "line": dict(landmark_neighbours=24, sense_radius=1.5),
 }
 # what the claim controller senses: the zoo's coverage-rc-m100-claim's lists
 CLAIM = dict(neighbours=8, landmark_neighbours=16, sense_radius=6.0, landmark_occupancy=True, landmark_order="claim")
@@ -86,6 +94,38 @@ def planned_goals(state: dict) -> np.ndarray:
         cost = np.linalg.norm(pos[b][:, None, :] - lmk[b][None, :, :], axis=-1)
         rows, cols = linear_sum_assignment(cost)
         goals[b, rows] = lmk[b, cols]
+    return goals
+
+
+def nearest_first(cost: np.ndarray) -> np.ndarray:
+    """[N, N] -> int [N]: each row's column in the greedy matching (the smallest entry first, then
+    the smallest left in the rows and columns not yet matched, ...). It is built as rounds of
+    mutual nearest pairs, O(N^2) a round instead of a sorted scan of N^2 pairs: for distinct
+    entries the scan matches every such pair too (no smaller entry left shares its row or column,
+    so both ends are still free when the scan reaches it), so the rounds give its matching."""
+    n = cost.shape[0]
+    match = np.full(n, -1, np.int64)
+    rows, cols = np.arange(n), np.arange(n)
+    while len(rows):
+        sub = cost[np.ix_(rows, cols)]
+        best_col, best_row = sub.argmin(1), sub.argmin(0)
+        mutual = best_row[best_col] == np.arange(len(rows))
+        if not mutual.any():  # only ties can do this: take the smallest entry left
+            mutual = np.zeros(len(rows), bool)
+            mutual[np.unravel_index(sub.argmin(), sub.shape)[0]] = True
+        match[rows[mutual]] = cols[best_col[mutual]]
+        keep_cols = np.ones(len(cols), bool)
+        keep_cols[best_col[mutual]] = False
+        rows, cols = rows[~mutual], cols[keep_cols]
+    return match
+
+
+def nearest_first_goals(state: dict) -> np.ndarray:
+    """[B, M, 2]: every agent's landmark in the greedy matching of the current positions."""
+    pos, lmk = state["pos"], state["landmarks"]
+    goals = np.empty_like(pos)
+    for b in range(pos.shape[0]):
+        goals[b] = lmk[b, nearest_first(np.linalg.norm(pos[b][:, None, :] - lmk[b][None, :, :], axis=-1))]
     return goals
 
 
@@ -175,6 +215,8 @@ def run(
             state = env.get_state()
             if controller == "planned":  # the plan of the first episode's start (only first episodes count)
                 goals = plan.setdefault("goals", planned_goals(state))
+            elif controller == "nearest-first":
+                goals = nearest_first_goals(state)
             elif controller == "claim":
                 goals = claim_goals(state, obs, env.params["success_threshold"])
             else:
@@ -236,7 +278,10 @@ def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--task", choices=tuple(SENSED), default="coverage")
-    ap.add_argument("--controllers", nargs="+", choices=CONTROLLERS, default=list(CONTROLLERS))
+    ap.add_argument(
+        "--controllers", nargs="+", choices=CONTROLLERS, default=["planned", "greedy"],
+        help="the controllers to run (default: planned greedy; claim needs --assignment nearest)",
+    )  # fmt: skip
     ap.add_argument("--sizes", nargs="+", type=int, default=[10, 20, 50, 100, 1000])
     ap.add_argument("--episodes", type=int, default=100)
     ap.add_argument("--seed", type=int, default=777)
@@ -248,16 +293,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--save", action="store_true",
         help="merge the rows into results/swarm/reference-<controller>.json (-nearest.json with --assignment nearest; "
-        "reference-formation-<controller>.json for formation)",
+        "reference-<task>-<controller>.json for formation and line)",
     )  # fmt: skip
     args = ap.parse_args(argv)
     if args.episodes < 1 or any(m < 2 for m in args.sizes):
         ap.error("--episodes must be >= 1 and every size >= 2")
     if args.steps is not None and (args.steps < 1 or args.save):
         ap.error("--steps must be >= 1, and the saved rows are 50-step episodes: --steps goes without --save")
+    if "claim" in args.controllers and args.assignment != "nearest":
+        ap.error("--controllers claim reads claim lists, which the threshold matching builds: add --assignment nearest")
     taichi_swarm.init("cpu")
     rows = []
-    print(f"{'controller':10} {'M':>5} {'episodes':>8} {'S%':>6} {'covered':>8} {'DIST':>7} {'T':>6}")
+    print(f"{'controller':13} {'M':>5} {'episodes':>8} {'S%':>6} {'covered':>8} {'DIST':>7} {'T':>6}")
     for controller in args.controllers:
         for m in args.sizes:
             r = run(
@@ -265,7 +312,7 @@ def main(argv: list[str] | None = None) -> None:
             )
             rows.append(r)
             print(
-                f"{controller:10} {m:5d} {r['episodes']:8d} {100 * r['success_rate']:6.1f} "
+                f"{controller:13} {m:5d} {r['episodes']:8d} {100 * r['success_rate']:6.1f} "
                 f"{r['covered']:8.2f} {'-' if r['dist'] is None else format(r['dist'], '.3f'):>7} {r['length']:6.2f}",
                 flush=True,
             )

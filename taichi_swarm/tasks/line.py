@@ -15,11 +15,13 @@ first row (so they give the direction; the block is centred on a point uniform i
 block's footprint (half a spacing / half a row gap round it), so each agent's travel is
 bounded by the row gap and the spacing, not by M. Its two landmarks are always seen.
 
-With landmark lists (``landmark_neighbours``, density-scaled only) every target is a landmark
-(landmarks 0 and 1 stay the first row's ends, the other M - 2 targets follow) and each agent
-senses the nearest of them, as coverage's agents sense theirs: the rows become points an agent
-can fill by a local rule, as formation's lattice does (formation.py). The targets, reward and
-success are unchanged; only what an agent sees is."""
+With landmark lists (``landmark_neighbours``, density-scaled only) every target is a landmark,
+landmark k target k (so landmark 1 is the first row's second target, not its end), and each
+agent senses the nearest of them, as coverage's agents sense theirs: the rows become points an
+agent can fill by a local rule, as formation's lattice does (formation.py). Landmark k is target
+k because the kernels read a listed landmark's holder in the matching by its index
+(``kernels.claimed``). The targets, reward and success are unchanged; only what an agent sees
+is."""
 
 import math
 import sys
@@ -86,14 +88,15 @@ def spawn_rows(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
     across = ti.math.vec2(-along[1], along[0])
     l0 = centre - 0.5 * (m - 1) * spacing * along - 0.5 * (n - 1) * gap * across
     blocks.landmarks.store(f, ib, b, 0, l0)
-    blocks.landmarks.store(f, ib, b, 1, l0 + (m - 1) * spacing * along)
+    if ib[H_L] == 2:  # the first row's ends
+        blocks.landmarks.store(f, ib, b, 1, l0 + (m - 1) * spacing * along)
     for i in range(M):  # the agents, re-drawn over the block's footprint
         a = -0.5 * spacing + (m * spacing) * rng.uniform(ib, b)
         c = -0.5 * gap + (n * gap) * rng.uniform(ib, b)
         blocks.pos.store(f, ib, b, i, l0 + a * along + c * across)
-    for k in range(2, ib[H_L]):  # landmark lists: the other targets, in order (no draws)
-        j = k - 1 if k < m else k  # targets 1 .. m - 2, then the rows after the first
-        blocks.landmarks.store(f, ib, b, k, l0 + (j % m) * spacing * along + (j // m) * gap * across)
+    if ib[H_L] != 2:  # landmark lists: every target, landmark k target k (no draws)
+        for k in range(1, ib[H_L]):
+            blocks.landmarks.store(f, ib, b, k, l0 + (k % m) * spacing * along + (k // m) * gap * across)
 
 
 @ti.func
@@ -117,7 +120,10 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
     tgt = blocks.targets.env(ib, b)
     l0 = blocks.landmarks.load(f, ib, b, 0)
     l1 = blocks.landmarks.load(f, ib, b, 1)
-    if ib[H_DENSITY] != 0:
+    if ib[H_L] != 2:  # landmark lists: the targets are the landmarks (spawn_rows)
+        for k in range(M):
+            blocks.targets.set2(f, ib, tgt, k, blocks.landmarks.load(f, ib, b, k))
+    elif ib[H_DENSITY] != 0:
         n = _rows(M)
         m = (M + n - 1) // n
         step = (l1 - l0) / (m - 1)

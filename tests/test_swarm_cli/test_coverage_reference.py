@@ -67,6 +67,9 @@ def test_steps_set_the_episode_length_and_are_never_saved(capsys):
     with pytest.raises(SystemExit):
         ref.main(["--steps", "80", "--save", "--sizes", "10"])
     assert "--steps goes without --save" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # claim lists come from the threshold matching
+        ref.main(["--controllers", "claim", "--sizes", "10"])
+    assert "claim reads claim lists" in capsys.readouterr().err
 
 
 def test_save_merges_rows_by_size_and_refuses_another_seed(tmp_path):
@@ -103,3 +106,35 @@ def test_formation_on_its_sensed_lattice_is_planned_and_saved_apart(tmp_path):
     assert json.loads((tmp_path / "reference-formation-planned.json").read_text())["checkpoint"] == (
         "reference: formation planned"
     )
+
+
+def _sorted_scan(cost):
+    """the greedy matching by its definition: every pair in increasing cost, kept where both ends are free"""
+    match, used = np.full(len(cost), -1), set()
+    for flat in np.argsort(cost, axis=None, kind="stable"):
+        i, j = divmod(int(flat), cost.shape[1])
+        if match[i] < 0 and j not in used:
+            match[i] = j
+            used.add(j)
+    return match
+
+
+def test_nearest_first_is_the_greedy_matching_and_bounds_coverage_below_the_plan():
+    rng = np.random.default_rng(1)
+    for n in (1, 2, 7, 40, 150):
+        pos, lmk = rng.uniform(-3, 3, (n, 2)), rng.uniform(-3, 3, (n, 2))
+        cost = np.linalg.norm(pos[:, None] - lmk[None], axis=-1)
+        np.testing.assert_array_equal(ref.nearest_first(cost), _sorted_scan(cost))
+    # a chain where nearest-first is not min-sum: agent 0 takes landmark 0, agent 1 the far one
+    cost = np.array([[1.0, 2.0], [1.1, 10.0]])
+    np.testing.assert_array_equal(ref.nearest_first(cost), [0, 1])
+    # ties (a grid of equal distances) still end, every row matched once
+    tied = np.abs(np.arange(6)[:, None] - np.arange(6)[None]).astype(float)
+    assert sorted(ref.nearest_first(tied)) == list(range(6))
+    run = ref.run("nearest-first", agents=10, episodes=5, seed=777, batch=5, assignment="nearest")
+    assert run["controller"] == "nearest-first" and run["success_rate"] >= 0.6 and run["covered"] >= 0.95, run
+
+
+def test_line_rows_are_sensed_and_planned():
+    planned = ref.run("nearest-first", agents=20, episodes=5, seed=777, batch=5, task="line")
+    assert planned["task"] == "line" and planned["dist"] is None and planned["success_rate"] >= 0.6, planned

@@ -386,3 +386,42 @@ def test_nearest_needs_neighbour_lists():
             taichi_swarm.make("coverage", 2, 5, assignment=method, array="numpy")
     with pytest.raises(ValueError, match="assignment must be one of"):
         taichi_swarm.make("coverage", 2, 5, assignment="greedy", array="numpy")
+
+
+@pytest.mark.parametrize("task", ["coverage", "formation", "line"])
+def test_claim_readings_name_each_listed_landmarks_own_holder_in_every_task(task):
+    """kernels.claimed reads landmark l's holder as target l's in the matching, so every list task
+    keeps landmark k at target k (line once stored its first row's end second, and every claim
+    reading on its rows named another target's holder: none read held). With the agents parked
+    near their targets, each listed landmark that the matching gives another agent reads that
+    agent's distance, and every other one reads at least the threshold."""
+    M, B, thr_tol = 60, 2, 1e-5
+    env = taichi_swarm.make(
+        task, B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=3, array="numpy",
+        scale="density", landmark_neighbours=8, sense_radius=1.5, landmark_occupancy=True, landmark_order="claim",
+    )  # fmt: skip
+    env.reset()
+    lmk = env.get_state()["landmarks"]
+    np.testing.assert_array_equal(lmk, env.targets)  # landmark k is target k
+    rng = np.random.default_rng(5)
+    pos = env.targets + rng.uniform(-0.03, 0.03, size=(B, M, 2))
+    obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
+    thr, sense = env.params["success_threshold"], 1.5
+    held_seen = 0
+    for b in range(B):
+        holder = np.full(M, -1)
+        assigned = env.assignment[b]
+        holder[assigned[assigned >= 0]] = np.flatnonzero(assigned >= 0)
+        ent, mask = obs["entities"][b], obs["entity_mask"][b]
+        for i in range(M):
+            for k in np.flatnonzero(mask[i]):
+                q = pos[b, i] + ent[i, k, :2]
+                t = int(np.linalg.norm(env.targets[b] - q, axis=-1).argmin())
+                h = holder[t]
+                if h >= 0 and h != i:
+                    held_seen += 1
+                    want = min(np.linalg.norm(q - pos[b, h]), sense)
+                    assert ent[i, k, 2] == pytest.approx(want, abs=thr_tol), (b, i, k, t, h)
+                else:
+                    assert ent[i, k, 2] >= thr - thr_tol, (b, i, k, t)
+    assert held_seen > B * M  # most listed landmarks are some teammate's

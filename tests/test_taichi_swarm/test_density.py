@@ -97,11 +97,14 @@ def test_density_formation_is_a_filled_hexagonal_lattice(M):
 @pytest.mark.parametrize(("task", "M"), [("formation", 2), ("formation", 7), ("formation", 50), ("line", 2),
                                          ("line", 9), ("line", 61)])  # fmt: skip
 def test_density_shapes_list_their_targets_as_landmarks(task, M):
-    """With landmark lists every target is a landmark (formation: landmark 0 the lattice's
-    centre; line: landmarks 0 and 1 the first row's ends), the episode is otherwise the plain
-    task's draw for draw, and each agent senses the nearest targets, as coverage's agents sense
-    their landmarks. (line at M = 61: three rows, the last short.)"""
+    """With landmark lists every target is a landmark, landmark k target k (formation: landmark 0
+    the lattice's centre; line: landmark 0 the first row's start, which with landmark 1 its end
+    is what the plain task stores), the episode is otherwise the plain task's draw for draw, and
+    each agent senses the nearest targets, as coverage's agents sense their landmarks. (line at
+    M = 61: three rows, the last short.)"""
     from scipy.spatial import cKDTree
+
+    from taichi_swarm.tasks import line
 
     B, KL, sense = 3, 6, 0.8
     kw = dict(comm="rc", neighbours=6, scale="density", seed=M, array="numpy")
@@ -114,13 +117,11 @@ def test_density_shapes_list_their_targets_as_landmarks(task, M):
     for _ in range(3):
         a, b = listed.get_state(), plain.get_state()
         np.testing.assert_array_equal(a["pos"], b["pos"])
-        np.testing.assert_array_equal(a["landmarks"][:, :L], b["landmarks"])
-        for e in range(B):  # the same points (line's landmarks are its targets, reordered)
-            got = a["landmarks"][e]
-            gaps = np.linalg.norm(got[:, None] - listed.targets[e][None], axis=-1)
-            np.testing.assert_allclose(gaps.min(axis=0), 0.0, atol=1e-5)
-            np.testing.assert_allclose(gaps.min(axis=1), 0.0, atol=1e-5)
-        np.testing.assert_allclose(listed.targets, plain.targets, atol=1e-6)
+        np.testing.assert_array_equal(a["landmarks"][:, 0], b["landmarks"][:, 0])
+        np.testing.assert_array_equal(a["landmarks"], listed.targets)  # landmark k is target k
+        if task == "line" and M > 2:  # the plain task's landmark 1 is the first row's end
+            np.testing.assert_allclose(b["landmarks"][:, 1], listed.targets[:, line.per_row(M) - 1], atol=1e-5)
+        np.testing.assert_allclose(listed.targets, plain.targets, atol=1e-5)
         np.testing.assert_allclose(listed.matched_dist, plain.matched_dist, atol=1e-5)
         for e in range(B):
             tree = cKDTree(a["landmarks"][e].astype(np.float64))
