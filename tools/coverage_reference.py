@@ -84,17 +84,21 @@ def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray) -> np.ndarray:
     return (np.argmin(cost.reshape(len(pos), -1), axis=1) // len(DIRECTIONS)).astype(np.int64)
 
 
+def matched_goals(state: dict, match) -> np.ndarray:
+    """[B, M, 2]: every agent's landmark in ``match`` ([M, M] distances -> each row's column)
+    of the current positions, env by env."""
+    pos, lmk = state["pos"], state["landmarks"]
+    goals = np.empty_like(pos)
+    for b in range(pos.shape[0]):
+        goals[b] = lmk[b, match(np.linalg.norm(pos[b][:, None, :] - lmk[b][None, :, :], axis=-1))]
+    return goals
+
+
 def planned_goals(state: dict) -> np.ndarray:
     """[B, M, 2]: every agent's landmark in the min-sum matching of the current positions."""
     from scipy.optimize import linear_sum_assignment
 
-    pos, lmk = state["pos"], state["landmarks"]
-    goals = np.empty_like(pos)
-    for b in range(pos.shape[0]):
-        cost = np.linalg.norm(pos[b][:, None, :] - lmk[b][None, :, :], axis=-1)
-        rows, cols = linear_sum_assignment(cost)
-        goals[b, rows] = lmk[b, cols]
-    return goals
+    return matched_goals(state, lambda cost: linear_sum_assignment(cost)[1])  # rows come in order
 
 
 def nearest_first(cost: np.ndarray) -> np.ndarray:
@@ -122,11 +126,7 @@ def nearest_first(cost: np.ndarray) -> np.ndarray:
 
 def nearest_first_goals(state: dict) -> np.ndarray:
     """[B, M, 2]: every agent's landmark in the greedy matching of the current positions."""
-    pos, lmk = state["pos"], state["landmarks"]
-    goals = np.empty_like(pos)
-    for b in range(pos.shape[0]):
-        goals[b] = lmk[b, nearest_first(np.linalg.norm(pos[b][:, None, :] - lmk[b][None, :, :], axis=-1))]
-    return goals
+    return matched_goals(state, nearest_first)
 
 
 def greedy_goals(state: dict, obs: dict, rounds: int = 3, taken: np.ndarray | None = None) -> np.ndarray:

@@ -87,14 +87,14 @@ def spawn_rows(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
     along = ti.math.vec2(ti.cos(theta), ti.sin(theta))
     across = ti.math.vec2(-along[1], along[0])
     l0 = centre - 0.5 * (m - 1) * spacing * along - 0.5 * (n - 1) * gap * across
-    blocks.landmarks.store(f, ib, b, 0, l0)
-    if ib[H_L] == 2:  # the first row's ends
-        blocks.landmarks.store(f, ib, b, 1, l0 + (m - 1) * spacing * along)
     for i in range(M):  # the agents, re-drawn over the block's footprint
         a = -0.5 * spacing + (m * spacing) * rng.uniform(ib, b)
         c = -0.5 * gap + (n * gap) * rng.uniform(ib, b)
         blocks.pos.store(f, ib, b, i, l0 + a * along + c * across)
-    if ib[H_L] != 2:  # landmark lists: every target, landmark k target k (no draws)
+    blocks.landmarks.store(f, ib, b, 0, l0)
+    if ib[H_L] == 2:  # the first row's ends
+        blocks.landmarks.store(f, ib, b, 1, l0 + (m - 1) * spacing * along)
+    else:  # landmark lists: every target, landmark k target k (no draws)
         for k in range(1, ib[H_L]):
             blocks.landmarks.store(f, ib, b, k, l0 + (k % m) * spacing * along + (k // m) * gap * across)
 
