@@ -24,14 +24,20 @@ targets sensed the same way (the 24 nearest within 1.5, as the line policies sen
   gives it, within the threshold: a reading below it) is never a goal; of the rest, the agent
   drives to the nearest that no teammate it hears heads for from nearer (3 rounds, as greedy).
   An agent the matching holds reads its own landmark free and nearest, so it stays on it.
+- window: each agent solves the min-sum matching of the agents and landmarks within
+  ``--window-radius`` of it (all positions known exactly, every landmark within it, a privileged
+  view no list gives), re-planned every step, and drives to its own landmark (to its nearest
+  where the matching leaves it none). It asks how far a local plan must see: the network's 3
+  rounds of messages over teammates within 1 reach agents up to 3 away.
 
     python tools/coverage_reference.py --sizes 10 100 1000 --episodes 100 --save
     python tools/coverage_reference.py --task formation --sizes 10 100 --episodes 100
     python tools/coverage_reference.py --task line --controllers nearest-first --sizes 50 100 --episodes 100
+    python tools/coverage_reference.py --controllers window --window-radius 3 --sizes 100 --episodes 100
 
 --save merges the rows into results/swarm/reference-<controller>.json (a size run again
 replaces its row; reference-<controller>-nearest.json with --assignment nearest;
-reference-<task>-<controller>.json for formation and line), which
+reference-<task>-<controller>.json for formation and line; window-r<R> for window's radius R), which
 tools/swarm_curves.py draws beside the policies' zero-shot curves.
 """
 
@@ -49,9 +55,9 @@ RESULTS = os.path.join(ROOT, "results", "swarm")
 sys.path.insert(0, ROOT)
 
 import taichi_swarm  # noqa: E402
-from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY  # noqa: E402
+from taichi_swarm.physics import DAMPING, DT, FINE, MASS, SENSITIVITY  # noqa: E402
 
-CONTROLLERS = ("planned", "nearest-first", "greedy", "claim")
+CONTROLLERS = ("planned", "nearest-first", "greedy", "claim", "window")
 # the landmarks each task's policies sense (formation's are the points of its lattice)
 SENSED = {
     "coverage": dict(landmark_neighbours=5, sense_radius=1.0),
@@ -60,11 +66,12 @@ SENSED = {
 }
 # what the claim controller senses: the zoo's coverage-rc-m100-claim's lists
 CLAIM = dict(neighbours=8, landmark_neighbours=16, sense_radius=6.0, landmark_occupancy=True, landmark_order="claim")
-# unit force direction of each discrete action: no-op, -x, +x, -y, +y
+# unit force direction of each discrete action: no-op, -x, +x, -y, +y; "fine" adds the four at FINE
 DIRECTIONS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], np.float32)
+FORCES = {"discrete": DIRECTIONS, "fine": np.concatenate([DIRECTIONS, FINE * DIRECTIONS[1:]])}
 
 
-def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray) -> np.ndarray:
+def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray, action_space: str = "discrete") -> np.ndarray:
     """[N, 2] each -> int64 [N]: the first action of the two-action sequence that brings the
     next two positions and the stopping point after them (where the agent comes to rest if it
     coasts from there on) nearest its goal.
@@ -72,8 +79,10 @@ def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray) -> np.ndarray:
     SENSITIVITY / MASS * DT * DT / DAMPING = 0.2 to it), wider than the 0.1 of success, so a
     controller that only parks misses a goal between lattice points (up to 0.141 away); this
     one alternates impulses and hovers there: within 0.056 of 4000 random goals over the last
-    10 of 50 steps (one step of lookahead: 6% of them out of 0.1)."""
-    accel = DIRECTIONS * (SENSITIVITY / MASS) * DT  # [5, 2] velocity change of each action
+    10 of 50 steps (one step of lookahead: 6% of them out of 0.1). ``action_space="fine"`` picks
+    from the nine actions of that space (the quarter pushes too)."""
+    forces = FORCES[action_space]
+    accel = forces * (SENSITIVITY / MASS) * DT  # [A, 2] velocity change of each action
     v1 = vel[:, None, :] * (1.0 - DAMPING) + accel[None]  # [N, 5, 2]
     p1 = pos[:, None, :] + v1 * DT
     v2 = v1[:, :, None, :] * (1.0 - DAMPING) + accel[None, None]  # [N, 5, 5, 2]
@@ -81,7 +90,7 @@ def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray) -> np.ndarray:
     stop = p2 + v2 * DT * (1.0 - DAMPING) / DAMPING
     g = goal[:, None, None, :]
     cost = ((p1[:, :, None] - g) ** 2).sum(-1) + ((p2 - g) ** 2).sum(-1) + ((stop - g) ** 2).sum(-1)  # [N, 5, 5]
-    return (np.argmin(cost.reshape(len(pos), -1), axis=1) // len(DIRECTIONS)).astype(np.int64)
+    return (np.argmin(cost.reshape(len(pos), -1), axis=1) // len(forces)).astype(np.int64)
 
 
 def matched_goals(state: dict, match) -> np.ndarray:
@@ -127,6 +136,31 @@ def nearest_first(cost: np.ndarray) -> np.ndarray:
 def nearest_first_goals(state: dict) -> np.ndarray:
     """[B, M, 2]: every agent's landmark in the greedy matching of the current positions."""
     return matched_goals(state, nearest_first)
+
+
+def window_goals(state: dict, radius: float) -> np.ndarray:
+    """[B, M, 2]: each agent's landmark in the min-sum matching of the agents and the landmarks
+    within ``radius`` of it (its nearest landmark where that matching leaves it none, or none lie
+    within the radius). One matching per agent: the plan an agent could make from a window."""
+    from scipy.optimize import linear_sum_assignment
+
+    pos, lmk = state["pos"], state["landmarks"]
+    goals = np.empty_like(pos)
+    for b in range(pos.shape[0]):
+        to_agents = np.linalg.norm(pos[b][:, None] - pos[b][None], axis=-1)  # [M, M]
+        to_landmarks = np.linalg.norm(pos[b][:, None] - lmk[b][None], axis=-1)  # [M, L]
+        nearest = to_landmarks.argmin(1)
+        for i in range(pos.shape[1]):
+            goals[b, i] = lmk[b, nearest[i]]
+            agents = np.flatnonzero(to_agents[i] <= radius)  # i among them
+            landmarks = np.flatnonzero(to_landmarks[i] <= radius)
+            if len(landmarks) == 0:
+                continue
+            rows, cols = linear_sum_assignment(to_landmarks[np.ix_(agents, landmarks)])
+            mine = cols[agents[rows] == i]
+            if len(mine):
+                goals[b, i] = lmk[b, landmarks[mine[0]]]
+    return goals
 
 
 def greedy_goals(state: dict, obs: dict, rounds: int = 3, taken: np.ndarray | None = None) -> np.ndarray:
@@ -186,6 +220,7 @@ def run(
     assignment: str = "exact",
     task: str = "coverage",
     steps: int | None = None,
+    window_radius: float = 3.0,
 ) -> dict:
     """One controller at one team size: S%, covered and DIST over ``episodes`` episodes; covered
     and S% by the min-sum matching (``assignment="exact"``) or by the maximum matching within
@@ -219,6 +254,8 @@ def run(
                 goals = nearest_first_goals(state)
             elif controller == "claim":
                 goals = claim_goals(state, obs, env.params["success_threshold"])
+            elif controller == "window":
+                goals = window_goals(state, window_radius)
             else:
                 goals = greedy_goals(state, obs)
             actions = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2))
@@ -229,6 +266,7 @@ def run(
     return {
         **({"task": task} if task != "coverage" else {}),
         "controller": controller,
+        **({"window_radius": window_radius} if controller == "window" else {}),
         **({"assignment": assignment} if assignment != "exact" else {}),
         "agents": agents,
         "episodes": len(per["success"]),
@@ -240,8 +278,11 @@ def run(
 
 
 def _kind(row: dict) -> tuple[str, str, str]:
-    """A row's (task, controller, assignment): one results file each."""
-    return row.get("task", "coverage"), row["controller"], row.get("assignment", "exact")
+    """A row's (task, controller, assignment): one results file each (window's per radius)."""
+    controller = row["controller"]
+    if controller == "window":
+        controller = f"window-r{row['window_radius']:g}"
+    return row.get("task", "coverage"), controller, row.get("assignment", "exact")
 
 
 def save(rows: list[dict], seed: int, directory: str = RESULTS) -> list[str]:
@@ -291,6 +332,9 @@ def main(argv: list[str] | None = None) -> None:
     )  # fmt: skip
     ap.add_argument("--steps", type=int, help="episode length (default: the task's 50); not with --save")
     ap.add_argument(
+        "--window-radius", type=float, default=3.0, help="window's radius: the agents and landmarks it plans over"
+    )
+    ap.add_argument(
         "--save", action="store_true",
         help="merge the rows into results/swarm/reference-<controller>.json (-nearest.json with --assignment nearest; "
         "reference-<task>-<controller>.json for formation and line)",
@@ -300,6 +344,8 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--episodes must be >= 1 and every size >= 2")
     if args.steps is not None and (args.steps < 1 or args.save):
         ap.error("--steps must be >= 1, and the saved rows are 50-step episodes: --steps goes without --save")
+    if args.window_radius <= 0:
+        ap.error(f"--window-radius must be > 0, got {args.window_radius:g}")
     if "claim" in args.controllers and args.assignment != "nearest":
         ap.error("--controllers claim reads claim lists, which the threshold matching builds: add --assignment nearest")
     taichi_swarm.init("cpu")
@@ -308,7 +354,14 @@ def main(argv: list[str] | None = None) -> None:
     for controller in args.controllers:
         for m in args.sizes:
             r = run(
-                controller, m, args.episodes, args.seed, assignment=args.assignment, task=args.task, steps=args.steps
+                controller,
+                m,
+                args.episodes,
+                args.seed,
+                assignment=args.assignment,
+                task=args.task,
+                steps=args.steps,
+                window_radius=args.window_radius,
             )
             rows.append(r)
             print(

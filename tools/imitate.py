@@ -1,13 +1,22 @@
-"""Behaviour cloning of the local greedy coverage controller (tools/coverage_reference.py) into a
-swarm policy, by DAgger: roll out at several team sizes, each environment driven by the
-controller or by the policy (the controller's share falling from 1 to 0), label every agent's
-step with the controller's action, and fit the policy's logits to the labels (cross-entropy).
-The controller uses only what an agent's lists and 3 rounds of messages give, so the network
-(the same lists, 3 attention rounds) can represent it; the result is a policy that `swarm eval`
-and `swarm zero-shot` read, and a start for PPO (`--init-from`).
+"""Behaviour cloning of a hand-written controller (tools/coverage_reference.py) into a swarm
+policy, by DAgger: roll out at several team sizes, each environment driven by the controller or
+by the policy (the controller's share falling from 1 to 0), label every agent's step with the
+controller's action, and fit the policy's logits to the labels (cross-entropy). The task, lists
+and action space are the policy's own (``--init``). Teachers:
+
+- greedy (coverage only): the local rule, which uses only what an agent's lists and 3 rounds of
+  messages give, so the network (the same lists, 3 attention rounds) can represent it;
+- window: each agent's own landmark in the min-sum matching of the agents and landmarks within
+  ``--window-radius`` of it (a privileged teacher: exact positions, no lists), which a student
+  approximates from its lists and messages.
+
+The result is a policy that `swarm eval` and `swarm zero-shot` read, and a start for PPO
+(`--init-from`).
 
     python tools/imitate.py --init coverage-rc-m10-swarm --sizes 10 20 50 100 --iterations 60 \
         --out runs/imitate/policy.pt
+    python tools/imitate.py --init results/reproduce-swarm/s-line-rc-rows-m50-k12/s0/stage-m50/policy.pt \
+        --teacher window --window-radius 3 --sizes 50 100 --iterations 40 --out runs/imitate-line/policy.pt
 """
 
 from __future__ import annotations
@@ -25,7 +34,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import torch  # noqa: E402
-from coverage_reference import greedy_goals, steer  # noqa: E402
+from coverage_reference import greedy_goals, steer, window_goals  # noqa: E402
 
 import taichi_swarm  # noqa: E402
 from trainer import checkpoint  # noqa: E402
@@ -35,31 +44,39 @@ AGENTS_PER_ROLLOUT = 1000  # B x M of each iteration's environments
 STEPS = 50  # the episode's length: one rollout is one episode of every environment
 
 
-def make_env(agents: int, swarm: dict, seed: int):
+TEACHERS = ("greedy", "window")
+
+
+def make_env(task: str, agents: int, swarm: dict, seed: int):
     return taichi_swarm.make(
-        "coverage", max(1, AGENTS_PER_ROLLOUT // agents), agents, comm="rc", comm_radius=1.0, seed=seed, **swarm
+        task, max(1, AGENTS_PER_ROLLOUT // agents), agents, comm="rc", comm_radius=1.0, seed=seed, **swarm
     )
 
 
-def expert_actions(env, obs) -> torch.Tensor:
-    """The greedy controller's action for every agent, int64 [B, M]."""
+def expert_actions(env, obs, teacher: str = "greedy", window_radius: float = 3.0) -> torch.Tensor:
+    """The teacher's action for every agent in the env's action space, int64 [B, M]."""
     state = env.get_state()
     state = {k: np.asarray(v) for k, v in state.items()}
-    view = {k: np.asarray(v) for k, v in obs.items()}
-    goals = greedy_goals(state, view)
-    a = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2))
+    if teacher == "window":
+        goals = window_goals(state, window_radius)
+    else:
+        goals = greedy_goals(state, {k: np.asarray(v) for k, v in obs.items()})
+    a = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2), env.action_space)
     return torch.from_numpy(a.reshape(env.num_envs, env.num_agents))
 
 
-def rollout(env, policy, expert_share: float, seed: int):
-    """One episode of every environment; the first round(expert_share * B) follow the controller,
-    the rest the policy's argmax. Returns (inputs per step, labels per step, covered)."""
+def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy", window_radius: float = 3.0):
+    """One episode of every environment; the first round(expert_share * B) follow the teacher,
+    the rest the policy's argmax. Returns (inputs per step, labels per step, covered, success),
+    the last two over the episodes that ended in the environments the policy drove (all of them
+    while the teacher drives every one)."""
     obs = env.reset(seed=seed)
     n_expert = int(round(expert_share * env.num_envs))
     inputs, labels = [], []
+    covered, success = [], []
     for _ in range(STEPS):
         x = {k: v.clone() for k, v in policy_inputs(obs).items()}  # the env's views are overwritten
-        label = expert_actions(env, obs)
+        label = expert_actions(env, obs, teacher, window_radius)
         with torch.no_grad():
             mine = policy(**x)[0].argmax(-1)
         action = mine.clone()
@@ -67,8 +84,12 @@ def rollout(env, policy, expert_share: float, seed: int):
         inputs.append(x)
         labels.append(label)
         obs, _, done, info = env.step(action.contiguous())
-    covered = float(np.asarray(info["episode"]["covered"])[np.asarray(done)].mean()) if np.asarray(done).any() else 0.0
-    return inputs, labels, covered
+        ended = np.asarray(done).copy()
+        if n_expert < env.num_envs:
+            ended[:n_expert] = False
+        covered.extend(np.asarray(info["episode"]["covered"])[ended].tolist())
+        success.extend(np.asarray(info["episode"]["success"])[ended].tolist())
+    return inputs, labels, float(np.mean(covered)) if covered else 0.0, float(np.mean(success)) if success else 0.0
 
 
 def fit(policy, optimizer, inputs, labels, rng, chunk: int = 10) -> tuple[float, float]:
@@ -100,10 +121,16 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--lr", type=float, default=3e-4)
     ap.add_argument("--passes", type=int, default=2, help="passes over each new rollout")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--teacher", choices=TEACHERS, default="greedy", help="the controller whose actions label the steps"
+    )
+    ap.add_argument("--window-radius", type=float, default=3.0, help="window's radius (tools/coverage_reference.py)")
     ap.add_argument("--out", required=True, help="the policy file to write (policy.pt format)")
     args = ap.parse_args(argv)
     if args.iterations < 1 or any(m < 2 for m in args.sizes):
         ap.error("--iterations must be >= 1 and every size >= 2")
+    if args.window_radius <= 0:
+        ap.error(f"--window-radius must be > 0, got {args.window_radius:g}")
     taichi_swarm.init("cpu")
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -111,6 +138,9 @@ def main(argv: list[str] | None = None) -> None:
 
     path = get(args.init).path if looks_like_name(args.init) else args.init
     policy, payload = checkpoint.load_policy(path)
+    task = payload["task"]["task"]
+    if args.teacher == "greedy" and task != "coverage":
+        raise SystemExit(f"imitate: the greedy teacher drives coverage, and {args.init} is a {task} policy")
     swarm = dict(payload.get("swarm") or {})
     swarm["assignment"] = "nearest"  # covered by the maximum matching, and a step cost flat in M
     for key in ("neighbours", "landmark_neighbours", "sense_radius"):
@@ -118,18 +148,27 @@ def main(argv: list[str] | None = None) -> None:
             raise SystemExit(f"imitate: {args.init} was not trained on lists ({key} unset)")
     policy.train()
     optimizer = torch.optim.Adam(policy.parameters(), lr=args.lr)
-    envs = {m: make_env(m, swarm, args.seed) for m in args.sizes}
+    envs = {m: make_env(task, m, swarm, args.seed) for m in args.sizes}
     log = []
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     for it in range(args.iterations):
         m = args.sizes[it % len(args.sizes)]
         share = max(0.0, 1.0 - it / max(1, args.expert_iterations))
         t = time.time()
-        inputs, labels, covered = rollout(envs[m], policy, share, seed=args.seed * 100003 + it)
+        inputs, labels, covered, success = rollout(
+            envs[m], policy, share, args.seed * 100003 + it, args.teacher, args.window_radius
+        )
         for _ in range(args.passes):
             loss, acc = fit(policy, optimizer, inputs, labels, rng)
         row = dict(
-            iteration=it, agents=m, expert_share=share, covered=covered, loss=loss, accuracy=acc, s=time.time() - t
+            iteration=it,
+            agents=m,
+            expert_share=share,
+            covered=covered,
+            success=success,
+            loss=loss,
+            accuracy=acc,
+            s=time.time() - t,
         )
         log.append(row)
         print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}), flush=True)

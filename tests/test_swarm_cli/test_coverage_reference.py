@@ -138,3 +138,46 @@ def test_nearest_first_is_the_greedy_matching_and_bounds_coverage_below_the_plan
 def test_line_rows_are_sensed_and_planned():
     planned = ref.run("nearest-first", agents=20, episodes=5, seed=777, batch=5, task="line")
     assert planned["task"] == "line" and planned["dist"] is None and planned["success_rate"] >= 0.6, planned
+
+
+def test_window_plans_like_the_central_plan_when_it_sees_everyone_and_locally_when_not(tmp_path):
+    rng = np.random.default_rng(2)
+    pos, lmk = rng.uniform(-2, 2, (2, 30, 2)), rng.uniform(-2, 2, (2, 30, 2))
+    state = {"pos": pos, "landmarks": lmk}
+    # a window wider than the arena holds every agent and landmark: the min-sum matching itself
+    np.testing.assert_allclose(ref.window_goals(state, radius=10.0), ref.planned_goals(state))
+    # a window holding no landmark: the nearest one
+    far = {"pos": np.zeros((1, 2, 2)), "landmarks": np.array([[[3.0, 0.0], [0.0, 4.0]]])}
+    np.testing.assert_allclose(ref.window_goals(far, radius=1.0)[0], [[3.0, 0.0], [3.0, 0.0]])
+    # two agents, one landmark in both windows: the nearer takes it, the other its nearest (the same)
+    # unless another lies within its window: here agent 1 sees landmark 1 too and takes it
+    pair = {"pos": np.array([[[0.0, 0.0], [0.5, 0.0]]]), "landmarks": np.array([[[0.1, 0.0], [1.3, 0.0]]])}
+    np.testing.assert_allclose(ref.window_goals(pair, radius=1.0)[0], [[0.1, 0.0], [1.3, 0.0]])
+    run = ref.run("window", agents=10, episodes=5, seed=777, batch=5, assignment="nearest", window_radius=2.0)
+    assert run["window_radius"] == 2.0 and run["success_rate"] >= 0.6 and run["covered"] >= 0.95, run
+    ref.save([run, dict(run, window_radius=3.0)], seed=777, directory=str(tmp_path))
+    assert sorted(os.listdir(tmp_path)) == ["reference-window-r2-nearest.json", "reference-window-r3-nearest.json"]
+
+
+def test_window_radius_must_be_positive(capsys):
+    import pytest
+
+    with pytest.raises(SystemExit):
+        ref.main(["--controllers", "window", "--window-radius", "0", "--sizes", "5"])
+    assert "--window-radius must be > 0, got 0" in capsys.readouterr().err
+
+
+def test_fine_steering_parks_on_goals_between_the_lattice_points():
+    # with the quarter pushes of action_space="fine" an agent holds a point within formation's 0.05
+    rng = np.random.default_rng(3)
+    goals = rng.uniform(-0.6, 0.6, (40, 2)).astype(np.float32)
+    pos, vel = np.zeros_like(goals), np.zeros_like(goals)
+    worst = []
+    for t in range(40):
+        a = ref.steer(pos, vel, goals, "fine")
+        assert a.min() >= 0 and a.max() <= 8
+        vel = vel * (1 - DAMPING) + ref.FORCES["fine"][a] * (SENSITIVITY / MASS) * DT
+        pos = pos + vel * DT
+        if t >= 30:
+            worst.append(np.linalg.norm(pos - goals, axis=-1).max())
+    assert max(worst) < 0.05, worst

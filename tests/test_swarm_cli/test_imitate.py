@@ -36,3 +36,38 @@ def test_imitation_writes_a_loadable_policy_that_moved_towards_the_controller(tm
 def test_a_policy_without_lists_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="not trained on lists"):
         imitate.main(["--init", "coverage-rc-m10", "--iterations", "1", "--out", str(tmp_path / "x.pt")])
+
+
+LINE = os.path.join(ROOT, "results", "reproduce-swarm", "s-line-rc-rows-m50-k12", "s0", "stage-m50", "policy.pt")
+
+
+def test_the_window_teacher_labels_a_line_policy_in_its_own_fine_actions(tmp_path, monkeypatch):
+    from trainer import checkpoint
+
+    monkeypatch.setattr(imitate, "AGENTS_PER_ROLLOUT", 40)
+    monkeypatch.setattr(imitate, "STEPS", 10)
+    seen = []
+    real = imitate.expert_actions
+
+    def spy(env, obs, teacher, window_radius):
+        a = real(env, obs, teacher, window_radius)
+        seen.append((env.action_space, teacher, window_radius, int(a.max())))
+        return a
+
+    monkeypatch.setattr(imitate, "expert_actions", spy)
+    out = tmp_path / "line.pt"
+    imitate.main(["--init", LINE, "--teacher", "window", "--window-radius", "2", "--sizes", "10", "--iterations", "1",
+                  "--out", str(out)])  # fmt: skip
+    assert {s[:3] for s in seen} == {("fine", "window", 2.0)}
+    assert max(s[3] for s in seen) <= 8  # the fine action space's nine
+    _, payload = checkpoint.load_policy(str(out))
+    assert payload["task"]["task"] == "line" and payload["swarm"]["action_space"] == "fine"
+
+
+def test_the_greedy_teacher_drives_coverage_only_and_the_radius_is_checked(tmp_path, capsys):
+    with pytest.raises(SystemExit, match="greedy teacher drives coverage, and .* is a line policy"):
+        imitate.main(["--init", LINE, "--iterations", "1", "--out", str(tmp_path / "x.pt")])
+    with pytest.raises(SystemExit):
+        imitate.main(["--init", LINE, "--teacher", "window", "--window-radius", "-1", "--out", str(tmp_path / "x.pt")])
+    assert "--window-radius must be > 0, got -1" in capsys.readouterr().err
+    assert not os.listdir(tmp_path)  # a refused command leaves nothing behind
