@@ -71,10 +71,11 @@ DIRECTIONS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], np.float32)
 FORCES = {"discrete": DIRECTIONS, "fine": np.concatenate([DIRECTIONS, FINE * DIRECTIONS[1:]])}
 
 
-def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray, action_space: str = "discrete") -> np.ndarray:
-    """[N, 2] each -> int64 [N]: the first action of the two-action sequence that brings the
-    next two positions and the stopping point after them (where the agent comes to rest if it
-    coasts from there on) nearest its goal.
+def steer_costs(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray, action_space: str = "discrete") -> np.ndarray:
+    """[N, 2] each -> [N, A]: for each first action, the least cost of a two-action sequence
+    that starts with it, the cost being how far the next two positions and the stopping point
+    after them (where the agent comes to rest if it coasts from there on) lie from its goal
+    (squared distances, summed). ``steer`` takes the action of least cost.
     From rest an agent's stopping points lie on a lattice of side 0.2 (each impulse adds
     SENSITIVITY / MASS * DT * DT / DAMPING = 0.2 to it), wider than the 0.1 of success, so a
     controller that only parks misses a goal between lattice points (up to 0.141 away); this
@@ -83,14 +84,19 @@ def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray, action_space: str 
     from the nine actions of that space (the quarter pushes too)."""
     forces = FORCES[action_space]
     accel = forces * (SENSITIVITY / MASS) * DT  # [A, 2] velocity change of each action
-    v1 = vel[:, None, :] * (1.0 - DAMPING) + accel[None]  # [N, 5, 2]
+    v1 = vel[:, None, :] * (1.0 - DAMPING) + accel[None]  # [N, A, 2]
     p1 = pos[:, None, :] + v1 * DT
-    v2 = v1[:, :, None, :] * (1.0 - DAMPING) + accel[None, None]  # [N, 5, 5, 2]
+    v2 = v1[:, :, None, :] * (1.0 - DAMPING) + accel[None, None]  # [N, A, A, 2]
     p2 = p1[:, :, None, :] + v2 * DT
     stop = p2 + v2 * DT * (1.0 - DAMPING) / DAMPING
     g = goal[:, None, None, :]
-    cost = ((p1[:, :, None] - g) ** 2).sum(-1) + ((p2 - g) ** 2).sum(-1) + ((stop - g) ** 2).sum(-1)  # [N, 5, 5]
-    return (np.argmin(cost.reshape(len(pos), -1), axis=1) // len(forces)).astype(np.int64)
+    cost = ((p1[:, :, None] - g) ** 2).sum(-1) + ((p2 - g) ** 2).sum(-1) + ((stop - g) ** 2).sum(-1)  # [N, A, A]
+    return cost.min(axis=2)
+
+
+def steer(pos: np.ndarray, vel: np.ndarray, goal: np.ndarray, action_space: str = "discrete") -> np.ndarray:
+    """[N, 2] each -> int64 [N]: the action of least ``steer_costs``."""
+    return np.argmin(steer_costs(pos, vel, goal, action_space), axis=1).astype(np.int64)
 
 
 def matched_goals(state: dict, match) -> np.ndarray:

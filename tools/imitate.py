@@ -34,7 +34,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import torch  # noqa: E402
-from coverage_reference import greedy_goals, steer, window_goals  # noqa: E402
+from coverage_reference import greedy_goals, steer_costs, window_goals  # noqa: E402
 
 import taichi_swarm  # noqa: E402
 from trainer import checkpoint  # noqa: E402
@@ -54,20 +54,31 @@ def make_env(task: str, agents: int, swarm: dict, seed: int):
 
 
 def expert_actions(env, obs, teacher: str = "greedy", window_radius: float = 3.0) -> torch.Tensor:
-    """The teacher's action for every agent in the env's action space, int64 [B, M]."""
+    """The teacher's steering costs for every agent and action of the env's action space,
+    float32 [B, M, A] (tools/coverage_reference.py ``steer_costs``); its action is the argmin."""
     state = env.get_state()
     state = {k: np.asarray(v) for k, v in state.items()}
     if teacher == "window":
         goals = window_goals(state, window_radius)
     else:
         goals = greedy_goals(state, {k: np.asarray(v) for k, v in obs.items()})
-    a = steer(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2), env.action_space)
-    return torch.from_numpy(a.reshape(env.num_envs, env.num_agents))
+    c = steer_costs(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2), env.action_space)
+    return torch.from_numpy(c.reshape(env.num_envs, env.num_agents, -1).astype(np.float32))
+
+
+def targets(costs: torch.Tensor, soft: float) -> torch.Tensor:
+    """The labels' distribution over actions [..., A]: all on the teacher's action (``soft`` 0),
+    or softmax(-(cost - least) / soft), which spreads it over the actions that steer nearly as
+    well (a hover between two pushes) and keeps it on the one action far from the goal."""
+    if soft <= 0:
+        return torch.nn.functional.one_hot(costs.argmin(-1), costs.shape[-1]).float()
+    return torch.softmax(-(costs - costs.min(-1, keepdim=True).values) / soft, dim=-1)
 
 
 def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy", window_radius: float = 3.0):
     """One episode of every environment; the first round(expert_share * B) follow the teacher,
-    the rest the policy's argmax. Returns (inputs per step, labels per step, covered, success),
+    the rest the policy's argmax. Returns (inputs per step, the teacher's steering costs per
+    step, covered, success),
     the last two over the episodes that ended in the environments the policy drove (all of them
     while the teacher drives every one)."""
     obs = env.reset(seed=seed)
@@ -80,7 +91,7 @@ def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy"
         with torch.no_grad():
             mine = policy(**x)[0].argmax(-1)
         action = mine.clone()
-        action[:n_expert] = label[:n_expert]
+        action[:n_expert] = label[:n_expert].argmin(-1)
         inputs.append(x)
         labels.append(label)
         obs, _, done, info = env.step(action.contiguous())
@@ -92,16 +103,18 @@ def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy"
     return inputs, labels, float(np.mean(covered)) if covered else 0.0, float(np.mean(success)) if success else 0.0
 
 
-def fit(policy, optimizer, inputs, labels, rng, chunk: int = 10) -> tuple[float, float]:
-    """One pass over a rollout's steps in random chunks of ``chunk`` steps; (loss, accuracy)."""
+def fit(policy, optimizer, inputs, labels, rng, chunk: int = 10, soft: float = 0.0) -> tuple[float, float]:
+    """One pass over a rollout's steps in random chunks of ``chunk`` steps, the logits fitted to
+    ``targets(costs, soft)`` (cross-entropy); (loss, accuracy: the argmax on the teacher's action)."""
     order = rng.permutation(len(inputs))
     losses, hits, total = [], 0, 0
     for i in range(0, len(order), chunk):
         idx = order[i : i + chunk]
         x = {k: torch.cat([inputs[j][k] for j in idx]) for k in inputs[0]}
-        y = torch.cat([labels[j] for j in idx])
+        costs = torch.cat([labels[j] for j in idx])
+        y = costs.argmin(-1)
         logits = policy(**x)[0]
-        loss = torch.nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1]), y.reshape(-1))
+        loss = -(targets(costs, soft) * torch.log_softmax(logits, -1)).sum(-1).mean()
         optimizer.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
@@ -125,12 +138,18 @@ def main(argv: list[str] | None = None) -> None:
         "--teacher", choices=TEACHERS, default="greedy", help="the controller whose actions label the steps"
     )
     ap.add_argument("--window-radius", type=float, default=3.0, help="window's radius (tools/coverage_reference.py)")
+    ap.add_argument(
+        "--soft", type=float, default=0.0,
+        help="soft labels: softmax(-(steering cost - least) / SOFT) over the actions (default 0: the teacher's action)",
+    )  # fmt: skip
     ap.add_argument("--out", required=True, help="the policy file to write (policy.pt format)")
     args = ap.parse_args(argv)
     if args.iterations < 1 or any(m < 2 for m in args.sizes):
         ap.error("--iterations must be >= 1 and every size >= 2")
     if args.window_radius <= 0:
         ap.error(f"--window-radius must be > 0, got {args.window_radius:g}")
+    if args.soft < 0:
+        ap.error(f"--soft must be >= 0, got {args.soft:g}")
     taichi_swarm.init("cpu")
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -159,7 +178,7 @@ def main(argv: list[str] | None = None) -> None:
             envs[m], policy, share, args.seed * 100003 + it, args.teacher, args.window_radius
         )
         for _ in range(args.passes):
-            loss, acc = fit(policy, optimizer, inputs, labels, rng)
+            loss, acc = fit(policy, optimizer, inputs, labels, rng, soft=args.soft)
         row = dict(
             iteration=it,
             agents=m,

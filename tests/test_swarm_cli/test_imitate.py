@@ -51,7 +51,7 @@ def test_the_window_teacher_labels_a_line_policy_in_its_own_fine_actions(tmp_pat
 
     def spy(env, obs, teacher, window_radius):
         a = real(env, obs, teacher, window_radius)
-        seen.append((env.action_space, teacher, window_radius, int(a.max())))
+        seen.append((env.action_space, teacher, window_radius, a.shape[-1]))
         return a
 
     monkeypatch.setattr(imitate, "expert_actions", spy)
@@ -59,7 +59,7 @@ def test_the_window_teacher_labels_a_line_policy_in_its_own_fine_actions(tmp_pat
     imitate.main(["--init", LINE, "--teacher", "window", "--window-radius", "2", "--sizes", "10", "--iterations", "1",
                   "--out", str(out)])  # fmt: skip
     assert {s[:3] for s in seen} == {("fine", "window", 2.0)}
-    assert max(s[3] for s in seen) <= 8  # the fine action space's nine
+    assert {s[3] for s in seen} == {9}  # a cost for each of the fine action space's nine
     _, payload = checkpoint.load_policy(str(out))
     assert payload["task"]["task"] == "line" and payload["swarm"]["action_space"] == "fine"
 
@@ -70,4 +70,23 @@ def test_the_greedy_teacher_drives_coverage_only_and_the_radius_is_checked(tmp_p
     with pytest.raises(SystemExit):
         imitate.main(["--init", LINE, "--teacher", "window", "--window-radius", "-1", "--out", str(tmp_path / "x.pt")])
     assert "--window-radius must be > 0, got -1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        imitate.main(["--init", LINE, "--teacher", "window", "--soft", "-0.5", "--out", str(tmp_path / "x.pt")])
+    assert "--soft must be >= 0, got -0.5" in capsys.readouterr().err
     assert not os.listdir(tmp_path)  # a refused command leaves nothing behind
+
+
+def test_soft_labels_spread_over_near_equal_actions_and_stay_sharp_far_from_the_goal():
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    pos = rng.uniform(-1, 1, (500, 2)).astype(np.float32)
+    vel = np.zeros_like(pos)
+    near = imitate.steer_costs(pos, vel, pos + rng.uniform(-0.03, 0.03, pos.shape).astype(np.float32), "fine")
+    far = imitate.steer_costs(pos, vel, pos + rng.uniform(1.0, 2.0, pos.shape).astype(np.float32), "fine")
+    near, far = torch.from_numpy(near), torch.from_numpy(far)
+    hard = imitate.targets(near, 0.0)
+    assert torch.equal(hard.argmax(-1), near.argmin(-1)) and torch.all(hard.sum(-1) == 1) and hard.max() == 1
+    soft_near, soft_far = imitate.targets(near, 0.01), imitate.targets(far, 0.01)
+    assert torch.equal(soft_far.argmax(-1), far.argmin(-1))  # the teacher's action stays the most likely
+    assert soft_far.max(-1).values.mean() > 0.9 > soft_near.max(-1).values.mean()
