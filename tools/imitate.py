@@ -53,9 +53,10 @@ def make_env(task: str, agents: int, swarm: dict, seed: int):
     )
 
 
-def expert_actions(env, obs, teacher: str = "greedy", window_radius: float = 3.0) -> torch.Tensor:
+def expert_actions(env, obs, teacher: str = "greedy", window_radius: float = 3.0) -> tuple[torch.Tensor, torch.Tensor]:
     """The teacher's steering costs for every agent and action of the env's action space,
-    float32 [B, M, A] (tools/coverage_reference.py ``steer_costs``); its action is the argmin."""
+    float32 [B, M, A] (tools/coverage_reference.py ``steer_costs``; its action is the argmin),
+    and each agent's offset to the teacher's goal for it, float32 [B, M, 2]."""
     state = env.get_state()
     state = {k: np.asarray(v) for k, v in state.items()}
     if teacher == "window":
@@ -63,7 +64,31 @@ def expert_actions(env, obs, teacher: str = "greedy", window_radius: float = 3.0
     else:
         goals = greedy_goals(state, {k: np.asarray(v) for k, v in obs.items()})
     c = steer_costs(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2), env.action_space)
-    return torch.from_numpy(c.reshape(env.num_envs, env.num_agents, -1).astype(np.float32))
+    costs = torch.from_numpy(c.reshape(env.num_envs, env.num_agents, -1).astype(np.float32))
+    return costs, torch.from_numpy((goals - state["pos"]).astype(np.float32))
+
+
+# the push directions (actions 1-4: -x, +x, -y, +y) and, in the fine space, their quarter pushes (5-8)
+PUSHES = torch.tensor([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+
+
+def direction_loss(logits: torch.Tensor, offset: torch.Tensor, beyond: float) -> tuple[torch.Tensor, int, int]:
+    """-log P(a push towards the goal) for the agents farther than ``beyond`` from the teacher's
+    goal: the push whose direction is nearest the offset's, full or quarter (their probabilities
+    summed). Nearer agents carry no label, so the policy keeps its own way of parking. Returns
+    (loss, hits, labelled): hits where the policy's most likely push group is the label's."""
+    far = offset.norm(dim=-1) > beyond
+    want = (offset @ PUSHES.T).argmax(-1)  # [..]: 0-3
+    logp = torch.log_softmax(logits, -1)
+    groups = [
+        logp[..., 1 + k] if logits.shape[-1] <= 5 else torch.logaddexp(logp[..., 1 + k], logp[..., 5 + k])
+        for k in range(4)
+    ]
+    groups = torch.stack([logp[..., 0]] + groups, -1)  # [.., 5]: no-op and the four directions
+    picked = groups.gather(-1, (want + 1)[..., None])[..., 0]
+    n = int(far.sum())
+    loss = -(picked * far).sum() / max(n, 1)
+    return loss, int(((groups.argmax(-1) == want + 1) & far).sum()), n
 
 
 def targets(costs: torch.Tensor, soft: float) -> torch.Tensor:
@@ -91,7 +116,7 @@ def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy"
         with torch.no_grad():
             mine = policy(**x)[0].argmax(-1)
         action = mine.clone()
-        action[:n_expert] = label[:n_expert].argmin(-1)
+        action[:n_expert] = label[0][:n_expert].argmin(-1)
         inputs.append(x)
         labels.append(label)
         obs, _, done, info = env.step(action.contiguous())
@@ -103,26 +128,33 @@ def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy"
     return inputs, labels, float(np.mean(covered)) if covered else 0.0, float(np.mean(success)) if success else 0.0
 
 
-def fit(policy, optimizer, inputs, labels, rng, chunk: int = 10, soft: float = 0.0) -> tuple[float, float]:
+def fit(
+    policy, optimizer, inputs, labels, rng, chunk: int = 10, soft: float = 0.0, beyond: float = 0.0
+) -> tuple[float, float]:
     """One pass over a rollout's steps in random chunks of ``chunk`` steps, the logits fitted to
-    ``targets(costs, soft)`` (cross-entropy); (loss, accuracy: the argmax on the teacher's action)."""
+    ``targets(costs, soft)`` (cross-entropy), or with ``beyond`` > 0 to ``direction_loss``;
+    (loss, accuracy: the argmax on the teacher's action, or on its push direction)."""
     order = rng.permutation(len(inputs))
     losses, hits, total = [], 0, 0
     for i in range(0, len(order), chunk):
         idx = order[i : i + chunk]
         x = {k: torch.cat([inputs[j][k] for j in idx]) for k in inputs[0]}
-        costs = torch.cat([labels[j] for j in idx])
+        costs = torch.cat([labels[j][0] for j in idx])
         y = costs.argmin(-1)
         logits = policy(**x)[0]
-        loss = -(targets(costs, soft) * torch.log_softmax(logits, -1)).sum(-1).mean()
+        if beyond > 0:
+            loss, hit, n = direction_loss(logits, torch.cat([labels[j][1] for j in idx]), beyond)
+        else:
+            loss = -(targets(costs, soft) * torch.log_softmax(logits, -1)).sum(-1).mean()
+            hit, n = int((logits.argmax(-1) == y).sum()), y.numel()
         optimizer.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
         optimizer.step()
         losses.append(loss.item())
-        hits += int((logits.argmax(-1) == y).sum())
-        total += y.numel()
-    return float(np.mean(losses)), hits / total
+        hits += hit
+        total += n
+    return float(np.mean(losses)), hits / max(total, 1)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -142,14 +174,19 @@ def main(argv: list[str] | None = None) -> None:
         "--soft", type=float, default=0.0,
         help="soft labels: softmax(-(steering cost - least) / SOFT) over the actions (default 0: the teacher's action)",
     )  # fmt: skip
+    ap.add_argument(
+        "--direction-beyond", type=float, default=0.0,
+        help="label only the push towards the teacher's goal, for agents farther than this from it (default 0: "
+        "the teacher's action for every agent)",
+    )  # fmt: skip
     ap.add_argument("--out", required=True, help="the policy file to write (policy.pt format)")
     args = ap.parse_args(argv)
     if args.iterations < 1 or any(m < 2 for m in args.sizes):
         ap.error("--iterations must be >= 1 and every size >= 2")
     if args.window_radius <= 0:
         ap.error(f"--window-radius must be > 0, got {args.window_radius:g}")
-    if args.soft < 0:
-        ap.error(f"--soft must be >= 0, got {args.soft:g}")
+    if args.soft < 0 or args.direction_beyond < 0:
+        ap.error(f"--soft and --direction-beyond must be >= 0, got {args.soft:g} and {args.direction_beyond:g}")
     taichi_swarm.init("cpu")
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -178,7 +215,7 @@ def main(argv: list[str] | None = None) -> None:
             envs[m], policy, share, args.seed * 100003 + it, args.teacher, args.window_radius
         )
         for _ in range(args.passes):
-            loss, acc = fit(policy, optimizer, inputs, labels, rng, soft=args.soft)
+            loss, acc = fit(policy, optimizer, inputs, labels, rng, soft=args.soft, beyond=args.direction_beyond)
         row = dict(
             iteration=it,
             agents=m,

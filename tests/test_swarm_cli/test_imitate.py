@@ -51,7 +51,7 @@ def test_the_window_teacher_labels_a_line_policy_in_its_own_fine_actions(tmp_pat
 
     def spy(env, obs, teacher, window_radius):
         a = real(env, obs, teacher, window_radius)
-        seen.append((env.action_space, teacher, window_radius, a.shape[-1]))
+        seen.append((env.action_space, teacher, window_radius, a[0].shape[-1]))
         return a
 
     monkeypatch.setattr(imitate, "expert_actions", spy)
@@ -72,7 +72,7 @@ def test_the_greedy_teacher_drives_coverage_only_and_the_radius_is_checked(tmp_p
     assert "--window-radius must be > 0, got -1" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         imitate.main(["--init", LINE, "--teacher", "window", "--soft", "-0.5", "--out", str(tmp_path / "x.pt")])
-    assert "--soft must be >= 0, got -0.5" in capsys.readouterr().err
+    assert "--soft and --direction-beyond must be >= 0, got -0.5 and 0" in capsys.readouterr().err
     assert not os.listdir(tmp_path)  # a refused command leaves nothing behind
 
 
