@@ -34,7 +34,7 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import torch  # noqa: E402
-from coverage_reference import greedy_goals, steer_costs, window_goals  # noqa: E402
+from coverage_reference import DIRECTIONS, greedy_goals, steer_costs, window_goals  # noqa: E402
 
 import taichi_swarm  # noqa: E402
 from trainer import checkpoint  # noqa: E402
@@ -68,8 +68,8 @@ def expert_actions(env, obs, teacher: str = "greedy", window_radius: float = 3.0
     return costs, torch.from_numpy((goals - state["pos"]).astype(np.float32))
 
 
-# the push directions (actions 1-4: -x, +x, -y, +y) and, in the fine space, their quarter pushes (5-8)
-PUSHES = torch.tensor([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+# the push directions of actions 1-4 (-x, +x, -y, +y); in the fine space 5-8 push the same ways at a quarter
+PUSHES = torch.from_numpy(DIRECTIONS[1:])
 
 
 def direction_loss(logits: torch.Tensor, offset: torch.Tensor, beyond: float) -> tuple[torch.Tensor, int, int]:
@@ -102,10 +102,9 @@ def targets(costs: torch.Tensor, soft: float) -> torch.Tensor:
 
 def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy", window_radius: float = 3.0):
     """One episode of every environment; the first round(expert_share * B) follow the teacher,
-    the rest the policy's argmax. Returns (inputs per step, the teacher's steering costs per
-    step, covered, success),
-    the last two over the episodes that ended in the environments the policy drove (all of them
-    while the teacher drives every one)."""
+    the rest the policy's argmax. Returns (inputs per step, the teacher's labels per step, covered,
+    success), the last two over the episodes that ended in the environments the policy drove (all
+    of them while the teacher drives every one)."""
     obs = env.reset(seed=seed)
     n_expert = int(round(expert_share * env.num_envs))
     inputs, labels = [], []
@@ -139,14 +138,13 @@ def fit(
     for i in range(0, len(order), chunk):
         idx = order[i : i + chunk]
         x = {k: torch.cat([inputs[j][k] for j in idx]) for k in inputs[0]}
-        costs = torch.cat([labels[j][0] for j in idx])
-        y = costs.argmin(-1)
         logits = policy(**x)[0]
         if beyond > 0:
             loss, hit, n = direction_loss(logits, torch.cat([labels[j][1] for j in idx]), beyond)
         else:
+            costs = torch.cat([labels[j][0] for j in idx])
             loss = -(targets(costs, soft) * torch.log_softmax(logits, -1)).sum(-1).mean()
-            hit, n = int((logits.argmax(-1) == y).sum()), y.numel()
+            hit, n = int((logits.argmax(-1) == costs.argmin(-1)).sum()), costs.shape[:-1].numel()
         optimizer.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 0.5)
