@@ -22,6 +22,7 @@ The result is a policy that `swarm eval` and `swarm zero-shot` read, and a start
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -38,13 +39,13 @@ from coverage_reference import DIRECTIONS, greedy_goals, steer_costs, window_goa
 
 import taichi_swarm  # noqa: E402
 from trainer import checkpoint  # noqa: E402
-from trainer.model import policy_inputs  # noqa: E402
+from trainer.model import SwarmPolicy, policy_inputs  # noqa: E402
 
 AGENTS_PER_ROLLOUT = 1000  # B x M of each iteration's environments
 STEPS = 50  # the episode's length: one rollout is one episode of every environment
 
 
-TEACHERS = ("greedy", "window")
+TEACHERS = ("greedy", "window", "first")
 
 
 def make_env(task: str, agents: int, swarm: dict, seed: int):
@@ -61,6 +62,9 @@ def expert_actions(env, obs, teacher: str = "greedy", window_radius: float = 3.0
     state = {k: np.asarray(v) for k, v in state.items()}
     if teacher == "window":
         goals = window_goals(state, window_radius)
+    elif teacher == "first":  # the first listed landmark (an agent that senses none stays where it is)
+        ent, sensed = np.asarray(obs["entities"])[..., 0, :2], np.asarray(obs["entity_mask"])[..., 0]
+        goals = state["pos"] + np.where(sensed[..., None], ent, 0.0)
     else:
         goals = greedy_goals(state, {k: np.asarray(v) for k, v in obs.items()})
     c = steer_costs(state["pos"].reshape(-1, 2), state["vel"].reshape(-1, 2), goals.reshape(-1, 2), env.action_space)
@@ -127,22 +131,57 @@ def rollout(env, policy, expert_share: float, seed: int, teacher: str = "greedy"
     return inputs, labels, float(np.mean(covered)) if covered else 0.0, float(np.mean(success)) if success else 0.0
 
 
+GOAL_MATCH = 1e-3  # a listed landmark is the teacher's goal where its offset is this near the goal's
+
+
+def goal_slots(x: dict, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which listed landmark is the teacher's goal: (slot [..], listed [..] bool) from the
+    policy inputs' entities [.., KL, F] (offsets first) and the goal's offset [.., 2]; an agent
+    whose goal is not among its sensed landmarks has no slot (listed False)."""
+    d = (x["entities"][..., :2] - offset.unsqueeze(-2)).norm(dim=-1)
+    d = d.masked_fill(~x["entity_mask"], float("inf"))
+    near, slot = d.min(-1)
+    return slot, near < GOAL_MATCH
+
+
+def goal_loss(policy, x: dict, offset: torch.Tensor) -> tuple[torch.Tensor, int, int]:
+    """Cross-entropy of the landmark attention's scores (``landmark_scores``) on the teacher's
+    goal, over the agents whose goal is listed: what an agent heads for, not how it steers.
+    Returns (loss, hits: the top score on the goal, labelled)."""
+    slot, listed = goal_slots(x, offset)
+    scores = policy.landmark_scores(**x)
+    picked = torch.log_softmax(scores, -1).gather(-1, slot[..., None])[..., 0]
+    n = int(listed.sum())
+    loss = -(picked * listed).sum() / max(n, 1)
+    return loss, int(((scores.argmax(-1) == slot) & listed).sum()), n
+
+
 def fit(
-    policy, optimizer, inputs, labels, rng, chunk: int = 10, soft: float = 0.0, beyond: float = 0.0
+    policy,
+    optimizer,
+    inputs,
+    labels,
+    rng,
+    chunk: int = 10,
+    soft: float = 0.0,
+    beyond: float = 0.0,
+    goal: bool = False,
 ) -> tuple[float, float]:
     """One pass over a rollout's steps in random chunks of ``chunk`` steps, the logits fitted to
-    ``targets(costs, soft)`` (cross-entropy), or with ``beyond`` > 0 to ``direction_loss``;
-    (loss, accuracy: the argmax on the teacher's action, or on its push direction)."""
+    ``targets(costs, soft)`` (cross-entropy), or with ``beyond`` > 0 to ``direction_loss``, or
+    with ``goal`` the landmark attention to ``goal_loss``; (loss, accuracy: the argmax on the
+    teacher's action, its push direction or its landmark)."""
     order = rng.permutation(len(inputs))
     losses, hits, total = [], 0, 0
     for i in range(0, len(order), chunk):
         idx = order[i : i + chunk]
         x = {k: torch.cat([inputs[j][k] for j in idx]) for k in inputs[0]}
-        logits = policy(**x)[0]
-        if beyond > 0:
-            loss, hit, n = direction_loss(logits, torch.cat([labels[j][1] for j in idx]), beyond)
+        if goal:
+            loss, hit, n = goal_loss(policy, x, torch.cat([labels[j][1] for j in idx]))
+        elif beyond > 0:
+            loss, hit, n = direction_loss(policy(**x)[0], torch.cat([labels[j][1] for j in idx]), beyond)
         else:
-            costs = torch.cat([labels[j][0] for j in idx])
+            costs, logits = torch.cat([labels[j][0] for j in idx]), policy(**x)[0]
             loss = -(targets(costs, soft) * torch.log_softmax(logits, -1)).sum(-1).mean()
             hit, n = int((logits.argmax(-1) == costs.argmin(-1)).sum()), costs.shape[:-1].numel()
         optimizer.zero_grad()
@@ -153,6 +192,17 @@ def fit(
         hits += hit
         total += n
     return float(np.mean(losses)), hits / max(total, 1)
+
+
+def with_goal_pass(policy, payload: dict):
+    """(policy, payload) with a goal pass: the same network if it has one, else the same
+    function with a zero W_g (ModelConfig.goal_pass), the payload's model config to match."""
+    if policy.config.goal_pass:
+        return policy, payload
+    config = dataclasses.replace(policy.config, goal_pass=True)
+    out = SwarmPolicy(config)
+    out.load_state_dict(policy.state_dict(), strict=False)  # all but goal_query, which starts at zero
+    return out, dict(payload, model_config=config.to_dict())
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -177,6 +227,16 @@ def main(argv: list[str] | None = None) -> None:
         help="label only the push towards the teacher's goal, for agents farther than this from it (default 0: "
         "the teacher's action for every agent)",
     )  # fmt: skip
+    ap.add_argument(
+        "--goal", action="store_true",
+        help="fit the landmark attention to the landmark the teacher heads for, not the logits to its action: "
+        "only the attention's query and key weights are trained (the messages and the actor are kept)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--goal-pass", action="store_true",
+        help="with --goal: fit through a goal pass (ModelConfig.goal_pass, added at zero where the policy lacks "
+        "it), whose weights W_g alone are trained",
+    )  # fmt: skip
     ap.add_argument("--out", required=True, help="the policy file to write (policy.pt format)")
     args = ap.parse_args(argv)
     if args.iterations < 1 or any(m < 2 for m in args.sizes):
@@ -185,6 +245,10 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"--window-radius must be > 0, got {args.window_radius:g}")
     if args.soft < 0 or args.direction_beyond < 0:
         ap.error(f"--soft and --direction-beyond must be >= 0, got {args.soft:g} and {args.direction_beyond:g}")
+    if args.goal and (args.soft > 0 or args.direction_beyond > 0):
+        ap.error("--goal fits the teacher's landmark: it takes neither --soft nor --direction-beyond")
+    if args.goal_pass and not args.goal:
+        ap.error("--goal-pass fits the landmark attention: add --goal")
     taichi_swarm.init("cpu")
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -200,8 +264,18 @@ def main(argv: list[str] | None = None) -> None:
     for key in ("neighbours", "landmark_neighbours", "sense_radius"):
         if swarm.get(key) is None:
             raise SystemExit(f"imitate: {args.init} was not trained on lists ({key} unset)")
+    params = policy.parameters()
+    if args.goal:
+        if policy.config.entity_mode != "emp":
+            raise SystemExit(f"imitate: --goal fits the landmark attention, and {args.init} has none (entity_mode "
+                             f"{policy.config.entity_mode!r})")  # fmt: skip
+        if args.goal_pass:
+            policy, payload = with_goal_pass(policy, payload)
+            params = list(policy.goal_query.parameters())
+        else:  # what scores the landmarks, not what the attention passes on (W_v, W_out) or the embeddings
+            params = [policy.entity_attention.w_q.weight, policy.entity_attention.w_k.weight]
     policy.train()
-    optimizer = torch.optim.Adam(policy.parameters(), lr=args.lr)
+    optimizer = torch.optim.Adam(params, lr=args.lr)
     envs = {m: make_env(task, m, swarm, args.seed) for m in args.sizes}
     log = []
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
@@ -213,7 +287,9 @@ def main(argv: list[str] | None = None) -> None:
             envs[m], policy, share, args.seed * 100003 + it, args.teacher, args.window_radius
         )
         for _ in range(args.passes):
-            loss, acc = fit(policy, optimizer, inputs, labels, rng, soft=args.soft, beyond=args.direction_beyond)
+            loss, acc = fit(
+                policy, optimizer, inputs, labels, rng, soft=args.soft, beyond=args.direction_beyond, goal=args.goal
+            )
         row = dict(
             iteration=it,
             agents=m,

@@ -132,6 +132,16 @@ class ModelConfig:
     which start at zero, so a policy without it is the same function with it and may be
     fine-tuned into it ("emp" only; the trainer sets it from ``landmark_occupancy``)."""
 
+    goal_pass: bool = False
+    """A second pass ("emp" only): the network runs once as it is, and then again with the
+    landmark attention's query raised by W_g h, h the first pass's final embedding (what the
+    agent made of its landmarks and 3 rounds of messages), so the landmark an agent heads for
+    can depend on its teammates. The landmark attention is otherwise the first thing an agent
+    does, before any message: a policy whose attention is set on a good plan's landmark follows
+    it (docs/SWARM.md, "The actor follows its attention"). W_g starts at zero, so a policy
+    without it is the same function with it and may be trained into it (tools/imitate.py
+    --goal); it costs a second forward and 2 x rounds message rounds. Not exported yet."""
+
     num_actions: int = NUM_ACTIONS
     """Logits of the policy head: the simulator's actions, 5 (the paper's) or 9 with
     ``action_space="fine"`` (the trainer sets it from that)."""
@@ -151,6 +161,8 @@ class ModelConfig:
             raise ValueError(f"num_landmarks must be >= 0, got {self.num_landmarks}")
         if self.landmark_occupancy and self.entity_mode != "emp":
             raise ValueError(f"landmark_occupancy needs entity_mode 'emp', got {self.entity_mode!r}")
+        if self.goal_pass and self.entity_mode != "emp":
+            raise ValueError(f"goal_pass needs entity_mode 'emp', got {self.entity_mode!r}")
 
     @property
     def entity_features(self) -> int:
@@ -240,6 +252,8 @@ class SwarmPolicy(nn.Module):
             self.entity_update = nn.Linear(2 * H, H)
         self.comm_attention = Attention(H)
         self.comm_update = nn.Linear(2 * H, H)
+        if config.goal_pass:
+            self.goal_query = nn.Linear(H, H, bias=False)
         if config.edge_position == "relative":
             self.edge_key = nn.Linear(2, H, bias=False)
             self.edge_value = nn.Linear(2, H, bias=False)
@@ -265,6 +279,8 @@ class SwarmPolicy(nn.Module):
             nn.init.zeros_(self.edge_value.weight)
         if self.config.landmark_occupancy:  # likewise: the network without occupancy until trained
             nn.init.zeros_(self.entity_occupancy.weight)
+        if self.config.goal_pass:  # likewise: one pass until trained
+            nn.init.zeros_(self.goal_query.weight)
 
     # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
     def own_input(self, self_obs: torch.Tensor) -> torch.Tensor:
@@ -276,10 +292,15 @@ class SwarmPolicy(nn.Module):
         return self_obs
 
     def encode(
-        self, self_obs: torch.Tensor, entities: torch.Tensor, entity_mask: torch.Tensor | None = None
+        self,
+        self_obs: torch.Tensor,
+        entities: torch.Tensor,
+        entity_mask: torch.Tensor | None = None,
+        goal: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """[..., 4], [..., L, 2] (and the sensed slots [..., L] bool) -> h [..., H]: agent
-        encoder and entity message passing."""
+        encoder and entity message passing; ``goal`` [..., H] (goal_pass's second pass: the
+        first pass's final h) adds (W_g goal) . e_l to landmark l's score."""
         mode = self.config.entity_mode
         self._check_entity_mask(entities, entity_mask)
         self_obs = self.own_input(self_obs)
@@ -287,9 +308,12 @@ class SwarmPolicy(nn.Module):
             h = torch.relu(self.agent_encoder(self_obs))
             e = self.embed_entities(entities)  # [..., L, H]
             att = self.entity_attention
-            q = att.w_q(h).unsqueeze(-2)  # [..., 1, H]
+            q, k = att.w_q(h).unsqueeze(-2), att.w_k(e)  # [..., 1, H], [..., L, H]
+            if goal is not None:  # q.k / sqrt(H) + (W_g goal).e, as one dot product of [q; W_g goal sqrt(H)] and [k; e]
+                q = torch.cat([q, self.goal_query(goal).unsqueeze(-2) * math.sqrt(self.config.hidden)], dim=-1)
+                k = torch.cat([k, e], dim=-1)
             mask = None if entity_mask is None else entity_mask.unsqueeze(-2)  # [..., 1, L]
-            m_e, _ = att.attend(q, att.w_k(e), att.w_v(e), mask)
+            m_e, _ = att.attend(q, k, att.w_v(e), mask)
             return torch.relu(self.entity_update(torch.cat([h, m_e.squeeze(-2)], dim=-1)))
         if entity_mask is not None:  # "padded": an unsensed slot is a zero slot, as the padding is
             entities = entities * entity_mask.unsqueeze(-1).to(entities.dtype)
@@ -460,6 +484,22 @@ class SwarmPolicy(nn.Module):
             # than gathering 1 + K slots (the same function: the slots scattered into adj)
             masks, slots = [lists_to_adj(slots, m) for m in masks], None
         fw = self.fused_weights() if fused is None else fused
+        h, attention = self._pass(self_obs, entities, entity_mask, masks, slots, fw)
+        if self.config.goal_pass:  # again, the landmark attention asked by what the first pass made of it all
+            h, attention = self._pass(self_obs, entities, entity_mask, masks, slots, fw, goal=h)
+        H, N, M = self.config.hidden, self_obs.shape[0], self_obs.shape[1]
+        w_heads, b_heads = fw.heads
+        z = torch.relu(torch.addmm(b_heads, h, w_heads))  # [NM, 2H]
+        logits = self.policy_head[2](z[:, :H]).view(N, M, -1)
+        value = self.value_head[2](z[:, H:]).view(N, M)
+        if return_attention:
+            return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
+        return logits, value
+
+    def _pass(self, self_obs, entities, entity_mask, masks, slots, fw, goal=None, scores_only=False):
+        """One pass of ``forward``: the landmark attention (its query raised by W_g ``goal``
+        [NM, H] in goal_pass's second pass), then the message rounds -> (h [NM, H], the rounds'
+        attention); with ``scores_only`` the landmark attention's scores [NM, L] (masked)."""
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]
         if self.config.entity_mode == "emp":
@@ -469,7 +509,14 @@ class SwarmPolicy(nn.Module):
             q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
             # NOTE: broadcast-multiply-sum, not bmm: batched GEMMs of these tiny matrices
             # ran 3x slower forward+backward on the CPU (docs/BENCHMARKS.md, training)
-            scores = (e * q_own[:, None, :H]).sum(-1)  # [NM, L]
+            query = q_own[:, :H] if goal is None else q_own[:, :H] + self.goal_query(goal)
+            scores = (e * query[:, None, :]).sum(-1)  # [NM, L]
+            if scores_only:
+                return (
+                    scores.masked_fill(~entity_mask.reshape(N * M, -1), MASK_FILL)
+                    if entity_mask is not None
+                    else scores
+                )
             if entity_mask is None:
                 weights = torch.softmax(scores, dim=-1)
             else:
@@ -479,6 +526,8 @@ class SwarmPolicy(nn.Module):
             h = torch.relu(torch.addmm(q_own[:, H:], pooled, heard))
         else:
             h = self.encode(self_obs, entities, entity_mask).reshape(N * M, H)
+            if scores_only:
+                raise ValueError("landmark scores need entity_mode 'emp'")
         own, own_bias, heard = fw.comm
         offsets = self.edge_offsets(self_obs, slots)  # [N, M, M, 2] dense, [N, M, S, 2] lists, or None
         if slots is not None:  # [N, M, S]: self, then the K listed
@@ -514,13 +563,20 @@ class SwarmPolicy(nn.Module):
                 update = update + pooled_offset @ fw.edge[1]
             h = torch.relu(update)
             attention.append(weights)
-        w_heads, b_heads = fw.heads
-        z = torch.relu(torch.addmm(b_heads, h, w_heads))  # [NM, 2H]
-        logits = self.policy_head[2](z[:, :H]).view(N, M, -1)
-        value = self.value_head[2](z[:, H:]).view(N, M)
-        if return_attention:
-            return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
-        return logits, value
+        return h, attention
+
+    def landmark_scores(self, self_obs, entities, adj=None, *, nbr=None, nbr_mask=None, entity_mask=None):
+        """The landmark attention's scores [N, M, L] (unsensed slots MASK_FILL) that decide
+        which landmarks an agent's summary holds: goal_pass's second pass, else the only one.
+        tools/imitate.py --goal fits them to a teacher's landmark."""
+        masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
+        self._check_entity_mask(entities, entity_mask)
+        fw = self.fused_weights()
+        N, M = self_obs.shape[0], self_obs.shape[1]
+        goal = None
+        if self.config.goal_pass:
+            goal, _ = self._pass(self_obs, entities, entity_mask, masks, slots, fw)
+        return self._pass(self_obs, entities, entity_mask, masks, slots, fw, goal, scores_only=True).view(N, M, -1)
 
     def forward_reference(
         self, self_obs, entities, adj=None, return_attention=False, *, nbr=None, nbr_mask=None, entity_mask=None
@@ -528,7 +584,18 @@ class SwarmPolicy(nn.Module):
         """The network written as the paper states it (the per-agent pieces deploy exports):
         with lists, each agent's query attends over the keys and values of [self; listed]."""
         masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
-        h = self.encode(self_obs, entities, entity_mask)  # [N, M, H]
+        h, attention = self._rounds_reference(self.encode(self_obs, entities, entity_mask), self_obs, masks, slots)
+        if self.config.goal_pass:
+            h, attention = self._rounds_reference(
+                self.encode(self_obs, entities, entity_mask, goal=h), self_obs, masks, slots
+            )
+        logits, value = self.heads(h)
+        if return_attention:
+            return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
+        return logits, value
+
+    def _rounds_reference(self, h, self_obs, masks, slots):
+        """``forward_reference``'s message rounds from h [N, M, H] -> (h, the rounds' attention)."""
         offsets = self.edge_offsets(self_obs, slots)
         attention = []
         for listed in masks:
@@ -541,10 +608,7 @@ class SwarmPolicy(nn.Module):
                 h, w = self.update(h.unsqueeze(-2), heard_k, heard_v, listed.unsqueeze(-2), edge)
                 h, w = h.squeeze(-2), w.squeeze(-2)
             attention.append(w)
-        logits, value = self.heads(h)
-        if return_attention:
-            return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
-        return logits, value
+        return h, attention
 
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

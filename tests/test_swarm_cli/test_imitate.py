@@ -90,3 +90,49 @@ def test_soft_labels_spread_over_near_equal_actions_and_stay_sharp_far_from_the_
     soft_near, soft_far = imitate.targets(near, 0.01), imitate.targets(far, 0.01)
     assert torch.equal(soft_far.argmax(-1), far.argmin(-1))  # the teacher's action stays the most likely
     assert soft_far.max(-1).values.mean() > 0.9 > soft_near.max(-1).values.mean()
+
+
+def test_goal_cloning_fits_the_landmark_attention_and_keeps_the_actor(tmp_path, monkeypatch):
+    """--goal trains the landmark attention's query and key weights alone, towards the listed
+    landmark the teacher heads for; --goal-pass adds a zero goal pass and trains W_g alone."""
+    from trainer import checkpoint
+
+    monkeypatch.setattr(imitate, "AGENTS_PER_ROLLOUT", 40)
+    monkeypatch.setattr(imitate, "STEPS", 10)
+    start, _ = checkpoint.load_policy(LINE)
+    out = tmp_path / "goal.pt"
+    imitate.main(["--init", LINE, "--teacher", "first", "--goal", "--sizes", "10", "--iterations", "2", "--lr", "1e-3",
+                  "--out", str(out)])  # fmt: skip
+    policy, _ = checkpoint.load_policy(str(out))
+    moved = {k for k, v in policy.state_dict().items() if not torch.equal(v, start.state_dict()[k])}
+    assert moved == {"entity_attention.w_q.weight", "entity_attention.w_k.weight"}
+    log = [json.loads(line) for line in open(str(out) + ".log.jsonl")]
+    assert all(0 < r["accuracy"] <= 1 for r in log)
+
+    out = tmp_path / "pass.pt"
+    imitate.main(["--init", LINE, "--teacher", "first", "--goal", "--goal-pass", "--sizes", "10", "--iterations", "1",
+                  "--lr", "1e-3", "--out", str(out)])  # fmt: skip
+    policy, payload = checkpoint.load_policy(str(out))
+    assert policy.config.goal_pass and payload["model_config"]["goal_pass"]
+    before = start.state_dict()
+    moved = {k for k, v in policy.state_dict().items() if k not in before or not torch.equal(v, before[k])}
+    assert moved == {"goal_query.weight"} and policy.goal_query.weight.abs().sum() > 0
+
+
+def test_goal_slots_find_the_listed_goal_and_skip_an_unlisted_one():
+    ent = torch.tensor([[[0.5, 0.0, 1.0], [0.0, 0.2, 1.0], [1.0, 1.0, 0.0]]])  # one agent, three listed
+    x = {"entities": ent[None], "entity_mask": torch.tensor([[[True, True, False]]])}
+    slot, listed = imitate.goal_slots(x, torch.tensor([[[0.0, 0.2]]]))
+    assert slot.item() == 1 and listed.item()
+    _, listed = imitate.goal_slots(x, torch.tensor([[[1.0, 1.0]]]))  # the third is not sensed
+    assert not listed.item()
+
+
+def test_goal_pass_needs_goal(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        imitate.main(["--init", LINE, "--teacher", "window", "--goal-pass", "--out", str(tmp_path / "x.pt")])
+    assert "--goal-pass fits the landmark attention: add --goal" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        imitate.main(["--init", LINE, "--teacher", "window", "--goal", "--soft", "1", "--out", str(tmp_path / "x.pt")])
+    assert "--goal fits the teacher's landmark: it takes neither --soft" in capsys.readouterr().err
+    assert not os.listdir(tmp_path)
