@@ -212,7 +212,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--iterations", type=int, default=40)
     ap.add_argument("--expert-iterations", type=int, default=10, help="the controller's share falls to 0 over these")
     ap.add_argument("--lr", type=float, default=3e-4)
-    ap.add_argument("--passes", type=int, default=2, help="passes over each new rollout")
+    ap.add_argument("--passes", type=int, default=2, help="passes over the fitted rollouts each iteration")
+    ap.add_argument(
+        "--aggregate", type=int, default=1,
+        help="fit each iteration over the last AGGREGATE rollouts of its team size, not the new one alone (DAgger's "
+        "aggregated data, which steadies a fit that drifts between rollouts; default 1)",
+    )  # fmt: skip
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--teacher", choices=TEACHERS, default="greedy", help="the controller whose actions label the steps"
@@ -239,8 +244,8 @@ def main(argv: list[str] | None = None) -> None:
     )  # fmt: skip
     ap.add_argument("--out", required=True, help="the policy file to write (policy.pt format)")
     args = ap.parse_args(argv)
-    if args.iterations < 1 or any(m < 2 for m in args.sizes):
-        ap.error("--iterations must be >= 1 and every size >= 2")
+    if args.iterations < 1 or args.aggregate < 1 or any(m < 2 for m in args.sizes):
+        ap.error("--iterations and --aggregate must be >= 1 and every size >= 2")
     if args.window_radius <= 0:
         ap.error(f"--window-radius must be > 0, got {args.window_radius:g}")
     if args.soft < 0 or args.direction_beyond < 0:
@@ -279,6 +284,7 @@ def main(argv: list[str] | None = None) -> None:
     envs = {m: make_env(task, m, swarm, args.seed) for m in args.sizes}
     log = []
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    kept = {m: [] for m in args.sizes}
     for it in range(args.iterations):
         m = args.sizes[it % len(args.sizes)]
         share = max(0.0, 1.0 - it / max(1, args.expert_iterations))
@@ -286,6 +292,9 @@ def main(argv: list[str] | None = None) -> None:
         inputs, labels, covered, success = rollout(
             envs[m], policy, share, args.seed * 100003 + it, args.teacher, args.window_radius
         )
+        kept[m] = (kept[m] + [(inputs, labels)])[-args.aggregate :]  # DAgger's data: this size's last rollouts
+        inputs = [x for rollout_inputs, _ in kept[m] for x in rollout_inputs]
+        labels = [y for _, rollout_labels in kept[m] for y in rollout_labels]
         for _ in range(args.passes):
             loss, acc = fit(
                 policy, optimizer, inputs, labels, rng, soft=args.soft, beyond=args.direction_beyond, goal=args.goal

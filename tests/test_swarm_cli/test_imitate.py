@@ -136,3 +136,23 @@ def test_goal_pass_needs_goal(tmp_path, capsys):
         imitate.main(["--init", LINE, "--teacher", "window", "--goal", "--soft", "1", "--out", str(tmp_path / "x.pt")])
     assert "--goal fits the teacher's landmark: it takes neither --soft" in capsys.readouterr().err
     assert not os.listdir(tmp_path)
+
+
+def test_aggregate_fits_over_the_last_rollouts_of_each_size(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(imitate, "AGENTS_PER_ROLLOUT", 40)
+    monkeypatch.setattr(imitate, "STEPS", 3)
+    seen = []
+    real = imitate.fit
+
+    def spy(policy, optimizer, inputs, labels, rng, **kw):
+        seen.append((inputs[0]["self_obs"].shape[1], len(inputs), len(labels)))
+        return real(policy, optimizer, inputs, labels, rng, **kw)
+
+    monkeypatch.setattr(imitate, "fit", spy)
+    imitate.main(["--init", LINE, "--teacher", "first", "--goal", "--sizes", "5", "8", "--iterations", "6",
+                  "--aggregate", "2", "--passes", "1", "--out", str(tmp_path / "agg.pt")])  # fmt: skip
+    assert seen == [(5, 3, 3), (8, 3, 3), (5, 6, 6), (8, 6, 6), (5, 6, 6), (8, 6, 6)]  # never mixing sizes
+    with pytest.raises(SystemExit):
+        imitate.main(["--init", LINE, "--aggregate", "0", "--out", str(tmp_path / "x.pt")])
+    assert "--iterations and --aggregate must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "x.pt").exists()
