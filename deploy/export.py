@@ -222,8 +222,8 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     except ValueError as exc:
         raise CheckpointError(str(exc)) from None
     _check_landmarks_fit(cfg, setting)
-    if cfg.goal_pass:  # its pieces would run twice, the second landmark attention asked by the first pass
-        raise CheckpointError("this policy has a goal pass (ModelConfig.goal_pass), which export does not write yet")
+    if cfg.goal_pass:  # two networks per agent, the policy's landmark attention taking the goal network's h
+        raise CheckpointError("this policy has a goal network (ModelConfig.goal_pass), which export does not write yet")
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise FileExistsError(f"--out {out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)

@@ -9,6 +9,14 @@ and action space are the policy's own (``--init``). Teachers:
 - window: each agent's own landmark in the min-sum matching of the agents and landmarks within
   ``--window-radius`` of it (a privileged teacher: exact positions, no lists), which a student
   approximates from its lists and messages.
+- first: the first landmark of each agent's list, on free-first and claim lists the nearest
+  one no other agent holds (the best choice an agent can make without its teammates).
+
+With ``--goal`` the labels are the landmark the teacher heads for, not its action: the landmark
+attention's scores are fitted to it and only its query and key weights train, so the messages
+and the actor stay as they are (docs/SWARM.md, "The actor follows its attention"); with
+``--goal-pass`` through a goal network whose embedding raises that attention's query
+(ModelConfig.goal_pass).
 
 The result is a policy that `swarm eval` and `swarm zero-shot` read, and a start for PPO
 (`--init-from`).
@@ -17,6 +25,9 @@ The result is a policy that `swarm eval` and `swarm zero-shot` read, and a start
         --out runs/imitate/policy.pt
     python tools/imitate.py --init results/reproduce-swarm/s-line-rc-rows-m50-k12/s0/stage-m50/policy.pt \
         --teacher window --window-radius 3 --sizes 50 100 --iterations 40 --out runs/imitate-line/policy.pt
+    python tools/imitate.py --init results/reproduce-swarm/s-line-rc-rows-m50-k12-claim-zero/s0/stage-m50/policy.pt \
+        --teacher first --goal --sizes 24 50 --iterations 30 --expert-iterations 2 --lr 1e-3 \
+        --out runs/goal-line-first/policy.pt
 """
 
 from __future__ import annotations
@@ -195,13 +206,17 @@ def fit(
 
 
 def with_goal_pass(policy, payload: dict):
-    """(policy, payload) with a goal pass: the same network if it has one, else the same
-    function with a zero W_g (ModelConfig.goal_pass), the payload's model config to match."""
+    """(policy, payload) with a goal network: the same network if it has one, else the same
+    function with one (ModelConfig.goal_pass: W_g zero), the goal network a copy of the
+    policy's own layers, so that it starts from what the policy makes of its lists and messages;
+    the payload's model config to match."""
     if policy.config.goal_pass:
         return policy, payload
     config = dataclasses.replace(policy.config, goal_pass=True)
     out = SwarmPolicy(config)
-    out.load_state_dict(policy.state_dict(), strict=False)  # all but goal_query, which starts at zero
+    own = policy.state_dict()
+    net = out.goal_net.state_dict()  # the policy's layers but its heads
+    out.load_state_dict({**out.state_dict(), **own, **{f"goal_net.{k}": own[k] for k in net}})
     return out, dict(payload, model_config=config.to_dict())
 
 
@@ -239,8 +254,12 @@ def main(argv: list[str] | None = None) -> None:
     )  # fmt: skip
     ap.add_argument(
         "--goal-pass", action="store_true",
-        help="with --goal: fit through a goal pass (ModelConfig.goal_pass, added at zero where the policy lacks "
-        "it), whose weights W_g alone are trained",
+        help="with --goal: fit through a goal network (ModelConfig.goal_pass, added where the policy lacks it: a "
+        "copy of its layers, joined by W_g at zero), whose weights alone are trained",
+    )  # fmt: skip
+    ap.add_argument(
+        "--freeze-goal-net", action="store_true",
+        help="with --goal-pass: train W_g alone, the goal network kept as it starts (a copy of the policy's layers)",
     )  # fmt: skip
     ap.add_argument("--out", required=True, help="the policy file to write (policy.pt format)")
     args = ap.parse_args(argv)
@@ -254,6 +273,8 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--goal fits the teacher's landmark: it takes neither --soft nor --direction-beyond")
     if args.goal_pass and not args.goal:
         ap.error("--goal-pass fits the landmark attention: add --goal")
+    if args.freeze_goal_net and not args.goal_pass:
+        ap.error("--freeze-goal-net keeps a goal network: add --goal-pass")
     taichi_swarm.init("cpu")
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
@@ -276,7 +297,9 @@ def main(argv: list[str] | None = None) -> None:
                              f"{policy.config.entity_mode!r})")  # fmt: skip
         if args.goal_pass:
             policy, payload = with_goal_pass(policy, payload)
-            params = list(policy.goal_query.parameters())
+            params = [*policy.goal_query.parameters()]
+            if not args.freeze_goal_net:
+                params += policy.goal_net.parameters()
         else:  # what scores the landmarks, not what the attention passes on (W_v, W_out) or the embeddings
             params = [policy.entity_attention.w_q.weight, policy.entity_attention.w_k.weight]
     policy.train()

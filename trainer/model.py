@@ -24,7 +24,7 @@ whose input width is fixed by the task's L).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -133,14 +133,16 @@ class ModelConfig:
     fine-tuned into it ("emp" only; the trainer sets it from ``landmark_occupancy``)."""
 
     goal_pass: bool = False
-    """A second pass ("emp" only): the network runs once as it is, and then again with the
-    landmark attention's query raised by W_g h, h the first pass's final embedding (what the
-    agent made of its landmarks and 3 rounds of messages), so the landmark an agent heads for
-    can depend on its teammates. The landmark attention is otherwise the first thing an agent
-    does, before any message: a policy whose attention is set on a good plan's landmark follows
-    it (docs/SWARM.md, "The actor follows its attention"). W_g starts at zero, so a policy
-    without it is the same function with it and may be trained into it (tools/imitate.py
-    --goal); it costs a second forward and 2 x rounds message rounds. Not exported yet."""
+    """A goal network ("emp" only): a second network of the same shape, with weights of its own
+    (``goal_net``, its heads unused), runs its landmark attention and message rounds first, and
+    the policy's landmark attention's query is raised by W_g h, h that network's final
+    embedding, so the landmark an agent heads for can depend on its teammates. The landmark
+    attention is otherwise the first thing an agent does, before any message: a policy whose
+    attention is set on a good plan's landmark follows it (docs/SWARM.md, "The actor follows
+    its attention"). W_g starts at zero, so a policy without it is the same function with it,
+    whatever the goal network holds, and may be trained into it (tools/imitate.py --goal
+    --goal-pass, which starts the goal network as a copy of the policy's own layers). It costs
+    a second forward and 2 x rounds message rounds. Not exported yet."""
 
     num_actions: int = NUM_ACTIONS
     """Logits of the policy head: the simulator's actions, 5 (the paper's) or 9 with
@@ -237,7 +239,8 @@ class SwarmPolicy(nn.Module):
     -> logits [N, M, A] (A = config.num_actions), value [N, M].
     """
 
-    def __init__(self, config: ModelConfig = ModelConfig()):
+    def __init__(self, config: ModelConfig = ModelConfig(), heads: bool = True):
+        """``heads`` False: no policy and value heads (a goal network's: only its embedding is read)."""
         super().__init__()
         if config.entity_mode == "concat" and config.num_landmarks < 1:
             raise ValueError("entity_mode='concat' needs num_landmarks >= 1 (the trainer takes the task's)")
@@ -254,11 +257,13 @@ class SwarmPolicy(nn.Module):
         self.comm_update = nn.Linear(2 * H, H)
         if config.goal_pass:
             self.goal_query = nn.Linear(H, H, bias=False)
+            self.goal_net = SwarmPolicy(replace(config, goal_pass=False), heads=False)
         if config.edge_position == "relative":
             self.edge_key = nn.Linear(2, H, bias=False)
             self.edge_value = nn.Linear(2, H, bias=False)
-        self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, config.num_actions))
-        self.value_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, 1))
+        if heads:
+            self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, config.num_actions))
+            self.value_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, 1))
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -279,7 +284,7 @@ class SwarmPolicy(nn.Module):
             nn.init.zeros_(self.edge_value.weight)
         if self.config.landmark_occupancy:  # likewise: the network without occupancy until trained
             nn.init.zeros_(self.entity_occupancy.weight)
-        if self.config.goal_pass:  # likewise: one pass until trained
+        if self.config.goal_pass:  # likewise: the network without a goal until trained
             nn.init.zeros_(self.goal_query.weight)
 
     # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
@@ -299,8 +304,8 @@ class SwarmPolicy(nn.Module):
         goal: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """[..., 4], [..., L, 2] (and the sensed slots [..., L] bool) -> h [..., H]: agent
-        encoder and entity message passing; ``goal`` [..., H] (goal_pass's second pass: the
-        first pass's final h) adds (W_g goal) . e_l to landmark l's score."""
+        encoder and entity message passing; ``goal`` [..., H] (goal_pass: the goal network's
+        final h) adds (W_g goal) . e_l to landmark l's score."""
         mode = self.config.entity_mode
         self._check_entity_mask(entities, entity_mask)
         self_obs = self.own_input(self_obs)
@@ -403,8 +408,10 @@ class SwarmPolicy(nn.Module):
 
         entity = fuse(self.entity_attention, self.entity_update) if self.config.entity_mode == "emp" else None
         comm = fuse(self.comm_attention, self.comm_update)
-        p0, v0 = self.policy_head[0], self.value_head[0]
-        heads = (torch.cat([p0.weight, v0.weight]).t(), torch.cat([p0.bias, v0.bias]))  # [H, 2H], [2H]
+        heads = None
+        if hasattr(self, "policy_head"):
+            p0, v0 = self.policy_head[0], self.value_head[0]
+            heads = (torch.cat([p0.weight, v0.weight]).t(), torch.cat([p0.bias, v0.bias]))  # [H, 2H], [2H]
         edge = None
         if self.config.edge_position == "relative":
             # score_ij += (h_i W_q^T E_k / sqrt(H)) . r_ij; update += (sum_j w_ij r_ij) E_v^T W_out^T W_u2^T
@@ -484,9 +491,8 @@ class SwarmPolicy(nn.Module):
             # than gathering 1 + K slots (the same function: the slots scattered into adj)
             masks, slots = [lists_to_adj(slots, m) for m in masks], None
         fw = self.fused_weights() if fused is None else fused
-        h, attention = self._pass(self_obs, entities, entity_mask, masks, slots, fw)
-        if self.config.goal_pass:  # again, the landmark attention asked by what the first pass made of it all
-            h, attention = self._pass(self_obs, entities, entity_mask, masks, slots, fw, goal=h)
+        goal = self._goal(self_obs, entities, entity_mask, masks, slots)
+        h, attention = self._pass(self_obs, entities, entity_mask, masks, slots, fw, goal=goal)
         H, N, M = self.config.hidden, self_obs.shape[0], self_obs.shape[1]
         w_heads, b_heads = fw.heads
         z = torch.relu(torch.addmm(b_heads, h, w_heads))  # [NM, 2H]
@@ -498,7 +504,7 @@ class SwarmPolicy(nn.Module):
 
     def _pass(self, self_obs, entities, entity_mask, masks, slots, fw, goal=None, scores_only=False):
         """One pass of ``forward``: the landmark attention (its query raised by W_g ``goal``
-        [NM, H] in goal_pass's second pass), then the message rounds -> (h [NM, H], the rounds'
+        [NM, H], the goal network's final h, with goal_pass), then the message rounds -> (h [NM, H], the rounds'
         attention); with ``scores_only`` the landmark attention's scores [NM, L] (masked)."""
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]
@@ -567,16 +573,22 @@ class SwarmPolicy(nn.Module):
 
     def landmark_scores(self, self_obs, entities, adj=None, *, nbr=None, nbr_mask=None, entity_mask=None):
         """The landmark attention's scores [N, M, L] (unsensed slots MASK_FILL) that decide
-        which landmarks an agent's summary holds: goal_pass's second pass, else the only one.
+        which landmarks an agent's summary holds (with goal_pass, raised by the goal network's).
         tools/imitate.py --goal fits them to a teacher's landmark."""
         masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
         self._check_entity_mask(entities, entity_mask)
-        fw = self.fused_weights()
         N, M = self_obs.shape[0], self_obs.shape[1]
-        goal = None
-        if self.config.goal_pass:
-            goal, _ = self._pass(self_obs, entities, entity_mask, masks, slots, fw)
+        goal = self._goal(self_obs, entities, entity_mask, masks, slots)
+        fw = self.fused_weights()
         return self._pass(self_obs, entities, entity_mask, masks, slots, fw, goal, scores_only=True).view(N, M, -1)
+
+    def _goal(self, self_obs, entities, entity_mask, masks, slots) -> torch.Tensor | None:
+        """goal_pass: the goal network's final h [NM, H] (its landmark attention and message
+        rounds over the same graph); None without one."""
+        if not self.config.goal_pass:
+            return None
+        g = self.goal_net
+        return g._pass(self_obs, entities, entity_mask, masks, slots, g.fused_weights())[0]
 
     def forward_reference(
         self, self_obs, entities, adj=None, return_attention=False, *, nbr=None, nbr_mask=None, entity_mask=None
@@ -584,11 +596,12 @@ class SwarmPolicy(nn.Module):
         """The network written as the paper states it (the per-agent pieces deploy exports):
         with lists, each agent's query attends over the keys and values of [self; listed]."""
         masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
-        h, attention = self._rounds_reference(self.encode(self_obs, entities, entity_mask), self_obs, masks, slots)
+        goal = None
         if self.config.goal_pass:
-            h, attention = self._rounds_reference(
-                self.encode(self_obs, entities, entity_mask, goal=h), self_obs, masks, slots
-            )
+            g = self.goal_net
+            goal, _ = g._rounds_reference(g.encode(self_obs, entities, entity_mask), self_obs, masks, slots)
+        h = self.encode(self_obs, entities, entity_mask, goal)
+        h, attention = self._rounds_reference(h, self_obs, masks, slots)
         logits, value = self.heads(h)
         if return_attention:
             return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]

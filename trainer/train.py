@@ -145,9 +145,9 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     if cfg.init_from and payload is None:
         init_policy, init_payload = checkpoint.load_policy(cfg.init_from, trust_unsigned=cfg.trust_unsigned)
         # the same shapes; self_position only changes what the encoder is fed, and relative
-        # edges, landmark occupancy and a goal pass add weights that start at zero (the same
+        # edges, landmark occupancy and a goal network add weights that start at zero (the same
         # function), so a policy may be fine-tuned into relative inputs, edges, occupancy and a
-        # goal pass; the fine actions' logits start from the full pushes' (greedy: the same function)
+        # goal network; the fine actions' logits start from the full pushes' (greedy: the same function)
         grown = ("self_position", "edge_position", "landmark_occupancy", "goal_pass", "num_actions")
         relative = {k: getattr(policy.config, k) for k in grown}
         dropped = (

@@ -94,7 +94,8 @@ def test_soft_labels_spread_over_near_equal_actions_and_stay_sharp_far_from_the_
 
 def test_goal_cloning_fits_the_landmark_attention_and_keeps_the_actor(tmp_path, monkeypatch):
     """--goal trains the landmark attention's query and key weights alone, towards the listed
-    landmark the teacher heads for; --goal-pass adds a zero goal pass and trains W_g alone."""
+    landmark the teacher heads for; --goal-pass adds a goal network (a copy of the policy's
+    layers, W_g zero) and trains it and W_g alone."""
     from trainer import checkpoint
 
     monkeypatch.setattr(imitate, "AGENTS_PER_ROLLOUT", 40)
@@ -116,7 +117,17 @@ def test_goal_cloning_fits_the_landmark_attention_and_keeps_the_actor(tmp_path, 
     assert policy.config.goal_pass and payload["model_config"]["goal_pass"]
     before = start.state_dict()
     moved = {k for k, v in policy.state_dict().items() if k not in before or not torch.equal(v, before[k])}
-    assert moved == {"goal_query.weight"} and policy.goal_query.weight.abs().sum() > 0
+    assert "goal_query.weight" in moved and policy.goal_query.weight.abs().sum() > 0
+    assert all(k.startswith(("goal_query.", "goal_net.")) for k in moved)  # the policy's own layers are kept
+    assert any(k.startswith("goal_net.") for k in moved)
+
+    out = tmp_path / "frozen.pt"
+    imitate.main(["--init", LINE, "--teacher", "first", "--goal", "--goal-pass", "--freeze-goal-net", "--sizes", "10",
+                  "--iterations", "1", "--lr", "1e-3", "--out", str(out)])  # fmt: skip
+    policy, _ = checkpoint.load_policy(str(out))
+    moved = {k for k, v in policy.state_dict().items() if k not in before or not torch.equal(v, before[k])}
+    assert {k for k in moved if not k.startswith("goal_net.")} == {"goal_query.weight"}
+    assert all(torch.equal(v, before[k]) for k, v in policy.goal_net.state_dict().items())  # still the copy
 
 
 def test_goal_slots_find_the_listed_goal_and_skip_an_unlisted_one():
@@ -132,6 +143,9 @@ def test_goal_pass_needs_goal(tmp_path, capsys):
     with pytest.raises(SystemExit):
         imitate.main(["--init", LINE, "--teacher", "window", "--goal-pass", "--out", str(tmp_path / "x.pt")])
     assert "--goal-pass fits the landmark attention: add --goal" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        imitate.main(["--init", LINE, "--goal", "--freeze-goal-net", "--out", str(tmp_path / "x.pt")])
+    assert "--freeze-goal-net keeps a goal network: add --goal-pass" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         imitate.main(["--init", LINE, "--teacher", "window", "--goal", "--soft", "1", "--out", str(tmp_path / "x.pt")])
     assert "--goal fits the teacher's landmark: it takes neither --soft" in capsys.readouterr().err
@@ -156,3 +170,16 @@ def test_aggregate_fits_over_the_last_rollouts_of_each_size(tmp_path, monkeypatc
         imitate.main(["--init", LINE, "--aggregate", "0", "--out", str(tmp_path / "x.pt")])
     assert "--iterations and --aggregate must be >= 1" in capsys.readouterr().err
     assert not (tmp_path / "x.pt").exists()
+
+
+def test_with_goal_pass_starts_the_goal_network_as_a_copy_and_is_the_same_function():
+    from trainer import checkpoint
+
+    start, payload = checkpoint.load_policy(LINE)
+    policy, grown = imitate.with_goal_pass(start, payload)
+    assert grown["model_config"]["goal_pass"] and not payload["model_config"].get("goal_pass")
+    own = start.state_dict()
+    net = policy.goal_net.state_dict()
+    assert net and all(torch.equal(v, own[k]) for k, v in net.items()) and "policy_head.0.weight" not in net
+    assert all(torch.equal(v, policy.state_dict()[k]) for k, v in own.items())
+    assert imitate.with_goal_pass(policy, grown)[0] is policy  # one already there is kept

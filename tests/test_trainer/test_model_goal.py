@@ -1,5 +1,5 @@
-"""goal_pass: the network runs twice, the second landmark attention's query raised by W_g h,
-h the first pass's final embedding. The fast and reference paths, dense and lists, are one
+"""goal_pass: a goal network of the same shape runs first, and the landmark attention's query
+is raised by W_g h, h its final embedding. The fast and reference paths, dense and lists, are one
 function with gradients; a zero W_g is the network without it; ``landmark_scores`` are the
 scores the second pass's attention takes; export refuses it in one line."""
 
@@ -42,7 +42,8 @@ def test_a_zero_goal_query_is_the_network_without_it():
     plain = SwarmPolicy(ModelConfig(**CONFIG))
     goal = goal_policy(randomise=False)
     missing, unexpected = goal.load_state_dict(plain.state_dict(), strict=False)
-    assert missing == ["goal_query.weight"] and not unexpected
+    net = {f"goal_net.{k}" for k in plain.state_dict() if not k.startswith(("policy_head", "value_head"))}
+    assert set(missing) == {"goal_query.weight"} | net and not unexpected
     for path in ("forward", "forward_reference"):
         torch.testing.assert_close(getattr(goal, path)(s, e, adj)[0], getattr(plain, path)(s, e, adj)[0], **TOL)
     torch.testing.assert_close(goal.landmark_scores(s, e, adj), plain.landmark_scores(s, e, adj), **TOL)
@@ -53,7 +54,7 @@ def test_a_zero_goal_query_is_the_network_without_it():
 
 def test_landmark_scores_are_the_second_pass_attention_scores():
     """q . k / sqrt(H) of the agent's own encoding and each landmark's, plus (W_g h) . e with
-    h the first pass's final embedding, written out from the reference pieces; an unsensed
+    h the goal network's final embedding, written out from the reference pieces; an unsensed
     slot scores MASK_FILL."""
     s, e, adj = team(2, 5, 4, seed=4, radius=0.9)
     e = occupied(e)
@@ -61,7 +62,8 @@ def test_landmark_scores_are_the_second_pass_attention_scores():
     sensed = torch.ones(2, 5, 4, dtype=torch.bool)
     sensed[0, 0, 1] = False
     masks, slots = policy._graph(s, adj, None, None)
-    h, _ = policy._rounds_reference(policy.encode(s, e, sensed), s, masks, slots)
+    g = policy.goal_net  # its own weights: the goal network's final h
+    h, _ = g._rounds_reference(g.encode(s, e, sensed), s, masks, slots)
     own = torch.relu(policy.agent_encoder(policy.own_input(s)))
     emb = policy.embed_entities(e)
     att = policy.entity_attention
@@ -86,7 +88,7 @@ def test_goal_pass_needs_emp_and_export_refuses_it(tmp_path):
         task={"task": "coverage", "agents": 3, "comm": "rc", "comm_radius": 1.0},
     )
     save_policy_only(payload, path)
-    with pytest.raises(CheckpointError, match="goal pass .* export does not write yet"):
+    with pytest.raises(CheckpointError, match="goal network .* export does not write yet"):
         export(path, str(tmp_path / "out"))
     assert not (tmp_path / "out").exists()  # a refused export leaves nothing behind
 
