@@ -36,13 +36,13 @@ sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from coverage_reference import planned_goals, window_goals  # noqa: E402
+from imitate import goal_slots  # noqa: E402
 
 import taichi_swarm  # noqa: E402
 from taichi_swarm.files import atomic_write_json, ensure_writable  # noqa: E402
 from trainer.model import policy_inputs  # noqa: E402
 
 PINS = ("none", "first", "window", "planned")
-MATCH = 1e-3  # a listed landmark is the goal where its offset is this near the goal's
 
 
 def pinned_mask(inputs: dict, goals: np.ndarray | None, state: dict) -> tuple[torch.Tensor, torch.Tensor]:
@@ -53,9 +53,7 @@ def pinned_mask(inputs: dict, goals: np.ndarray | None, state: dict) -> tuple[to
         slot, listed = torch.zeros(sensed.shape[:-1], dtype=torch.long), sensed[..., 0].clone()
     else:
         offset = torch.from_numpy((goals - np.asarray(state["pos"])).astype(np.float32))  # [B, M, 2]
-        d = (inputs["entities"][..., :2] - offset.unsqueeze(-2)).norm(dim=-1).masked_fill(~sensed, float("inf"))
-        near, slot = d.min(-1)
-        listed = near < MATCH
+        slot, listed = goal_slots(inputs, offset)
     one = torch.nn.functional.one_hot(slot, sensed.shape[-1]).bool()
     return torch.where(listed.unsqueeze(-1), one, sensed), listed
 

@@ -229,6 +229,7 @@ class FusedWeights(NamedTuple):
     heads: tuple[torch.Tensor, torch.Tensor]  # first layers of both heads: [H, 2H], [2H]
     # edge_position "relative": h -> its score with an offset [H, 2], pooled offset -> update [2, H]
     edge: tuple[torch.Tensor, torch.Tensor] | None = None
+    goal: FusedWeights | None = None  # goal_pass: the goal network's own
 
 
 class SwarmPolicy(nn.Module):
@@ -420,7 +421,8 @@ class SwarmPolicy(nn.Module):
                 (att.w_q.weight.t() @ self.edge_key.weight) * scale,  # [H, 2]
                 self.edge_value.weight.t() @ (att.w_out.weight.t() @ upd.weight[:, H:].t()),  # [2, H]
             )
-        return FusedWeights(entity, comm, heads, edge)
+        goal = self.goal_net.fused_weights() if self.config.goal_pass else None
+        return FusedWeights(entity, comm, heads, edge, goal)
 
     def edge_offsets(self, self_obs: torch.Tensor, slots: torch.Tensor | None) -> torch.Tensor | None:
         """p_j - p_i of every heard pair (edge_position "relative"; else None), from the
@@ -491,8 +493,9 @@ class SwarmPolicy(nn.Module):
             # than gathering 1 + K slots (the same function: the slots scattered into adj)
             masks, slots = [lists_to_adj(slots, m) for m in masks], None
         fw = self.fused_weights() if fused is None else fused
-        goal = self._goal(self_obs, entities, entity_mask, masks, slots)
-        h, attention = self._pass(self_obs, entities, entity_mask, masks, slots, fw, goal=goal)
+        goal = self._goal(self_obs, entities, entity_mask, masks, slots, fw)
+        h, _ = self._landmarks(self_obs, entities, entity_mask, fw, goal)
+        h, attention = self._rounds(h, self_obs, masks, slots, fw)
         H, N, M = self.config.hidden, self_obs.shape[0], self_obs.shape[1]
         w_heads, b_heads = fw.heads
         z = torch.relu(torch.addmm(b_heads, h, w_heads))  # [NM, 2H]
@@ -502,38 +505,35 @@ class SwarmPolicy(nn.Module):
             return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
         return logits, value
 
-    def _pass(self, self_obs, entities, entity_mask, masks, slots, fw, goal=None, scores_only=False):
-        """One pass of ``forward``: the landmark attention (its query raised by W_g ``goal``
-        [NM, H], the goal network's final h, with goal_pass), then the message rounds -> (h [NM, H], the rounds'
-        attention); with ``scores_only`` the landmark attention's scores [NM, L] (masked)."""
+    def _landmarks(self, self_obs, entities, entity_mask, fw, goal=None):
+        """``forward``'s landmark attention (its query raised by W_g ``goal`` [NM, H], the goal
+        network's final h, with goal_pass) -> (h [NM, H], its scores [NM, L], unsensed slots
+        MASK_FILL; None outside "emp")."""
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]
-        if self.config.entity_mode == "emp":
-            h = torch.relu(self.agent_encoder(self.own_input(self_obs))).reshape(N * M, H)  # [NM, H]
-            e = self.embed_entities(entities).reshape(N * M, -1, H)  # [NM, L, H]
-            own, own_bias, heard = fw.entity
-            q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
-            # NOTE: broadcast-multiply-sum, not bmm: batched GEMMs of these tiny matrices
-            # ran 3x slower forward+backward on the CPU (docs/BENCHMARKS.md, training)
-            query = q_own[:, :H] if goal is None else q_own[:, :H] + self.goal_query(goal)
-            scores = (e * query[:, None, :]).sum(-1)  # [NM, L]
-            if scores_only:
-                return (
-                    scores.masked_fill(~entity_mask.reshape(N * M, -1), MASK_FILL)
-                    if entity_mask is not None
-                    else scores
-                )
-            if entity_mask is None:
-                weights = torch.softmax(scores, dim=-1)
-            else:
-                sensed = entity_mask.reshape(N * M, -1)
-                weights = torch.softmax(scores.masked_fill(~sensed, MASK_FILL), dim=-1) * sensed.to(h.dtype)
-            pooled = (weights.unsqueeze(-1) * e).sum(1)  # [NM, H]
-            h = torch.relu(torch.addmm(q_own[:, H:], pooled, heard))
+        if self.config.entity_mode != "emp":
+            return self.encode(self_obs, entities, entity_mask).reshape(N * M, H), None
+        h = torch.relu(self.agent_encoder(self.own_input(self_obs))).reshape(N * M, H)  # [NM, H]
+        e = self.embed_entities(entities).reshape(N * M, -1, H)  # [NM, L, H]
+        own, own_bias, heard = fw.entity
+        q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
+        # NOTE: broadcast-multiply-sum, not bmm: batched GEMMs of these tiny matrices
+        # ran 3x slower forward+backward on the CPU (docs/BENCHMARKS.md, training)
+        query = q_own[:, :H] if goal is None else q_own[:, :H] + self.goal_query(goal)
+        scores = (e * query[:, None, :]).sum(-1)  # [NM, L]
+        if entity_mask is None:
+            weights = torch.softmax(scores, dim=-1)
         else:
-            h = self.encode(self_obs, entities, entity_mask).reshape(N * M, H)
-            if scores_only:
-                raise ValueError("landmark scores need entity_mode 'emp'")
+            sensed = entity_mask.reshape(N * M, -1)
+            scores = scores.masked_fill(~sensed, MASK_FILL)
+            weights = torch.softmax(scores, dim=-1) * sensed.to(h.dtype)
+        pooled = (weights.unsqueeze(-1) * e).sum(1)  # [NM, H]
+        return torch.relu(torch.addmm(q_own[:, H:], pooled, heard)), scores
+
+    def _rounds(self, h, self_obs, masks, slots, fw):
+        """``forward``'s message rounds from h [NM, H] -> (h [NM, H], the rounds' attention)."""
+        H = self.config.hidden
+        N, M = self_obs.shape[0], self_obs.shape[1]
         own, own_bias, heard = fw.comm
         offsets = self.edge_offsets(self_obs, slots)  # [N, M, M, 2] dense, [N, M, S, 2] lists, or None
         if slots is not None:  # [N, M, S]: self, then the K listed
@@ -577,18 +577,19 @@ class SwarmPolicy(nn.Module):
         tools/imitate.py --goal fits them to a teacher's landmark."""
         masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
         self._check_entity_mask(entities, entity_mask)
-        N, M = self_obs.shape[0], self_obs.shape[1]
-        goal = self._goal(self_obs, entities, entity_mask, masks, slots)
+        if self.config.entity_mode != "emp":
+            raise ValueError("landmark scores need entity_mode 'emp'")
         fw = self.fused_weights()
-        return self._pass(self_obs, entities, entity_mask, masks, slots, fw, goal, scores_only=True).view(N, M, -1)
+        goal = self._goal(self_obs, entities, entity_mask, masks, slots, fw)
+        return self._landmarks(self_obs, entities, entity_mask, fw, goal)[1].view(*self_obs.shape[:2], -1)
 
-    def _goal(self, self_obs, entities, entity_mask, masks, slots) -> torch.Tensor | None:
+    def _goal(self, self_obs, entities, entity_mask, masks, slots, fw) -> torch.Tensor | None:
         """goal_pass: the goal network's final h [NM, H] (its landmark attention and message
-        rounds over the same graph); None without one."""
+        rounds over the same graph, with its weights in ``fw.goal``); None without one."""
         if not self.config.goal_pass:
             return None
         g = self.goal_net
-        return g._pass(self_obs, entities, entity_mask, masks, slots, g.fused_weights())[0]
+        return g._rounds(g._landmarks(self_obs, entities, entity_mask, fw.goal)[0], self_obs, masks, slots, fw.goal)[0]
 
     def forward_reference(
         self, self_obs, entities, adj=None, return_attention=False, *, nbr=None, nbr_mask=None, entity_mask=None
