@@ -319,6 +319,8 @@ def swarm_contract(payload: dict) -> dict:
         "open: the same, held only by an agent nearer the landmark than the observer; "
         "claim: held by the agent the threshold matching gives it, its occupancy that agent's distance; "
         "claim-zero: the same, a claimed landmark's occupancy 0; "
+        "auction: only the landmark the agent wins in the agents' auction over the landmarks each senses "
+        "(its occupancy floored at the success threshold), claim-zero lists where it wins none; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

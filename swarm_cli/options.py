@@ -155,10 +155,13 @@ class SwarmOptions:
     assignment: Annotated[Literal["exact", "auction", "nearest", "free"] | None, Default(OWN)] = None
     """targets to agents: exact (min-sum), auction, nearest (local, covered by max matching; needs
     --neighbours) or free (nearest, each agent paid by its matched or nearest free target)"""
-    landmark_order: Annotated[Literal["nearest", "free", "open", "claim", "claim-zero"] | None, Default(OWN)] = None
+    landmark_order: Annotated[
+        Literal["nearest", "free", "open", "claim", "claim-zero", "auction"] | None, Default(OWN)
+    ] = None
     """landmark lists: the nearest, the landmarks no other agent holds first (free), no nearer
     agent holds (open), or the matching gives no other agent (claim; claim-zero: a claimed
-    landmark reads 0); needs the policy's occupancy input"""
+    landmark reads 0), or only the landmark the agent wins in the agents' own auction (auction);
+    needs the policy's occupancy input"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")

@@ -26,13 +26,17 @@ every agent bidding again each phase), which keeps the bidding wars of a cold st
 import taichi as ti
 
 from .layout import (
+    H_GL,
     H_GT,
+    H_KL,
     H_M,
     P_EPS,
+    P_LCELL,
+    P_SENSE,
     P_TCELL,
     blocks,
 )
-from .neighbours import bucket, build, cell_of, ring_cell
+from .neighbours import bucket, build, by_distance, cell_of, nearest_in_grid, ring_cell
 
 INF = 1e30
 EPS = 1e-3  # default eps: the total matched distance is within M * EPS of the optimum
@@ -186,3 +190,83 @@ def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
         ib[A + i] = j
         dx, dy = blocks.pos.get2(f, ib, P0, i) - blocks.targets.get2(f, ib, T0, j)
         f[MD + i] = ti.sqrt(dx * dx + dy * dy)
+
+
+# ---------------------------------------------------------------------------------------------
+# The agents' own auction (landmark_order="auction"): each agent bids only for the landmarks it
+# senses, and the landmark it wins is what it sees.
+#
+# The same bidding as ``solve``, with three differences, all for locality: an agent's targets
+# are its KL nearest landmarks within sense_radius (``candidates``), not every target; it may
+# stay out (a dummy target of cost OUT x sense_radius, which also bounds every price, so the
+# bidding ends however crowded a region is); and it is solved afresh every step from the
+# current positions, in one phase at LOCAL_EPS, so the answer depends on this step's positions
+# alone. What an agent needs is each sensed landmark's price and whether it outbid the holder: a
+# price kept at the landmark, as a beacon would keep it. Run to the end each step, the result
+# is the min-sum matching of agents to the landmarks they sense (staying out allowed), within
+# LOCAL_EPS per agent of the optimum (tests/test_taichi_swarm/test_local_auction.py).
+OUT = 2.0  # staying out costs this many sense radii: more than any sensed landmark's distance
+LOCAL_EPS = 0.01  # the local auction's final eps: each agent within 0.01 of its best
+
+
+@ti.func
+def candidates(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
+    """Agent i's targets in the local auction: its KL nearest landmarks within sense_radius,
+    nearest first (bid_cand, their squared distances in bid_d2, how many in bid_count)."""
+    P0, LM = blocks.pos.env(ib, b), blocks.landmarks.env(ib, b)
+    GS, GI, GC = blocks.lgrid_start.env(ib, b), blocks.lgrid_items.env(ib, b), blocks.lgrid_cell.env(ib, b)
+    p = blocks.pos.get2(f, ib, P0, i)
+    d2 = blocks.bid_d2.row(ib, blocks.bid_d2.env(ib, b), i)
+    idx = blocks.bid_cand.row(ib, blocks.bid_cand.env(ib, b), i)
+    found = nearest_in_grid(
+        f, ib, p[0], p[1], -1, LM, f[P_SENSE] * f[P_SENSE], f[P_LCELL], ib[H_GL], GS, GI, GC, d2, idx, ib[H_KL],
+        by_distance, ti.math.ivec2(0, 0),
+    )  # fmt: skip
+    ib[blocks.bid_count.env(ib, b) + i] = found[0]
+
+
+@ti.func
+def _local_best(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, out: ti.f32) -> ti.math.vec3:
+    """(w1, w2, j1) over agent i's candidates and the dummy (cost ``out``, j1 = -1 when best)."""
+    V = blocks.bid_price.env(ib, b)
+    d2 = blocks.bid_d2.row(ib, blocks.bid_d2.env(ib, b), i)
+    idx = blocks.bid_cand.row(ib, blocks.bid_cand.env(ib, b), i)
+    best = ti.math.vec3(out, out, -1.0)
+    for k in range(ib[blocks.bid_count.env(ib, b) + i]):
+        j = ib[idx + k]
+        best = _consider(ti.sqrt(f[d2 + k]) + f[V + j], j, best)
+    return best
+
+
+@ti.func
+def local_solve(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, L: ti.i32):
+    """The local auction of env b: bid_won[i], the landmark agent i wins (-1: none), by
+    Gauss-Seidel bidding (bid_price, bid_holder: landmark -> agent, bid_stack:
+    the agents still to bid)."""
+    V, Y, FREE = blocks.bid_price.env(ib, b), blocks.bid_holder.env(ib, b), blocks.bid_stack.env(ib, b)
+    X = blocks.bid_won.env(ib, b)
+    out = OUT * f[P_SENSE]
+    for j in range(L):
+        f[V + j] = 0.0
+        ib[Y + j] = -1
+    for i in range(M):
+        ib[X + i] = -1
+        ib[FREE + i] = M - 1 - i  # agent 0 bids first
+    # One phase at the final eps, no eps scaling: a landmark once bid for stays held, so every
+    # landmark left unheld keeps price 0, which eps-optimality needs when some agents stay out
+    # (scaling restarts the bidding on raised prices and can leave a priced landmark unheld).
+    top = M
+    while top > 0:
+        top -= 1
+        i = ib[FREE + top]
+        w = _local_best(f, ib, b, i, out)
+        j = ti.cast(w[2], ti.i32)
+        if j >= 0:  # else it stays out: every landmark it senses costs more than ``out``
+            f[V + j] = f[V + j] + w[1] - w[0] + LOCAL_EPS
+            prev = ib[Y + j]
+            ib[Y + j] = i
+            ib[X + i] = j
+            if prev >= 0:
+                ib[X + prev] = -1
+                ib[FREE + top] = prev
+                top += 1

@@ -65,8 +65,9 @@ SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "auction", "nearest", "free")
 LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
 # landmark lists: the KL nearest, or the free (open, unclaimed) ones first
-LANDMARK_ORDERS = ("nearest", "free", "open", "claim", "claim-zero")
-CLAIM_ORDERS = ("claim", "claim-zero")  # held by the threshold matching's holder
+LANDMARK_ORDERS = ("nearest", "free", "open", "claim", "claim-zero", "auction")
+# held by the threshold matching's holder ("auction": an agent its own auction leaves out reads claim-zero lists)
+CLAIM_ORDERS = ("claim", "claim-zero", "auction")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -149,7 +150,13 @@ class SwarmEnv:
     success_threshold (incumbent, not nearer, holds), and the occupancy reading that agent's
     distance: of two agents on one landmark the holder reads it free and the other held, and
     jostling does not swap them; or "claim-zero", "claim" with a claimed landmark's reading 0
-    (held by someone nearer, to an occupancy policy, whichever of the two is nearer).
+    (held by someone nearer, to an occupancy policy, whichever of the two is nearer); or
+    "auction", the landmark the agent wins in the agents' own auction alone (one listed slot,
+    its reading floored at success_threshold: free to it), and claim-zero lists for an agent
+    that wins none. Each agent bids only for its KL nearest landmarks within sense_radius, and
+    the auction is solved afresh each step: the eps-optimal (0.01) min-sum matching of agents to
+    the landmarks they sense (auction.local_solve). It gives the choice of landmark to a planner
+    and leaves the network the driving: docs/SWARM.md, "The agents' own auction".
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -271,7 +278,8 @@ class SwarmEnv:
             | (kernels.FREE_FIRST if landmark_order != "nearest" else 0)
             | (kernels.OPEN_FIRST if landmark_order == "open" else 0)
             | (kernels.CLAIM if landmark_order in CLAIM_ORDERS else 0)
-            | (kernels.CLAIM_ZERO if landmark_order == "claim-zero" else 0)
+            | (kernels.CLAIM_ZERO if landmark_order in ("claim-zero", "auction") else 0)
+            | (kernels.WON if landmark_order == "auction" else 0)
         )
 
         self.arch = runtime.init(arch)
@@ -344,6 +352,8 @@ class SwarmEnv:
             )
             if self.landmark_occupancy:
                 dims.update(EF=3, LO=L)
+            if self.landmark_order == "auction":  # the agents' own auction (auction.local_solve)
+                dims.update(BM=M, BL=L)
         # a grid of the targets instead of the M x M costs
         if self.assignment_method in ("auction", *LOCAL_ASSIGNMENTS):
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)

@@ -52,9 +52,11 @@ from .layout import (
 # landmark held only by an agent nearer it than the observer (OPEN_FIRST: landmark_order="open"), or
 # held by the agent the threshold matching gives it, who keeps it while it stays within the threshold
 # (CLAIM: landmark_order="claim"; needs NEAREST and FREE_FIRST), its reading 0 rather than the
-# holder's distance (CLAIM_ZERO with CLAIM: landmark_order="claim-zero")
+# holder's distance (CLAIM_ZERO with CLAIM: landmark_order="claim-zero"), and with CLAIM_ZERO the
+# landmark an agent wins in the agents' own auction as its one listed landmark (WON:
+# landmark_order="auction", auction.local_solve)
 AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_FIRST, FREE_TARGET = 1, 2, 4, 8, 16, 32, 64
-OPEN_FIRST, CLAIM, CLAIM_ZERO = 128, 256, 512
+OPEN_FIRST, CLAIM, CLAIM_ZERO, WON = 128, 256, 512, 1024
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -146,6 +148,10 @@ def write_team_obs(
     if ti.static(lists & OCCUPANCY):
         for l in range(L):
             landmark_occupants(f, ib, b, l)
+    if ti.static(lists & WON):  # the agents' own auction, which the lists read
+        for i in range(M):
+            auction.candidates(f, ib, b, i)
+        auction.local_solve(f, ib, b, M, L)
     for i in range(M):
         if ti.static(lists & LANDMARK_LISTS):
             agent_landmarks(lists, f, ib, u8, b, i, term)
@@ -250,7 +256,8 @@ def agent_landmarks(
     (sense_radius where none is nearer; 0 where none is listed), from each landmark's two
     nearest agents (``landmark_occupants``); with CLAIM, the distance of the agent the threshold
     matching gives it where that is another agent, else the nearest other agent's distance floored
-    at the success threshold (``claimed``)."""
+    at the success threshold (``claimed``). With WON, an agent that won a landmark in the agents'
+    own auction lists it alone, its reading floored at the success threshold."""
     KL, G = ib[H_KL], ib[H_GL]
     EF = 3 if ti.static(lists & OCCUPANCY) else 2
     ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
@@ -267,9 +274,16 @@ def agent_landmarks(
     first = ti.static(claim_first if lists & CLAIM else open_first if lists & OPEN_FIRST else free_first)
     rank = ti.static(first if lists & FREE_FIRST else neighbours.by_distance)
     ctx = ti.math.ivec2(b, i)
-    found = neighbours.nearest_in_grid(
-        f, ib, p[0], p[1], -1, LM, s2, f[P_LCELL], G, GS, GI, GC, row_d2, idx, KL, rank, ctx
-    )
+    won = -1
+    if ti.static(lists & WON):
+        won = ib[blocks.bid_won.env(ib, b) + i]
+    found = ti.math.ivec2(1, 1)
+    if won >= 0:  # WON: the landmark it won, alone
+        ib[idx] = won
+    else:
+        found = neighbours.nearest_in_grid(
+            f, ib, p[0], p[1], -1, LM, s2, f[P_LCELL], G, GS, GI, GC, row_d2, idx, KL, rank, ctx
+        )
     for k in range(KL):
         listed = k < found[0]
         u8[row_mask + k] = ti.cast(listed, ti.u8)
@@ -279,7 +293,11 @@ def agent_landmarks(
         f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
         if ti.static(lists & OCCUPANCY):
             claim = ti.static(lists & (CLAIM | CLAIM_ZERO))
-            f[row + EF * k + 2] = reading(claim, f, ib, b, ib[idx + k], i) if listed else 0.0
+            occ = reading(claim, f, ib, b, ib[idx + k], i) if listed else 0.0
+            if ti.static(lists & WON):
+                if won >= 0:  # free to the agent that won it, whoever else is near
+                    occ = ti.max(occupancy(f, ib, b, won, i), f[P_SUCCESS])
+            f[row + EF * k + 2] = occ
 
 
 def held_last(nearer_only: bool, claim: int = 0):
@@ -732,6 +750,11 @@ def step_wide_kernel(
     if ti.static(lists & OCCUPANCY):
         for b, l in ti.ndrange(B, L):
             landmark_occupants(f, ib, b, l)
+    if ti.static(lists & WON):
+        for b, i in ti.ndrange(B, M):
+            auction.candidates(f, ib, b, i)
+        for b in range(B):
+            auction.local_solve(f, ib, b, M, L)
     if ti.static(lists & LANDMARK_LISTS):
         for b, i in ti.ndrange(B, M):
             agent_landmarks(lists, f, ib, u8, b, i, False)

@@ -15,6 +15,7 @@ cached; ``--cold`` compiles into a fresh cache directory).
     python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
     python tools/bench_swarm.py --layouts "lists KL=16 nearest" --skip-10k --vmas 10 100   # pip install vmas
     python tools/bench_swarm.py --arch cuda --layouts "lists KL=16 nearest" "lists KL=16 nearest wide"
+    python tools/bench_swarm.py --layouts "lists KL=16 claim-zero" "lists KL=16 auction" --skip-10k
 
 A layout ending in "wide" steps every agent in parallel (``agent_parallel=True``, the default
 on CUDA); the others pin one thread per environment, so a pair of them is an A/B in one run
@@ -41,6 +42,30 @@ LAYOUTS = (
         "lists KL=16 nearest",
         {"neighbours": 16, "landmark_neighbours": 16, "sense_radius": 1.0, "assignment": "nearest"},
     ),
+    # the lists of the zoo's coverage policies at M = 100: claim-zero lists, and the agents' own
+    # auction over the same candidates (landmark_order="auction"), an A/B of the auction's cost
+    (
+        "lists KL=16 claim-zero",
+        {
+            "neighbours": 12,
+            "landmark_neighbours": 16,
+            "sense_radius": 6.0,
+            "landmark_occupancy": True,
+            "landmark_order": "claim-zero",
+            "assignment": "free",
+        },
+    ),  # fmt: skip
+    (
+        "lists KL=16 auction",
+        {
+            "neighbours": 12,
+            "landmark_neighbours": 16,
+            "sense_radius": 6.0,
+            "landmark_occupancy": True,
+            "landmark_order": "auction",
+            "assignment": "free",
+        },
+    ),  # fmt: skip
     # the same stepped agent by agent in parallel (agent_parallel, the default on CUDA; the rows
     # above pin one thread per environment on every arch, so each pair is an A/B in one run)
     ("lists K=16 nearest wide", {"neighbours": 16, "assignment": "nearest", "agent_parallel": True}),

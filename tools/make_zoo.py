@@ -95,6 +95,13 @@ SINGLES = (
     ("coverage-rc-m100-claim-zero", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-claim-zero-k12", 100,
      "coverage-rc-m100-claim on at M = 100 on claim-zero lists (a claimed landmark reads 0: held by someone "
      "nearer), hearing its 12 nearest teammates, 100 updates (s-coverage-rc-rel-m100-claim-zero-k12)"),
+    ("coverage-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-auction", 100,
+     "coverage-rc-m100-claim-zero on auction lists: each agent lists only the landmark it wins in the agents' "
+     "own auction over the landmarks each senses, so the landmark is the auction's choice and the network "
+     "drives; 25 updates (s-coverage-rc-rel-m100-auction)"),
+    ("line-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-line-rc-rows-m100-k12-auction", 100,
+     "the K = 12 claim-zero line policy at M = 100 on auction lists (the landmark each agent wins in the "
+     "agents' own auction), 25 updates (s-line-rc-rows-m100-k12-auction)"),
 )  # fmt: skip
 
 

@@ -167,14 +167,16 @@ class TrainConfig:
     """With neighbours and landmark_neighbours: each sensed landmark also carries its distance
     to the nearest other agent (capped at sense_radius), whether a teammate already holds it;
     the network takes it as a third landmark input (docs/SWARM.md)."""
-    landmark_order: Literal["nearest", "free", "open", "claim", "claim-zero"] = "nearest"
+    landmark_order: Literal["nearest", "free", "open", "claim", "claim-zero", "auction"] = "nearest"
     """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; free, the
     landmarks no other agent holds listed before the held ones, so that an agent on a held
     landmark senses the nearest free ones within sense_radius; open, the same with a landmark held
     only by an agent nearer it than the observer, so that of two agents on one landmark only the
     farther sees it held; claim (with assignment nearest or free), held by the agent the threshold
     matching gives it, who keeps it while it stays on it; claim-zero, the same with a claimed
-    landmark reading 0 (docs/SWARM.md)."""
+    landmark reading 0; auction, only the landmark the agent wins in the agents' own auction
+    over the landmarks each senses (claim-zero lists for an agent that wins none): a planner
+    picks the landmark, the network drives (docs/SWARM.md)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""

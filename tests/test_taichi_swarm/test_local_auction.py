@@ -1,0 +1,107 @@
+"""landmark_order="auction" (auction.local_solve): each agent lists only the landmark it wins in
+the agents' own auction over the landmarks each senses. Pinned here: the winners form the
+eps-optimal min-sum matching of agents to their KL nearest landmarks within sense_radius (scipy
+over the same candidates), under both step kernels alike; an agent priced out of a crowd wins
+nothing and reads the claim-zero lists; and the order needs the threshold matching."""
+
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+import taichi_swarm
+from taichi_swarm import auction
+
+KL, SENSE = 8, 1.5
+
+
+def _make(M, B=2, task="line", wide=False, **kw):
+    return taichi_swarm.make(
+        task, B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=7, array="numpy",
+        scale="density", landmark_neighbours=KL, sense_radius=SENSE, landmark_occupancy=True,
+        landmark_order="auction", agent_parallel=wide, **kw,
+    )  # fmt: skip
+
+
+def _won(obs, pos, landmarks):
+    """Each agent's one listed landmark's index (-1 where it lists any other number)."""
+    mask, ent = np.asarray(obs["entity_mask"]), np.asarray(obs["entities"])
+    won = np.full(mask.shape[:2], -1)
+    for b in range(mask.shape[0]):
+        tree = cKDTree(landmarks[b])
+        one = mask[b].sum(-1) == 1
+        d, j = tree.query(pos[b] + ent[b, :, 0, :2])
+        won[b] = np.where(one & (d < 1e-4), j, -1)
+    return won
+
+
+def test_the_winners_are_the_min_sum_matching_over_what_each_agent_senses():
+    """After a step, under both step kernels alike (step_kernel and the per-agent passes of
+    step_wide_kernel), bit for bit."""
+    M, B = 60, 2
+    envs = [_make(M, B, wide=wide) for wide in (False, True)]
+    rng = np.random.default_rng(3)
+    for env in envs:
+        env.reset()
+    lmk = envs[0].get_state()["landmarks"]
+    start = lmk + rng.normal(0.0, 0.4, size=(B, M, 2))  # near their rows, scrambled
+    obs = []
+    for env in envs:
+        env.set_state(pos=start, vel=np.zeros((B, M, 2)), landmarks=lmk, step=np.zeros(B, dtype=np.int64))
+        obs.append(env.step(np.zeros((B, M), dtype=np.int64))[0])
+    for key in ("entities", "entity_mask"):
+        np.testing.assert_array_equal(np.asarray(obs[0][key]), np.asarray(obs[1][key]))
+    pos = envs[0].get_state()["pos"]
+    won = _won(obs[0], pos, lmk)
+    thr = envs[0].params["success_threshold"]
+    out = auction.OUT * SENSE  # staying out costs this
+    for b in range(B):
+        winners = won[b][won[b] >= 0]
+        assert len(set(winners.tolist())) == len(winners), "two agents won one landmark"
+        d = np.linalg.norm(pos[b][:, None] - lmk[b][None], axis=-1)
+        # scipy over the same choices: the KL nearest within SENSE, or staying out
+        cand = np.full((M, 2 * M), 1e3)
+        cand[:, M:] = out
+        for i in range(M):
+            near = np.argsort(d[i])[:KL]
+            near = near[d[i, near] <= SENSE]
+            cand[i, near] = d[i, near]
+        rows, cols = linear_sum_assignment(cand)
+        best = cand[rows, cols].sum()
+        got = np.where(won[b] >= 0, d[np.arange(M), np.maximum(won[b], 0)], out).sum()
+        assert best - 1e-3 <= got <= best + M * auction.LOCAL_EPS
+        assert (won[b] >= 0).mean() > 0.9
+        # the winner reads its landmark free: the occupancy floored at the threshold
+        assert (np.asarray(obs[0]["entities"])[b, won[b] >= 0, 0, 2] >= thr - 1e-6).all()
+
+
+def test_an_agent_priced_out_of_a_crowd_wins_nothing_and_reads_claim_zero_lists():
+    """All M agents crowd round 4 landmarks: 4 win one each, the rest stay out (staying out costs
+    OUT sense radii, which bounds every price, so the bidding ends) and list every landmark they
+    sense, as claim-zero lists do."""
+    M, B = 20, 1
+    env = _make(M, B, task="coverage")
+    env.reset()
+    lmk = env.get_state()["landmarks"]
+    far = lmk[0, :4].mean(0)
+    d_all = np.linalg.norm(lmk[0] - far, axis=-1)
+    near = np.argsort(d_all)
+    rng = np.random.default_rng(0)
+    # the four nearest landmarks round a point, every other moved out of everyone's sensing
+    lmk2 = lmk.copy()
+    lmk2[0, near[4:]] = far + 50.0 + rng.uniform(0, 5, size=(M - 4, 2))
+    pos = far + rng.uniform(-0.3, 0.3, size=(B, M, 2))
+    obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)), landmarks=lmk2)
+    mask = np.asarray(obs["entity_mask"])[0]
+    won = _won(obs, pos, lmk2)[0]
+    winners = np.flatnonzero(won >= 0)
+    assert len(winners) == 4 and len(set(won[winners].tolist())) == 4
+    assert (mask[np.setdiff1d(np.arange(M), winners)].sum(-1) == 4).all()
+
+
+def test_the_auction_order_needs_the_threshold_matching():
+    with pytest.raises(ValueError, match="landmark_order='auction' needs assignment 'nearest' or 'free'"):
+        taichi_swarm.make(
+            "coverage", 2, 20, comm="rc", neighbours=8, landmark_neighbours=4, sense_radius=1.0,
+            landmark_occupancy=True, landmark_order="auction", array="numpy",
+        )  # fmt: skip
