@@ -99,27 +99,54 @@ def best_two(f: ti.template(), ib: ti.template(), i: ti.i32, b: ti.i32, M: ti.i3
 
 
 @ti.func
-def _bid_until_assigned(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, eps: ti.f32, num_free: ti.i32):
-    """Auction rounds until the stack of free agents (lap_cols) is empty."""
-    V, X, Y = blocks.prices.env(ib, b), blocks.lap_x.env(ib, b), blocks.lap_y.env(ib, b)
-    FREE = blocks.lap_cols.env(ib, b)
+def _bid(
+    f: ti.template(),
+    ib: ti.template(),
+    b: ti.i32,
+    eps: ti.f32,
+    num_free: ti.i32,
+    V: ti.i32,
+    X: ti.i32,
+    Y: ti.i32,
+    FREE: ti.i32,
+    best: ti.template(),
+    M: ti.i32,
+):
+    """Gauss-Seidel bidding until the stack FREE[:num_free] of agents still to bid is empty: each
+    bids for its best target (``best(f, ib, b, i, M)`` -> (w1, w2, j1); j1 < 0: it stays out),
+    raising that target's price V by w2 - w1 + eps; the target's former holder (Y: target ->
+    agent) bids next (X: agent -> target)."""
     top = num_free
     while top > 0:
         top -= 1
         i = ib[FREE + top]
-        w = best_two(f, ib, i, b, M)
+        w = best(f, ib, b, i, M)
         j = ti.cast(w[2], ti.i32)
-        raise_by = eps
-        if w[1] < INF:
-            raise_by = w[1] - w[0] + eps
-        f[V + j] = f[V + j] + raise_by
-        prev = ib[Y + j]
-        ib[Y + j] = i
-        ib[X + i] = j
-        if prev >= 0:
-            ib[X + prev] = -1
-            ib[FREE + top] = prev
-            top += 1
+        if j >= 0:
+            raise_by = eps
+            if w[1] < INF:
+                raise_by = w[1] - w[0] + eps
+            f[V + j] = f[V + j] + raise_by
+            prev = ib[Y + j]
+            ib[Y + j] = i
+            ib[X + i] = j
+            if prev >= 0:
+                ib[X + prev] = -1
+                ib[FREE + top] = prev
+                top += 1
+
+
+@ti.func
+def _global_best(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, M: ti.i32) -> ti.math.vec3:
+    """``best_two`` in ``_bid``'s form."""
+    return best_two(f, ib, i, b, M)
+
+
+@ti.func
+def _bid_until_assigned(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, eps: ti.f32, num_free: ti.i32):
+    """Auction rounds until the stack of free agents (lap_cols) is empty."""
+    V, X, Y = blocks.prices.env(ib, b), blocks.lap_x.env(ib, b), blocks.lap_y.env(ib, b)
+    _bid(f, ib, b, eps, num_free, V, X, Y, blocks.lap_cols.env(ib, b), _global_best, M)
 
 
 @ti.func
@@ -226,8 +253,10 @@ def candidates(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
 
 
 @ti.func
-def _local_best(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, out: ti.f32) -> ti.math.vec3:
-    """(w1, w2, j1) over agent i's candidates and the dummy (cost ``out``, j1 = -1 when best)."""
+def _local_best(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, M: ti.i32) -> ti.math.vec3:
+    """(w1, w2, j1) over agent i's candidates and staying out (cost OUT x sense_radius; j1 = -1
+    when best). ``M`` is unused: ``_bid`` passes every ``best`` the team size."""
+    out = OUT * f[P_SENSE]
     V = blocks.bid_price.env(ib, b)
     d2 = blocks.bid_d2.row(ib, blocks.bid_d2.env(ib, b), i)
     idx = blocks.bid_cand.row(ib, blocks.bid_cand.env(ib, b), i)
@@ -245,7 +274,6 @@ def local_solve(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, L: ti
     the agents still to bid)."""
     V, Y, FREE = blocks.bid_price.env(ib, b), blocks.bid_holder.env(ib, b), blocks.bid_stack.env(ib, b)
     X = blocks.bid_won.env(ib, b)
-    out = OUT * f[P_SENSE]
     for j in range(L):
         f[V + j] = 0.0
         ib[Y + j] = -1
@@ -255,18 +283,4 @@ def local_solve(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, L: ti
     # One phase at the final eps, no eps scaling: a landmark once bid for stays held, so every
     # landmark left unheld keeps price 0, which eps-optimality needs when some agents stay out
     # (scaling restarts the bidding on raised prices and can leave a priced landmark unheld).
-    top = M
-    while top > 0:
-        top -= 1
-        i = ib[FREE + top]
-        w = _local_best(f, ib, b, i, out)
-        j = ti.cast(w[2], ti.i32)
-        if j >= 0:  # else it stays out: every landmark it senses costs more than ``out``
-            f[V + j] = f[V + j] + w[1] - w[0] + LOCAL_EPS
-            prev = ib[Y + j]
-            ib[Y + j] = i
-            ib[X + i] = j
-            if prev >= 0:
-                ib[X + prev] = -1
-                ib[FREE + top] = prev
-                top += 1
+    _bid(f, ib, b, LOCAL_EPS, M, V, X, Y, FREE, _local_best, M)
