@@ -102,6 +102,9 @@ SINGLES = (
     ("line-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-line-rc-rows-m100-k12-auction", 100,
      "the K = 12 claim-zero line policy at M = 100 on auction lists (the landmark each agent wins in the "
      "agents' own auction), 25 updates (s-line-rc-rows-m100-k12-auction)"),
+    ("formation-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k12-auction", 100,
+     "formation-rc-m100-k12 on auction lists (the lattice point each agent wins in the agents' own auction), "
+     "25 updates (s-formation-rc-lattice-m100-k12-auction)"),
 )  # fmt: skip
 
 

@@ -32,15 +32,18 @@ def test_swarm_options_take_the_landmark_order():
         swarm_options(landmark_occupancy=True, landmark_order="held", **LISTS)
 
 
-def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path):
-    cfg = tiny(tmp_path, "free", agents=6, updates=1, landmark_occupancy=True, landmark_order="free", **LISTS)
+# "auction" lists (the agents' own auction) need the threshold matching: assignment "free"
+@pytest.mark.parametrize("order, assignment", [("free", None), ("auction", "free")])
+def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, order, assignment):
+    extra = {"assignment": assignment} if assignment else {}
+    cfg = tiny(tmp_path, order, agents=6, updates=1, landmark_occupancy=True, landmark_order=order, **LISTS, **extra)
     train(cfg)
     policy, payload = checkpoint.load_policy(os.path.join(cfg.run_dir, "policy.pt"))
-    assert payload["swarm"]["landmark_order"] == "free"
+    assert payload["swarm"]["landmark_order"] == order
     out = evaluate(policy, "coverage", 6, comm="rc", episodes=2, seed=9, swarm=payload["swarm"])
     assert 0 <= out["success_rate"] <= 1
     export(os.path.join(cfg.run_dir, "policy.pt"), str(tmp_path / "export"))
     manifest = json.load(open(tmp_path / "export" / "manifest.json"))
-    assert manifest["contract"]["swarm"]["landmark_order"] == "free"
-    with pytest.raises(ValueError, match="landmark_order 'free' needs landmark occupancy"):
+    assert manifest["contract"]["swarm"]["landmark_order"] == order
+    with pytest.raises(ValueError, match=f"landmark_order '{order}' needs landmark occupancy"):
         dataclasses.replace(cfg, landmark_occupancy=False).validate()
