@@ -160,8 +160,8 @@ class SwarmOptions:
     ] = None
     """landmark lists: the nearest, the landmarks no other agent holds first (free), no nearer
     agent holds (open), or the matching gives no other agent (claim; claim-zero: a claimed
-    landmark reads 0), or only the landmark the agent wins in the agents' own auction (auction);
-    needs the policy's occupancy input"""
+    landmark reads 0), or only the landmark the agent wins in the agents' own auction (auction;
+    with --assignment nearest or free); needs the policy's occupancy input"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")

@@ -250,6 +250,12 @@ class SwarmEnv:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
             raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
+        if landmark_order == "auction" and assignment not in LOCAL_ASSIGNMENTS:
+            raise ValueError(
+                f"landmark_order='auction' needs assignment 'nearest' or 'free', got {assignment!r}: an agent that "
+                "wins no landmark in the agents' own auction reads claim-zero lists, which the threshold matching "
+                "builds (assignment='auction' is the team's global assignment, another auction)"
+            )
         if landmark_order in CLAIM_ORDERS and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
                 f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "

@@ -97,11 +97,10 @@ BLOCKS = (
     BlockSpec("ep_covered", "f32"),  # fraction of targets matched within success_threshold
     BlockSpec("nbr_d2", "f32", ("M", "K")),  # squared distances of the listed neighbours
     BlockSpec("ent_d2", "f32", ("M", "KL")),  # squared distances of the listed landmarks
-    BlockSpec("occ_d2", "f32", ("LO", 2)),
-    BlockSpec("bid_d2", "f32", ("BM", "KL")),  # the local auction (landmark_order="auction"): its candidates' d^2
-    BlockSpec(
-        "bid_price", "f32", ("BL",)
-    ),  # ... each landmark's price  # each landmark's two nearest agents (occupancy), d^2
+    BlockSpec("occ_d2", "f32", ("LO", 2)),  # each landmark's two nearest agents (occupancy), d^2
+    # the agents' own auction (landmark_order="auction"): its candidates' d^2, each landmark's price
+    BlockSpec("bid_d2", "f32", ("BM", "KL")),
+    BlockSpec("bid_price", "f32", ("BL",)),
     BlockSpec("step", "i32"),
     BlockSpec("rng", "i32"),
     BlockSpec("ep_length", "i32"),
@@ -116,14 +115,14 @@ BLOCKS = (
     BlockSpec("term_nbr", "i32", ("M", "K")),
     BlockSpec("ent_idx", "i32", ("M", "KL")),  # scratch: each agent's landmark list being built (agents search at once)
     BlockSpec("occ_idx", "i32", ("LO", 2)),  # ... and their indices
-    BlockSpec("occ_found", "i32", ("LO",)),
-    BlockSpec("bid_cand", "i32", ("BM", "KL")),  # the local auction: each agent's landmarks to bid for
-    BlockSpec("bid_count", "i32", ("BM",)),  # ... how many
-    BlockSpec("bid_holder", "i32", ("BL",)),  # ... each landmark's highest bidder (-1: none)
-    BlockSpec("bid_won", "i32", ("BM",)),  # ... each agent's landmark (-1: none)
-    BlockSpec(
-        "bid_stack", "i32", ("BM",)
-    ),  # ... the agents still to bid  # ... how many of the two are within sense_radius
+    BlockSpec("occ_found", "i32", ("LO",)),  # ... how many of the two are within sense_radius
+    # the agents' own auction: each agent's landmarks to bid for and how many, each landmark's
+    # highest bidder (-1: none), each agent's landmark (-1: none), the agents still to bid
+    BlockSpec("bid_cand", "i32", ("BM", "KL")),
+    BlockSpec("bid_count", "i32", ("BM",)),
+    BlockSpec("bid_holder", "i32", ("BL",)),
+    BlockSpec("bid_won", "i32", ("BM",)),
+    BlockSpec("bid_stack", "i32", ("BM",)),
     BlockSpec("in_range", "i32", ("N",)),  # how many agents each agent hears
     BlockSpec("dropped", "i32"),  # heard but cut from the lists (more than K), summed over agents
     BlockSpec("grid_start", "i32", ("G1",)),  # agents' cell grid: bucket g holds items[start[g]:start[g+1]]

@@ -15,7 +15,7 @@ cached; ``--cold`` compiles into a fresh cache directory).
     python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
     python tools/bench_swarm.py --layouts "lists KL=16 nearest" --skip-10k --vmas 10 100   # pip install vmas
     python tools/bench_swarm.py --arch cuda --layouts "lists KL=16 nearest" "lists KL=16 nearest wide"
-    python tools/bench_swarm.py --layouts "lists KL=16 claim-zero" "lists KL=16 auction" --skip-10k
+    python tools/bench_swarm.py --layouts "claim-zero lists" "auction lists" --skip-10k
 
 A layout ending in "wide" steps every agent in parallel (``agent_parallel=True``, the default
 on CUDA); the others pin one thread per environment, so a pair of them is an A/B in one run
@@ -45,7 +45,7 @@ LAYOUTS = (
     # the lists of the zoo's coverage policies at M = 100: claim-zero lists, and the agents' own
     # auction over the same candidates (landmark_order="auction"), an A/B of the auction's cost
     (
-        "lists KL=16 claim-zero",
+        "claim-zero lists",
         {
             "neighbours": 12,
             "landmark_neighbours": 16,
@@ -56,7 +56,7 @@ LAYOUTS = (
         },
     ),  # fmt: skip
     (
-        "lists KL=16 auction",
+        "auction lists",
         {
             "neighbours": 12,
             "landmark_neighbours": 16,

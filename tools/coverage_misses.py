@@ -193,6 +193,8 @@ def run(
     sight = np.concatenate([r[1] for r in reach]) if reach else np.zeros(0, bool)
     out["free_distance"] = float(np.median(dist)) if len(dist) else None
     out["free_in_sight"] = float(sight.mean()) if len(sight) else None
+    if swarm.get("landmark_order") == "auction":  # a winner lists its own landmark alone: no sight to count
+        out["free_in_sight"] = None
     if jostle:
         j = [jostling(pos_w[:, b], act_w[:, b], state["landmarks"][b], threshold) for b in kept]
         total = {

@@ -174,9 +174,9 @@ class TrainConfig:
     only by an agent nearer it than the observer, so that of two agents on one landmark only the
     farther sees it held; claim (with assignment nearest or free), held by the agent the threshold
     matching gives it, who keeps it while it stays on it; claim-zero, the same with a claimed
-    landmark reading 0; auction, only the landmark the agent wins in the agents' own auction
-    over the landmarks each senses (claim-zero lists for an agent that wins none): a planner
-    picks the landmark, the network drives (docs/SWARM.md)."""
+    landmark reading 0; auction (with assignment nearest or free), only the landmark the agent
+    wins in the agents' own auction over the landmarks each senses (claim-zero lists for an
+    agent that wins none): a planner picks the landmark, the network drives (docs/SWARM.md)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""

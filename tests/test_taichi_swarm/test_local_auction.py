@@ -1,13 +1,13 @@
 """landmark_order="auction" (auction.local_solve): each agent lists only the landmark it wins in
 the agents' own auction over the landmarks each senses. Pinned here: the winners form the
 eps-optimal min-sum matching of agents to their KL nearest landmarks within sense_radius (scipy
-over the same candidates), under both step kernels alike; an agent priced out of a crowd wins
-nothing and reads the claim-zero lists; and the order needs the threshold matching."""
+over the same candidates), under both step kernels alike, and list their landmark alone; an
+agent priced out of a crowd wins nothing and reads the claim-zero lists; and the order needs
+the threshold matching."""
 
 import numpy as np
 import pytest
 from scipy.optimize import linear_sum_assignment
-from scipy.spatial import cKDTree
 
 import taichi_swarm
 from taichi_swarm import auction
@@ -23,16 +23,18 @@ def _make(M, B=2, task="line", wide=False, **kw):
     )  # fmt: skip
 
 
-def _won(obs, pos, landmarks):
-    """Each agent's one listed landmark's index (-1 where it lists any other number)."""
+def _won(env):
+    """The auction's answer as the kernels left it: each agent's landmark (-1: none)."""
+    return np.asarray(env._view("bid_won")).copy()
+
+
+def _check_winners_list_their_landmark_alone(obs, won, pos, landmarks, thr):
     mask, ent = np.asarray(obs["entity_mask"]), np.asarray(obs["entities"])
-    won = np.full(mask.shape[:2], -1)
-    for b in range(mask.shape[0]):
-        tree = cKDTree(landmarks[b])
-        one = mask[b].sum(-1) == 1
-        d, j = tree.query(pos[b] + ent[b, :, 0, :2])
-        won[b] = np.where(one & (d < 1e-4), j, -1)
-    return won
+    for b in range(won.shape[0]):
+        w = won[b] >= 0
+        assert (mask[b, w].sum(-1) == 1).all() and mask[b, w, 0].all()
+        np.testing.assert_allclose(ent[b, w, 0, :2], landmarks[b, won[b, w]] - pos[b, w], atol=1e-5)
+        assert (ent[b, w, 0, 2] >= thr - 1e-6).all()  # read free: the occupancy floored at the threshold
 
 
 def test_the_winners_are_the_min_sum_matching_over_what_each_agent_senses():
@@ -52,8 +54,10 @@ def test_the_winners_are_the_min_sum_matching_over_what_each_agent_senses():
     for key in ("entities", "entity_mask"):
         np.testing.assert_array_equal(np.asarray(obs[0][key]), np.asarray(obs[1][key]))
     pos = envs[0].get_state()["pos"]
-    won = _won(obs[0], pos, lmk)
+    won = _won(envs[0])
+    np.testing.assert_array_equal(won, _won(envs[1]))
     thr = envs[0].params["success_threshold"]
+    _check_winners_list_their_landmark_alone(obs[0], won, pos, lmk, thr)
     out = auction.OUT * SENSE  # staying out costs this
     for b in range(B):
         winners = won[b][won[b] >= 0]
@@ -71,32 +75,39 @@ def test_the_winners_are_the_min_sum_matching_over_what_each_agent_senses():
         got = np.where(won[b] >= 0, d[np.arange(M), np.maximum(won[b], 0)], out).sum()
         assert best - 1e-3 <= got <= best + M * auction.LOCAL_EPS
         assert (won[b] >= 0).mean() > 0.9
-        # the winner reads its landmark free: the occupancy floored at the threshold
-        assert (np.asarray(obs[0]["entities"])[b, won[b] >= 0, 0, 2] >= thr - 1e-6).all()
 
 
 def test_an_agent_priced_out_of_a_crowd_wins_nothing_and_reads_claim_zero_lists():
     """All M agents crowd round 4 landmarks: 4 win one each, the rest stay out (staying out costs
-    OUT sense radii, which bounds every price, so the bidding ends) and list every landmark they
-    sense, as claim-zero lists do."""
+    OUT sense radii, which bounds every price, so the bidding ends) and read exactly the
+    claim-zero lists of the same state."""
     M, B = 20, 1
     env = _make(M, B, task="coverage")
     env.reset()
     lmk = env.get_state()["landmarks"]
-    far = lmk[0, :4].mean(0)
-    d_all = np.linalg.norm(lmk[0] - far, axis=-1)
-    near = np.argsort(d_all)
+    centre = lmk[0, :4].mean(0)
+    near = np.argsort(np.linalg.norm(lmk[0] - centre, axis=-1))
     rng = np.random.default_rng(0)
-    # the four nearest landmarks round a point, every other moved out of everyone's sensing
-    lmk2 = lmk.copy()
-    lmk2[0, near[4:]] = far + 50.0 + rng.uniform(0, 5, size=(M - 4, 2))
-    pos = far + rng.uniform(-0.3, 0.3, size=(B, M, 2))
-    obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)), landmarks=lmk2)
-    mask = np.asarray(obs["entity_mask"])[0]
-    won = _won(obs, pos, lmk2)[0]
+    # the four landmarks nearest a point stay, every other is moved out of everyone's sensing
+    crowd = lmk.copy()
+    crowd[0, near[4:]] = centre + 50.0 + rng.uniform(0, 5, size=(M - 4, 2))
+    pos = centre + rng.uniform(-0.3, 0.3, size=(B, M, 2))
+    obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)), landmarks=crowd)
+    won = _won(env)[0]
     winners = np.flatnonzero(won >= 0)
-    assert len(winners) == 4 and len(set(won[winners].tolist())) == 4
-    assert (mask[np.setdiff1d(np.arange(M), winners)].sum(-1) == 4).all()
+    assert len(winners) == 4 and sorted(won[winners].tolist()) == sorted(near[:4].tolist())
+    _check_winners_list_their_landmark_alone(obs, won[None], pos, crowd, env.params["success_threshold"])
+    plain = taichi_swarm.make(
+        "coverage", B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=7, array="numpy",
+        scale="density", landmark_neighbours=KL, sense_radius=SENSE, landmark_occupancy=True,
+        landmark_order="claim-zero",
+    )  # fmt: skip
+    plain.reset()
+    other = plain.set_state(pos=pos, vel=np.zeros((B, M, 2)), landmarks=crowd)
+    losers = np.setdiff1d(np.arange(M), winners)
+    for key in ("entities", "entity_mask"):
+        np.testing.assert_array_equal(np.asarray(obs[key])[0, losers], np.asarray(other[key])[0, losers])
+    assert (np.asarray(obs["entity_mask"])[0, losers].sum(-1) == 4).all()
 
 
 def test_the_auction_order_needs_the_threshold_matching():
