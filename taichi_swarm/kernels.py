@@ -293,10 +293,12 @@ def agent_landmarks(
         f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
         if ti.static(lists & OCCUPANCY):
             claim = ti.static(lists & (CLAIM | CLAIM_ZERO))
-            occ = reading(claim, f, ib, b, ib[idx + k], i) if listed else 0.0
-            if ti.static(lists & WON):
-                if won >= 0:  # free to the agent that won it, whoever else is near
+            occ = 0.0
+            if listed:
+                if won >= 0:  # WON: free to the agent that won it, whoever else is near
                     occ = ti.max(occupancy(f, ib, b, won, i), f[P_SUCCESS])
+                else:
+                    occ = reading(claim, f, ib, b, ib[idx + k], i)
             f[row + EF * k + 2] = occ
 
 

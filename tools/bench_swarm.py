@@ -32,6 +32,14 @@ import time
 import numpy as np
 
 SIZES = ((1000, 10), (100, 100), (10, 1000))
+CLAIM_ZERO_LISTS = {
+    "neighbours": 12,
+    "landmark_neighbours": 16,
+    "sense_radius": 6.0,
+    "landmark_occupancy": True,
+    "landmark_order": "claim-zero",
+    "assignment": "free",
+}
 LAYOUTS = (
     ("dense", {}),
     ("lists K=16", {"neighbours": 16}),
@@ -44,28 +52,8 @@ LAYOUTS = (
     ),
     # the lists of the zoo's coverage policies at M = 100: claim-zero lists, and the agents' own
     # auction over the same candidates (landmark_order="auction"), an A/B of the auction's cost
-    (
-        "claim-zero lists",
-        {
-            "neighbours": 12,
-            "landmark_neighbours": 16,
-            "sense_radius": 6.0,
-            "landmark_occupancy": True,
-            "landmark_order": "claim-zero",
-            "assignment": "free",
-        },
-    ),  # fmt: skip
-    (
-        "auction lists",
-        {
-            "neighbours": 12,
-            "landmark_neighbours": 16,
-            "sense_radius": 6.0,
-            "landmark_occupancy": True,
-            "landmark_order": "auction",
-            "assignment": "free",
-        },
-    ),  # fmt: skip
+    ("claim-zero lists", CLAIM_ZERO_LISTS),
+    ("auction lists", {**CLAIM_ZERO_LISTS, "landmark_order": "auction"}),
     # the same stepped agent by agent in parallel (agent_parallel, the default on CUDA; the rows
     # above pin one thread per environment on every arch, so each pair is an A/B in one run)
     ("lists K=16 nearest wide", {"neighbours": 16, "assignment": "nearest", "agent_parallel": True}),

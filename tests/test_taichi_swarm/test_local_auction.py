@@ -15,11 +15,11 @@ from taichi_swarm import auction
 KL, SENSE = 8, 1.5
 
 
-def _make(M, B=2, task="line", wide=False, **kw):
+def _make(M, B=2, task="line", wide=False, order="auction"):
     return taichi_swarm.make(
         task, B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=7, array="numpy",
         scale="density", landmark_neighbours=KL, sense_radius=SENSE, landmark_occupancy=True,
-        landmark_order="auction", agent_parallel=wide, **kw,
+        landmark_order=order, agent_parallel=wide,
     )  # fmt: skip
 
 
@@ -97,11 +97,7 @@ def test_an_agent_priced_out_of_a_crowd_wins_nothing_and_reads_claim_zero_lists(
     winners = np.flatnonzero(won >= 0)
     assert len(winners) == 4 and sorted(won[winners].tolist()) == sorted(near[:4].tolist())
     _check_winners_list_their_landmark_alone(obs, won[None], pos, crowd, env.params["success_threshold"])
-    plain = taichi_swarm.make(
-        "coverage", B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=7, array="numpy",
-        scale="density", landmark_neighbours=KL, sense_radius=SENSE, landmark_occupancy=True,
-        landmark_order="claim-zero",
-    )  # fmt: skip
+    plain = _make(M, B, task="coverage", order="claim-zero")
     plain.reset()
     other = plain.set_state(pos=pos, vel=np.zeros((B, M, 2)), landmarks=crowd)
     losers = np.setdiff1d(np.arange(M), winners)
