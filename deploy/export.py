@@ -321,6 +321,8 @@ def swarm_contract(payload: dict) -> dict:
         "claim-zero: the same, a claimed landmark's occupancy 0; "
         "auction: only the landmark the agent wins in the agents' auction over the landmarks each senses "
         "(its occupancy floored at the success threshold), claim-zero lists where it wins none; "
+        "auction_rounds R: that auction with a budget of R bid rounds a step, carried over from step to step, "
+        "each bid raising a price by at least auction_eps (0.5 unless set); "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

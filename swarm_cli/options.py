@@ -162,9 +162,16 @@ class SwarmOptions:
     agent holds (open), or the matching gives no other agent (claim; claim-zero: a claimed
     landmark reads 0), or only the landmark the agent wins in the agents' own auction (auction;
     with --assignment nearest or free); needs the policy's occupancy input"""
+    auction_rounds: Annotated[int | None, Default("solved to the end each step", "R")] = None
+    """with --landmark-order auction: a radio's budget of R bid rounds a step, the auction carried
+    over from step to step (an agent still bidding reads claim-zero lists)"""
+    auction_eps: Annotated[float | None, Default("0.5", "EPS")] = None
+    """with --auction-rounds: the least a bid raises a landmark's price, the matching's bound per agent"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")
+        at_least(self.auction_rounds, 1, "auction-rounds")
+        positive(self.auction_eps, "auction-eps")
         at_least(self.landmark_neighbours, 1, "landmark-neighbours")
         positive(self.sense_radius, "sense-radius")
 
@@ -178,6 +185,8 @@ class SwarmOptions:
                 ("scale", self.scale),
                 ("assignment", self.assignment),
                 ("landmark_order", self.landmark_order),
+                ("auction_rounds", self.auction_rounds),
+                ("auction_eps", self.auction_eps),
             )
             if v is not None
         }

@@ -31,7 +31,8 @@ GROUPS = {
     ),
     "large teams": (
         "neighbour lists and density scaling (docs/SWARM.md)",
-        "neighbours landmark_neighbours sense_radius landmark_occupancy landmark_order scale assignment",
+        "neighbours landmark_neighbours sense_radius landmark_occupancy landmark_order auction_rounds auction_eps "
+        "scale assignment",
     ),
     "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst drop_per_round"),
     "training": (

@@ -42,8 +42,10 @@ from .layout import (
     H_COMM_RC,
     H_DENSITY,
     H_MAX_STEPS,
+    H_ROUNDS,
     P_AGENT_RADIUS,
     P_ARENA,
+    P_BID_EPS,
     P_CELL,
     P_COMM_RADIUS,
     P_EPS,
@@ -157,6 +159,13 @@ class SwarmEnv:
     the auction is solved afresh each step: the eps-optimal (0.01) min-sum matching of agents to
     the landmarks they sense (auction.local_solve). It gives the choice of landmark to a planner
     and leaves the network the driving: docs/SWARM.md, "The agents' own auction".
+    auction_rounds (with landmark_order "auction"): None (the default), the auction solved to
+    the end each step; or R >= 1, a radio's budget of R bid rounds a step: the auction carries
+    over from step to step (prices and holders kept at the landmarks) and runs R Jacobi rounds
+    a step; an agent still bidding reads claim-zero lists (auction.py, docs/SWARM.md).
+    auction_eps (with auction_rounds): the budgeted auction's bid increment, the least a bid raises
+    a price (None: auction.ROUND_EPS, 0.5); the matching is within it per agent of the optimum,
+    and a bidding war's rounds grow as the prices it climbs over it.
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -193,6 +202,8 @@ class SwarmEnv:
         assignment: str = "exact",
         landmark_occupancy: bool = False,
         landmark_order: str = "nearest",
+        auction_rounds: int | None = None,
+        auction_eps: float | None = None,
         agent_parallel: bool | None = None,
         **task_params,
     ):
@@ -256,6 +267,24 @@ class SwarmEnv:
                 "wins no landmark in the agents' own auction reads claim-zero lists, which the threshold matching "
                 "builds (assignment='auction' is the team's global assignment, another auction)"
             )
+        if auction_rounds is not None:
+            if landmark_order != "auction":
+                raise ValueError(
+                    f"auction_rounds is the budget of the agents' own auction: it needs landmark_order='auction', "
+                    f"got {landmark_order!r}"
+                )
+            auction_rounds = _check_int("auction_rounds", auction_rounds, 1, INT32_MAX)
+        self.auction_rounds = auction_rounds
+        if auction_eps is not None:
+            if auction_rounds is None:
+                raise ValueError(
+                    "auction_eps is the bid increment of the budgeted auction: it needs auction_rounds (the auction "
+                    f"solved to the end each step bids at {auction.LOCAL_EPS})"
+                )
+            auction_eps = _check_float("auction_eps", auction_eps, 0.0)
+            if auction_eps <= 0.0:
+                raise ValueError(f"auction_eps must be > 0, got {auction_eps}")
+        self.auction_eps = auction_eps
         if landmark_order in CLAIM_ORDERS and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
                 f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "
@@ -450,6 +479,7 @@ class SwarmEnv:
         header[H_COMM_RC] = 1 if self.comm == "rc" else 0
         header[H_DENSITY] = 1 if self.scale == "density" else 0
         header[H_MAX_STEPS] = self.params["max_steps"]
+        header[H_ROUNDS] = self.auction_rounds or 0  # 0: the auction solved to the end each step
         spec = TASK_SPECS[self.task]
         fparams = np.zeros(FLOAT_HEADER, dtype=np.float32)
         fparams[P_COMM_RADIUS] = self.comm_radius
@@ -466,6 +496,7 @@ class SwarmEnv:
         fparams[P_ARENA] = self.arena
         fparams[P_TCELL] = auction.target_cell(self.num_agents, self.arena)
         fparams[P_EPS] = self.assignment_eps
+        fparams[P_BID_EPS] = self.auction_eps or auction.ROUND_EPS
         self._put(self._i, 0, header)
         self._put(self._f, 0, fparams)
 
@@ -705,6 +736,8 @@ class SwarmEnv:
             ("assignment", None if self.assignment_method == "exact" else self.assignment_method),
             ("landmark_occupancy", True if self.landmark_occupancy else None),
             ("landmark_order", None if self.landmark_order == "nearest" else self.landmark_order),
+            ("auction_rounds", self.auction_rounds),
+            ("auction_eps", self.auction_eps),
         )
         return tuple(f"{k}={v}" for k, v in opts if v is not None)
 

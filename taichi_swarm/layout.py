@@ -24,8 +24,9 @@ import numpy as np
 import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
-H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL, H_GT, H_DENSITY = range(11)
-SIZE_SLOTS = 11
+# H_ROUNDS: the agents' own auction's bid rounds per step (auction_rounds; 0: run to the end)
+H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL, H_GT, H_DENSITY, H_ROUNDS = range(12)
+SIZE_SLOTS = 12
 SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
 # how the network takes the landmark inputs (trainer.model.ModelConfig.entity_mode; deploy/ and
 # reproduce/ read it here, without torch): EMP, concatenated (fixed L), or 10 zero-padded slots
@@ -226,10 +227,11 @@ blocks = Blocks()
 # --- float32 header: physical and task parameters ------------------------------------
 # P_CELL / P_LCELL / P_TCELL: cell sides of the agents', landmarks' and targets' grids;
 # P_ARENA: the spawn square's half-width (1, or sqrt(M / 10) with scale="density");
-# P_EPS: the auction assignment's eps; P_HOLD: the hold_reward parameter (tasks.base.on_target)
+# P_EPS: the auction assignment's eps; P_HOLD: the hold_reward parameter (tasks.base.on_target);
+# P_BID_EPS: the agents' own auction's bid increment under a budget of rounds (auction_eps)
 (P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA, P_TCELL, P_EPS,
- P_HOLD) = range(11)  # fmt: skip
-FLOAT_HEADER = 11
+ P_HOLD, P_BID_EPS) = range(12)  # fmt: skip
+FLOAT_HEADER = 12
 
 
 # Teams up to this size get kernels compiled for their exact M: every loop over agents

@@ -54,6 +54,8 @@ LAYOUTS = (
     # auction over the same candidates (landmark_order="auction"), an A/B of the auction's cost
     ("claim-zero lists", CLAIM_ZERO_LISTS),
     ("auction lists", {**CLAIM_ZERO_LISTS, "landmark_order": "auction"}),
+    # ... with a radio's budget of 16 bid rounds a step (auction_rounds), carried over between steps
+    ("auction lists R=16", {**CLAIM_ZERO_LISTS, "landmark_order": "auction", "auction_rounds": 16}),
     # the same stepped agent by agent in parallel (agent_parallel, the default on CUDA; the rows
     # above pin one thread per environment on every arch, so each pair is an A/B in one run)
     ("lists K=16 nearest wide", {"neighbours": 16, "assignment": "nearest", "agent_parallel": True}),

@@ -177,6 +177,13 @@ class TrainConfig:
     landmark reading 0; auction (with assignment nearest or free), only the landmark the agent
     wins in the agents' own auction over the landmarks each senses (claim-zero lists for an
     agent that wins none): a planner picks the landmark, the network drives (docs/SWARM.md)."""
+    auction_rounds: int | None = None
+    """With landmark_order auction: a radio's budget of R bid rounds a step, the auction carried
+    over from step to step, an agent still bidding reading claim-zero lists (None: the auction
+    solved to the end each step)."""
+    auction_eps: float | None = None
+    """With auction_rounds: the least a bid raises a landmark's price, and the matching's bound per
+    agent (None: the simulator's, taichi_swarm.auction.ROUND_EPS)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
@@ -402,7 +409,8 @@ class TrainConfig:
 
         return swarm_options(
             self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
-            self.landmark_occupancy, self.action_space, self.landmark_order,
+            self.landmark_occupancy, self.action_space, self.landmark_order, self.auction_rounds,
+            self.auction_eps,
         )  # fmt: skip
 
     def task_params(self) -> dict:

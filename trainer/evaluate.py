@@ -12,7 +12,7 @@ from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 ACTION_MODES = ("greedy", "sampled")
 SWARM_KEYS = (
     "neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy", "action_space",
-    "landmark_order",
+    "landmark_order", "auction_rounds", "auction_eps",
 )  # fmt: skip
 # the simulator's discrete action spaces, those a policy (a head of logits) can be trained on
 ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swarm.num_actions(space))
@@ -20,15 +20,15 @@ ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swar
 
 def swarm_options(
     neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None,
-    action_space=None, landmark_order=None,
+    action_space=None, landmark_order=None, auction_rounds=None, auction_eps=None,
 ) -> dict:  # fmt: skip
-    """The simulator's neighbour-list, scaling, assignment, occupancy, landmark-order and action-set
-    options that are set, as ``make()`` keywords (none set: the dense layout, the paper's geometry,
-    the exact assignment, the paper's 5 actions)."""
+    """The simulator's neighbour-list, scaling, assignment, occupancy, landmark-order, auction-budget
+    and action-set options that are set, as ``make()`` keywords (none set: the dense layout, the
+    paper's geometry, the exact assignment, the paper's 5 actions)."""
     given = dict(
         neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale,
         assignment=assignment, landmark_occupancy=landmark_occupancy, action_space=action_space,
-        landmark_order=landmark_order,
+        landmark_order=landmark_order, auction_rounds=auction_rounds, auction_eps=auction_eps,
     )  # fmt: skip
     for key in ("neighbours", "landmark_neighbours"):
         v = given[key]
@@ -60,6 +60,23 @@ def swarm_options(
             f"landmark_order {landmark_order!r} needs landmark occupancy: a policy trained with landmark_occupancy "
             "(--landmark-occupancy)"
         )
+    if auction_rounds is not None:
+        if isinstance(auction_rounds, bool) or not isinstance(auction_rounds, int) or auction_rounds < 1:
+            raise ValueError(f"auction_rounds must be an integer >= 1, got {auction_rounds!r}")
+        if landmark_order != "auction":
+            raise ValueError(
+                f"auction_rounds is the budget of the agents' own auction: it needs landmark_order 'auction' "
+                f"(--landmark-order auction), got {landmark_order!r}"
+            )
+    if auction_eps is not None:
+        if (
+            isinstance(auction_eps, bool)
+            or not isinstance(auction_eps, int | float)
+            or not 0 < auction_eps < float("inf")
+        ):
+            raise ValueError(f"auction_eps must be a positive finite number, got {auction_eps!r}")
+        if auction_rounds is None:
+            raise ValueError("auction_eps is the bid increment of the budgeted auction: it needs auction_rounds")
     if landmark_order == "nearest":  # the default: recorded as unset
         given["landmark_order"] = None
     if action_space is not None and action_space not in ACTION_SETS:

@@ -3,7 +3,8 @@ the agents' own auction over the landmarks each senses. Pinned here: the winners
 eps-optimal min-sum matching of agents to their KL nearest landmarks within sense_radius (scipy
 over the same candidates), under both step kernels alike, and list their landmark alone; an
 agent priced out of a crowd wins nothing and reads the claim-zero lists; and the order needs
-the threshold matching."""
+the threshold matching. With a budget of bid rounds a step (auction_rounds), the auction carries
+over from step to step, spends no more rounds than the budget, and ends at the same optimum."""
 
 import numpy as np
 import pytest
@@ -15,11 +16,11 @@ from taichi_swarm import auction
 KL, SENSE = 8, 1.5
 
 
-def _make(M, B=2, task="line", wide=False, order="auction"):
+def _make(M, B=2, task="line", wide=False, order="auction", rounds=None, eps=None):
     return taichi_swarm.make(
         task, B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=7, array="numpy",
         scale="density", landmark_neighbours=KL, sense_radius=SENSE, landmark_occupancy=True,
-        landmark_order=order, agent_parallel=wide,
+        landmark_order=order, agent_parallel=wide, auction_rounds=rounds, auction_eps=eps,
     )  # fmt: skip
 
 
@@ -58,23 +59,98 @@ def test_the_winners_are_the_min_sum_matching_over_what_each_agent_senses():
     np.testing.assert_array_equal(won, _won(envs[1]))
     thr = envs[0].params["success_threshold"]
     _check_winners_list_their_landmark_alone(obs[0], won, pos, lmk, thr)
-    out = auction.OUT * SENSE  # staying out costs this
     for b in range(B):
-        winners = won[b][won[b] >= 0]
-        assert len(set(winners.tolist())) == len(winners), "two agents won one landmark"
-        d = np.linalg.norm(pos[b][:, None] - lmk[b][None], axis=-1)
-        # scipy over the same choices: the KL nearest within SENSE, or staying out
-        cand = np.full((M, 2 * M), 1e3)
-        cand[:, M:] = out
-        for i in range(M):
-            near = np.argsort(d[i])[:KL]
-            near = near[d[i, near] <= SENSE]
-            cand[i, near] = d[i, near]
-        rows, cols = linear_sum_assignment(cand)
-        best = cand[rows, cols].sum()
-        got = np.where(won[b] >= 0, d[np.arange(M), np.maximum(won[b], 0)], out).sum()
+        got, best = _cost_and_optimum(won[b], pos[b], lmk[b])
         assert best - 1e-3 <= got <= best + M * auction.LOCAL_EPS
         assert (won[b] >= 0).mean() > 0.9
+
+
+def _cost_and_optimum(won, pos, lmk):
+    """The auction's total cost (a winner's distance to its landmark, OUT sense radii for staying
+    out) and scipy's optimum over the same choices: the KL nearest within SENSE, or staying out."""
+    winners = won[won >= 0]
+    assert len(set(winners.tolist())) == len(winners), "two agents won one landmark"
+    M, out = len(won), auction.OUT * SENSE
+    d = np.linalg.norm(pos[:, None] - lmk[None], axis=-1)
+    cand = np.full((M, len(lmk) + M), 1e3)
+    cand[:, len(lmk) :] = out
+    for i in range(M):
+        near = np.argsort(d[i])[:KL]
+        near = near[d[i, near] <= SENSE]
+        cand[i, near] = d[i, near]
+    rows, cols = linear_sum_assignment(cand)
+    got = np.where(won >= 0, d[np.arange(M), np.maximum(won, 0)], out).sum()
+    return got, cand[rows, cols].sum()
+
+
+def _scrambled(env, B, M, seed=3):
+    """Env reset, its agents placed near their landmarks, scrambled; returns (pos, landmarks)."""
+    env.reset()
+    lmk = env.get_state()["landmarks"]
+    pos = lmk + np.random.default_rng(seed).normal(0.0, 0.4, size=(B, M, 2))
+    return pos, lmk
+
+
+def test_a_budget_of_rounds_carries_the_auction_over_to_the_same_optimum():
+    """Agents unmoved (zero velocity, set each step): with two rounds a step the auction is not
+    done at the first step, goes on from where it stopped until a round places no bid, and ends
+    within its increment per agent of the optimum; the budget's state stays consistent (one holder
+    per landmark, the holder's landmark among what it senses, a landmark nobody holds at price 0)."""
+    M, B, eps = 60, 2, 0.1
+    env = _make(M, B, rounds=2, eps=eps)
+    pos, lmk = _scrambled(env, B, M)
+    prices = []
+    for step in range(150):
+        env.set_state(pos=pos, vel=np.zeros((B, M, 2)), landmarks=lmk, step=np.full(B, step, dtype=np.int64))
+        prices.append(np.asarray(env._view("bid_price")).copy())
+    assert (prices[1] != prices[0]).any(axis=-1).all(), "two rounds settled the auction"
+    np.testing.assert_array_equal(prices[-1], prices[-2])  # settled: the last rounds placed no bid
+    won = _won(env)
+    for b in range(B):
+        got, best = _cost_and_optimum(won[b], pos[b], lmk[b])
+        assert best - 1e-3 <= got <= best + M * eps
+    holder, price = np.asarray(env._view("bid_holder")), np.asarray(env._view("bid_price"))
+    cand, count = np.asarray(env._view("bid_cand")), np.asarray(env._view("bid_count"))
+    for b in range(B):
+        held = np.flatnonzero(holder[b] >= 0)
+        np.testing.assert_array_equal(won[b, holder[b, held]], held)
+        assert (price[b, holder[b] < 0] == 0).all()
+        for i in np.flatnonzero(won[b] >= 0):
+            assert won[b, i] in cand[b, i, : count[b, i]]
+
+
+def test_a_budget_of_rounds_under_motion_stays_within_its_slack_in_both_step_kernels():
+    """Random actions through auto-resets: both step kernels give the same lists and the same
+    winners bit for bit, and a budget large enough to finish each step's bidding keeps the
+    matching within HOLD_SLACK increments per agent of the optimum (a holder keeps its landmark
+    until another option is better by that much)."""
+    M, B, eps = 40, 2, 0.1
+    envs = [_make(M, B, wide=wide, rounds=10_000, eps=eps) for wide in (False, True)] + [_make(M, B, rounds=2)]
+    for env in envs:
+        env.reset()
+    rng = np.random.default_rng(1)
+    for _ in range(60):  # line's episodes end at 50 steps: one auto-reset each
+        actions = rng.integers(0, 5, size=(B, M))
+        obs = [env.step(actions)[0] for env in envs]
+        for key in ("entities", "entity_mask"):
+            np.testing.assert_array_equal(np.asarray(obs[0][key]), np.asarray(obs[1][key]))
+        np.testing.assert_array_equal(_won(envs[0]), _won(envs[1]))
+        state = envs[0].get_state()
+        for b in range(B):
+            got, best = _cost_and_optimum(_won(envs[0])[b], state["pos"][b], state["landmarks"][b])
+            assert best - 1e-3 <= got <= best + M * auction.HOLD_SLACK * eps
+    assert (_won(envs[2]) >= 0).any()
+
+
+def test_auction_rounds_needs_the_auction_order_and_a_positive_budget():
+    with pytest.raises(ValueError, match="auction_rounds is the budget of the agents' own auction"):
+        _make(20, order="claim-zero", rounds=4)
+    with pytest.raises(ValueError, match="auction_rounds must be >= 1, got 0"):
+        _make(20, rounds=0)
+    with pytest.raises(ValueError, match="auction_eps is the bid increment of the budgeted auction: it needs"):
+        _make(20, eps=0.5)
+    with pytest.raises(ValueError, match="auction_eps must be > 0, got 0.0"):
+        _make(20, rounds=4, eps=0.0)
 
 
 def test_an_agent_priced_out_of_a_crowd_wins_nothing_and_reads_claim_zero_lists():

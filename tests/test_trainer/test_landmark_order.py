@@ -30,16 +30,31 @@ def test_swarm_options_take_the_landmark_order():
         swarm_options(landmark_order="open", **LISTS)
     with pytest.raises(ValueError, match="landmark_order must be one of"):
         swarm_options(landmark_occupancy=True, landmark_order="held", **LISTS)
+    budget = swarm_options(landmark_occupancy=True, landmark_order="auction", auction_rounds=8, **LISTS)
+    assert budget["auction_rounds"] == 8
+    with pytest.raises(ValueError, match="auction_rounds is the budget of the agents' own auction: it needs"):
+        swarm_options(landmark_occupancy=True, landmark_order="free", auction_rounds=8, **LISTS)
+    with pytest.raises(ValueError, match="auction_rounds must be an integer >= 1, got 0"):
+        swarm_options(landmark_occupancy=True, landmark_order="auction", auction_rounds=0, **LISTS)
+    with pytest.raises(ValueError, match="auction_eps is the bid increment of the budgeted auction: it needs"):
+        swarm_options(landmark_occupancy=True, landmark_order="auction", auction_eps=0.2, **LISTS)
+    with pytest.raises(ValueError, match="auction_eps must be a positive finite number, got -1"):
+        swarm_options(landmark_occupancy=True, landmark_order="auction", auction_rounds=4, auction_eps=-1, **LISTS)
 
 
-# "auction" lists (the agents' own auction) need the threshold matching: assignment "free"
-@pytest.mark.parametrize("order, assignment", [("free", None), ("auction", "free")])
-def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, order, assignment):
+# "auction" lists (the agents' own auction) need the threshold matching: assignment "free"; and
+# may have a budget of bid rounds a step
+@pytest.mark.parametrize(
+    "order, assignment, rounds", [("free", None, None), ("auction", "free", None), ("auction", "free", 2)]
+)
+def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, order, assignment, rounds):
     extra = {"assignment": assignment} if assignment else {}
+    extra.update({"auction_rounds": rounds} if rounds else {})
     cfg = tiny(tmp_path, order, agents=6, updates=1, landmark_occupancy=True, landmark_order=order, **LISTS, **extra)
     train(cfg)
     policy, payload = checkpoint.load_policy(os.path.join(cfg.run_dir, "policy.pt"))
     assert payload["swarm"]["landmark_order"] == order
+    assert payload["swarm"].get("auction_rounds") == rounds
     out = evaluate(policy, "coverage", 6, comm="rc", episodes=2, seed=9, swarm=payload["swarm"])
     assert 0 <= out["success_rate"] <= 1
     export(os.path.join(cfg.run_dir, "policy.pt"), str(tmp_path / "export"))
