@@ -7,6 +7,7 @@ took (median, 90th percentile, most) and the share of agents holding a landmark 
 for the budgets R that ``swarm eval NAME --auction-rounds R`` is measured at in docs/SWARM.md:
 
     python tools/auction_rounds.py coverage-rc-m100-auction line-rc-m100-auction formation-rc-m100-auction
+    python tools/auction_rounds.py coverage-rc-m100-auction line-rc-m100-auction formation-rc-m100-auction --eps 0.01
 
 Rounds here are those of the budgeted auction (each agent without a landmark bids once a round,
 in index order, at the prices the landmarks hold then: auction._bid_rounds).
@@ -57,6 +58,7 @@ def main(argv=None) -> int:
     ap.add_argument("--episodes", type=int, default=20, help="fresh episode starts (environments)")
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--max-rounds", type=int, default=3000, help="stop counting here")
+    ap.add_argument("--eps", type=float, default=None, help="the bid increment (auction_eps; default: the simulator's)")
     args = ap.parse_args(argv)
     for name, value in (("agents", args.agents), ("episodes", args.episodes), ("max-rounds", args.max_rounds)):
         if value < 1:
@@ -66,7 +68,11 @@ def main(argv=None) -> int:
     from trainer.checkpoint import load_policy
     from trainer.zoo import get, looks_like_name
 
-    print(f"M = {args.agents}, {args.episodes} episode starts at seed {args.seed}, agents held where they spawned")
+    eps = args.eps if args.eps is not None else "the default"
+    print(
+        f"M = {args.agents}, {args.episodes} episode starts at seed {args.seed}, agents held where they spawned, "
+        f"bid increment {eps}"
+    )
     print(f"{'policy':32} {'rounds: median':>15} {'p90':>6} {'most':>6}  " + "  ".join(f"held@{r:<4}" for r in BUDGETS))
     for name in args.policies:
         _, payload = load_policy(get(name).path if looks_like_name(name) and not os.path.exists(name) else name)
@@ -78,6 +84,8 @@ def main(argv=None) -> int:
             )
             return 2
         swarm["auction_rounds"] = 1
+        if args.eps is not None:
+            swarm["auction_eps"] = args.eps
         setting = payload["task"]  # the task it trained on: {"task", "agents", "comm", "comm_radius"}
         env = taichi_swarm.make(
             setting["task"], args.episodes, args.agents, comm=setting["comm"], comm_radius=setting["comm_radius"],
