@@ -15,7 +15,7 @@ cached; ``--cold`` compiles into a fresh cache directory).
     python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
     python tools/bench_swarm.py --layouts "lists KL=16 nearest" --skip-10k --vmas 10 100   # pip install vmas
     python tools/bench_swarm.py --arch cuda --layouts "lists KL=16 nearest" "lists KL=16 nearest wide"
-    python tools/bench_swarm.py --layouts "claim-zero lists" "auction lists" --skip-10k
+    python tools/bench_swarm.py --layouts "claim-zero lists" "auction lists" "auction lists R=16" --skip-10k
 
 A layout ending in "wide" steps every agent in parallel (``agent_parallel=True``, the default
 on CUDA); the others pin one thread per environment, so a pair of them is an A/B in one run
