@@ -255,6 +255,9 @@ LOCAL_EPS = 0.01  # the local auction's final eps: each agent within 0.01 of its
 # within its first steps (docs/SWARM.md measures S% against both). The matching is then within
 # the increment per agent of the optimum: at most that much more travel for an agent.
 ROUND_EPS = 0.5
+# auction_eps's range: above the float32 spacing of any price an auction reaches (prices stay
+# below OUT sense radii), so that every bid moves a price; and below any arena's distances
+MIN_ROUND_EPS, MAX_ROUND_EPS = 1e-4, 1e3
 # A holder keeps its landmark until another option is better by HOLD_SLACK increments: more than
 # a fresh winner's one (it won at its second best plus the increment), with room for a step's
 # motion; each release reopens the bidding for the landmark at price 0.
@@ -322,23 +325,32 @@ def local_solve(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, L: ti
 @ti.func
 def _release_stale(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32):
     """A budget's warm start: agent i keeps the landmark it holds while it senses it (among its
-    candidates) within HOLD_SLACK increments of its best; else it lets it go, and the landmark, held by
-    nobody, drops its price to 0 (an unheld landmark at a price would break eps-optimality
-    for the agents that stay out)."""
+    candidates) within HOLD_SLACK increments of its best; else it lets it go, and the landmark,
+    held by nobody, drops its price to 0 (an unheld landmark at a price would break
+    eps-optimality for the agents that stay out). A price dropped can put another holder past
+    the slack, so the passes repeat until one releases nothing (each releases a holder or ends:
+    at most M + 1 passes)."""
     V, Y, X = blocks.bid_price.env(ib, b), blocks.bid_holder.env(ib, b), blocks.bid_won.env(ib, b)
-    for i in range(M):
-        j = ib[X + i]
-        if j >= 0:
-            d2 = blocks.bid_d2.row(ib, blocks.bid_d2.env(ib, b), i)
-            idx = blocks.bid_cand.row(ib, blocks.bid_cand.env(ib, b), i)
-            value = INF
-            for k in range(ib[blocks.bid_count.env(ib, b) + i]):
-                if ib[idx + k] == j:
-                    value = ti.sqrt(f[d2 + k]) + f[V + j]
-            if value > _local_best(f, ib, b, i, M)[0] + HOLD_SLACK * f[P_BID_EPS]:
-                ib[X + i] = -1
-                ib[Y + j] = -1
-                f[V + j] = 0.0
+    slack = HOLD_SLACK * f[P_BID_EPS]
+    released = 1
+    while released > 0:
+        released = 0
+        for i in range(M):
+            j = ib[X + i]
+            if j >= 0:
+                d2 = blocks.bid_d2.row(ib, blocks.bid_d2.env(ib, b), i)
+                idx = blocks.bid_cand.row(ib, blocks.bid_cand.env(ib, b), i)
+                sensed = False
+                value = 0.0
+                for k in range(ib[blocks.bid_count.env(ib, b) + i]):
+                    if ib[idx + k] == j:
+                        sensed = True
+                        value = ti.sqrt(f[d2 + k]) + f[V + j]
+                if not sensed or value > _local_best(f, ib, b, i, M)[0] + slack:
+                    ib[X + i] = -1
+                    ib[Y + j] = -1
+                    f[V + j] = 0.0
+                    released += 1
 
 
 @ti.func

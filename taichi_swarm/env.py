@@ -161,8 +161,9 @@ class SwarmEnv:
     and leaves the network the driving: docs/SWARM.md, "The agents' own auction".
     auction_rounds (with landmark_order "auction"): None (the default), the auction solved to
     the end each step; or R >= 1, a radio's budget of R bid rounds a step: the auction carries
-    over from step to step (prices and holders kept at the landmarks) and runs R Jacobi rounds
-    a step; an agent still bidding reads claim-zero lists (auction.py, docs/SWARM.md).
+    over from step to step (prices and holders kept at the landmarks) and runs up to R rounds
+    a step, each agent without a landmark bidding once a round; an agent still bidding reads
+    claim-zero lists (auction.py, docs/SWARM.md).
     auction_eps (with auction_rounds): the budgeted auction's bid increment, the least a bid raises
     a price (None: auction.ROUND_EPS, 0.5); the matching is within it per agent of the optimum,
     and a bidding war's rounds grow as the prices it climbs over it.
@@ -281,10 +282,11 @@ class SwarmEnv:
                     "auction_eps is the bid increment of the budgeted auction: it needs auction_rounds (the auction "
                     f"solved to the end each step bids at {auction.LOCAL_EPS})"
                 )
-            auction_eps = _check_float("auction_eps", auction_eps, 0.0)
-            if auction_eps <= 0.0:
-                raise ValueError(f"auction_eps must be > 0, got {auction_eps}")
-        self.auction_eps = auction_eps
+            auction_eps = _check_float("auction_eps", auction_eps, auction.MIN_ROUND_EPS)
+            if auction_eps > auction.MAX_ROUND_EPS:
+                raise ValueError(f"auction_eps must be <= {auction.MAX_ROUND_EPS}, got {auction_eps}")
+        # the increment in effect (recorded whenever there is a budget, so equal runs share a key)
+        self.auction_eps = auction_eps if auction_eps is not None or auction_rounds is None else auction.ROUND_EPS
         if landmark_order in CLAIM_ORDERS and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
                 f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "
@@ -496,7 +498,7 @@ class SwarmEnv:
         fparams[P_ARENA] = self.arena
         fparams[P_TCELL] = auction.target_cell(self.num_agents, self.arena)
         fparams[P_EPS] = self.assignment_eps
-        fparams[P_BID_EPS] = self.auction_eps or auction.ROUND_EPS
+        fparams[P_BID_EPS] = self.auction_eps or 0.0
         self._put(self._i, 0, header)
         self._put(self._f, 0, fparams)
 
@@ -753,7 +755,9 @@ class SwarmEnv:
     def set_state(self, pos=None, vel=None, landmarks=None, step=None):
         """Overwrite parts of the state (all environments); returns the new ``obs``.
 
-        Targets, assignment and observations are recomputed from the new state.
+        Targets, assignment and observations are recomputed from the new state. With
+        ``auction_rounds``, that includes another step's rounds of the agents' auction (its state
+        carries over, as in a step; ``step=0`` starts it afresh).
         """
         if not self._seeded:
             self.reset()

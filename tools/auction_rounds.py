@@ -48,6 +48,9 @@ def settle(env, max_rounds: int, budgets=BUDGETS) -> tuple[np.ndarray, dict]:
             held[r] = float((np.asarray(env._view("bid_won")) >= 0).mean())
         if (rounds <= max_rounds).all() and r >= max(budgets):
             break
+    final = float((np.asarray(env._view("bid_won")) >= 0).mean())
+    for r in budgets:  # settled before a budget's rounds: it holds what the settled auction holds
+        held.setdefault(r, final if (rounds < r).all() else float("nan"))
     return rounds, held
 
 
@@ -68,12 +71,9 @@ def main(argv=None) -> int:
     from trainer.checkpoint import load_policy
     from trainer.zoo import get, looks_like_name
 
-    eps = args.eps if args.eps is not None else "the default"
-    print(
-        f"M = {args.agents}, {args.episodes} episode starts at seed {args.seed}, agents held where they spawned, "
-        f"bid increment {eps}"
-    )
-    print(f"{'policy':32} {'rounds: median':>15} {'p90':>6} {'most':>6}  " + "  ".join(f"held@{r:<4}" for r in BUDGETS))
+    print(f"M = {args.agents}, {args.episodes} episode starts at seed {args.seed}, agents held where they spawned")
+    head = f"{'policy':32} {'increment':>9} {'rounds: median':>15} {'p90':>6} {'most':>6}  "
+    print(head + "  ".join(f"held@{r:<4}" for r in BUDGETS))
     for name in args.policies:
         _, payload = load_policy(get(name).path if looks_like_name(name) and not os.path.exists(name) else name)
         swarm = dict(payload.get("swarm") or {})
@@ -86,6 +86,7 @@ def main(argv=None) -> int:
         swarm["auction_rounds"] = 1
         if args.eps is not None:
             swarm["auction_eps"] = args.eps
+        swarm["auction_eps"] = swarm.get("auction_eps", taichi_swarm.auction.ROUND_EPS)
         setting = payload["task"]  # the task it trained on: {"task", "agents", "comm", "comm_radius"}
         env = taichi_swarm.make(
             setting["task"], args.episodes, args.agents, comm=setting["comm"], comm_radius=setting["comm_radius"],
@@ -93,10 +94,8 @@ def main(argv=None) -> int:
         )  # fmt: skip
         rounds, held = settle(env, args.max_rounds)
         more = ">" if (rounds > args.max_rounds).any() else ""
-        print(
-            f"{name:32} {np.median(rounds):>15.0f} {np.percentile(rounds, 90):>6.0f} {more}{rounds.max():>5d}  "
-            + "  ".join(f"{held[r]:<9.3f}" for r in BUDGETS)
-        )
+        stats = f"{np.median(rounds):>15.0f} {np.percentile(rounds, 90):>6.0f} {more}{rounds.max():>5d}"
+        print(f"{name:32} {swarm['auction_eps']:>9g} {stats}  " + "  ".join(f"{held[r]:<9.3f}" for r in BUDGETS))
     return 0
 
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 
 import taichi_swarm
+from taichi_swarm.auction import MAX_ROUND_EPS, MIN_ROUND_EPS
 from taichi_swarm.env import ASSIGNMENTS, LANDMARK_ORDERS, LOCAL_ASSIGNMENTS
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
@@ -61,7 +64,7 @@ def swarm_options(
             "(--landmark-occupancy)"
         )
     if auction_rounds is not None:
-        if isinstance(auction_rounds, bool) or not isinstance(auction_rounds, int) or auction_rounds < 1:
+        if isinstance(auction_rounds, bool) or not isinstance(auction_rounds, numbers.Integral) or auction_rounds < 1:
             raise ValueError(f"auction_rounds must be an integer >= 1, got {auction_rounds!r}")
         if landmark_order != "auction":
             raise ValueError(
@@ -69,12 +72,12 @@ def swarm_options(
                 f"(--landmark-order auction), got {landmark_order!r}"
             )
     if auction_eps is not None:
-        if (
-            isinstance(auction_eps, bool)
-            or not isinstance(auction_eps, int | float)
-            or not 0 < auction_eps < float("inf")
+        if isinstance(auction_eps, bool) or not (
+            isinstance(auction_eps, numbers.Real) and MIN_ROUND_EPS <= auction_eps <= MAX_ROUND_EPS
         ):
-            raise ValueError(f"auction_eps must be a positive finite number, got {auction_eps!r}")
+            raise ValueError(
+                f"auction_eps must be a number from {MIN_ROUND_EPS} to {MAX_ROUND_EPS}, got {auction_eps!r}"
+            )
         if auction_rounds is None:
             raise ValueError("auction_eps is the bid increment of the budgeted auction: it needs auction_rounds")
     if landmark_order == "nearest":  # the default: recorded as unset

@@ -41,6 +41,6 @@ def test_the_rounds_counted_are_those_after_which_no_bid_is_placed():
 def test_the_tool_reports_a_policy_and_refuses_one_without_auction_lists(capsys):
     assert tool.main(["coverage-rc-m100-auction", "--agents", "20", "--episodes", "2", "--max-rounds", "500"]) == 0
     out = capsys.readouterr().out
-    assert "coverage-rc-m100-auction" in out and "held@16" in out
+    assert "coverage-rc-m100-auction" in out and "held@16" in out and " 0.5 " in out
     assert tool.main(["coverage-rc-m100-claim-zero", "--agents", "20", "--episodes", "2"]) == 2
     assert "was not trained on auction lists" in capsys.readouterr().err

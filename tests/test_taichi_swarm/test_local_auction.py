@@ -112,8 +112,9 @@ def test_a_budget_of_rounds_carries_the_auction_over_to_the_same_optimum():
     holder, price = np.asarray(env._view("bid_holder")), np.asarray(env._view("bid_price"))
     cand, count = np.asarray(env._view("bid_cand")), np.asarray(env._view("bid_count"))
     for b in range(B):
-        held = np.flatnonzero(holder[b] >= 0)
-        np.testing.assert_array_equal(won[b, holder[b, held]], held)
+        held, winners = np.flatnonzero(holder[b] >= 0), np.flatnonzero(won[b] >= 0)
+        np.testing.assert_array_equal(won[b, holder[b, held]], held)  # each side names the other
+        np.testing.assert_array_equal(holder[b, won[b, winners]], winners)
         assert (price[b, holder[b] < 0] == 0).all()
         for i in np.flatnonzero(won[b] >= 0):
             assert won[b, i] in cand[b, i, : count[b, i]]
@@ -125,21 +126,43 @@ def test_a_budget_of_rounds_under_motion_stays_within_its_slack_in_both_step_ker
     matching within HOLD_SLACK increments per agent of the optimum (a holder keeps its landmark
     until another option is better by that much)."""
     M, B, eps = 40, 2, 0.1
-    envs = [_make(M, B, wide=wide, rounds=10_000, eps=eps) for wide in (False, True)] + [_make(M, B, rounds=2)]
+    envs = [_make(M, B, wide=wide, rounds=rounds, eps=eps) for rounds in (10_000, 2) for wide in (False, True)]
     for env in envs:
         env.reset()
     rng = np.random.default_rng(1)
     for _ in range(60):  # line's episodes end at 50 steps: one auto-reset each
         actions = rng.integers(0, 5, size=(B, M))
         obs = [env.step(actions)[0] for env in envs]
-        for key in ("entities", "entity_mask"):
-            np.testing.assert_array_equal(np.asarray(obs[0][key]), np.asarray(obs[1][key]))
-        np.testing.assert_array_equal(_won(envs[0]), _won(envs[1]))
+        for one, wide in ((0, 1), (2, 3)):  # the budget's carried state too, where 2 rounds bind
+            for key in ("entities", "entity_mask"):
+                np.testing.assert_array_equal(np.asarray(obs[one][key]), np.asarray(obs[wide][key]))
+            for name in ("bid_won", "bid_holder", "bid_price"):
+                np.testing.assert_array_equal(np.asarray(envs[one]._view(name)), np.asarray(envs[wide]._view(name)))
         state = envs[0].get_state()
         for b in range(B):
             got, best = _cost_and_optimum(_won(envs[0])[b], state["pos"][b], state["landmarks"][b])
             assert best - 1e-3 <= got <= best + M * auction.HOLD_SLACK * eps
     assert (_won(envs[2]) >= 0).any()
+
+
+def test_a_budgets_auction_starts_afresh_with_each_episode():
+    """At an auto-reset the carried auction is dropped: the new episode's first rounds are those of
+    a fresh start at its positions (set_state with step 0)."""
+    M, B = 40, 2
+    env, fresh = _make(M, B, rounds=2), _make(M, B, rounds=2)
+    env.reset()
+    fresh.reset()
+    rng = np.random.default_rng(2)
+    restarted = 0
+    for _ in range(55):  # line's episodes end at 50 steps
+        env.step(rng.integers(0, 5, size=(B, M)))
+        state = env.get_state()
+        if (state["step"] == 0).all():
+            fresh.set_state(pos=state["pos"], vel=state["vel"], landmarks=state["landmarks"], step=state["step"])
+            for name in ("bid_won", "bid_holder", "bid_price"):
+                np.testing.assert_array_equal(np.asarray(env._view(name)), np.asarray(fresh._view(name)))
+            restarted += 1
+    assert restarted == 1
 
 
 def test_auction_rounds_needs_the_auction_order_and_a_positive_budget():
@@ -149,7 +172,7 @@ def test_auction_rounds_needs_the_auction_order_and_a_positive_budget():
         _make(20, rounds=0)
     with pytest.raises(ValueError, match="auction_eps is the bid increment of the budgeted auction: it needs"):
         _make(20, eps=0.5)
-    with pytest.raises(ValueError, match="auction_eps must be > 0, got 0.0"):
+    with pytest.raises(ValueError, match="auction_eps must be >= 0.0001, got 0.0"):
         _make(20, rounds=4, eps=0.0)
 
 

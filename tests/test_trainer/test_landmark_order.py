@@ -38,7 +38,7 @@ def test_swarm_options_take_the_landmark_order():
         swarm_options(landmark_occupancy=True, landmark_order="auction", auction_rounds=0, **LISTS)
     with pytest.raises(ValueError, match="auction_eps is the bid increment of the budgeted auction: it needs"):
         swarm_options(landmark_occupancy=True, landmark_order="auction", auction_eps=0.2, **LISTS)
-    with pytest.raises(ValueError, match="auction_eps must be a positive finite number, got -1"):
+    with pytest.raises(ValueError, match="auction_eps must be a number from 0.0001 to 1000.0, got -1"):
         swarm_options(landmark_occupancy=True, landmark_order="auction", auction_rounds=4, auction_eps=-1, **LISTS)
 
 
