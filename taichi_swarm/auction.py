@@ -122,20 +122,30 @@ def _bid(
     while top > 0:
         top -= 1
         i = ib[FREE + top]
-        w = best(f, ib, b, i, M)
-        j = ti.cast(w[2], ti.i32)
-        if j >= 0:
-            raise_by = eps
-            if w[1] < INF:
-                raise_by = w[1] - w[0] + eps
-            f[V + j] = f[V + j] + raise_by
-            prev = ib[Y + j]
-            ib[Y + j] = i
-            ib[X + i] = j
-            if prev >= 0:
-                ib[X + prev] = -1
-                ib[FREE + top] = prev
-                top += 1
+        prev = _place_bid(f, ib, i, best(f, ib, b, i, M), eps, V, X, Y)
+        if prev >= 0:
+            ib[FREE + top] = prev
+            top += 1
+
+
+@ti.func
+def _place_bid(f: ti.template(), ib: ti.template(), i: ti.i32, w: ti.math.vec3, eps: ti.f32, V, X, Y) -> ti.i32:
+    """Agent i's bid, given its (w1, w2, j1) (j1 < 0: it stays out, no bid): target j1's price V
+    raised by w2 - w1 + eps, j1 held by i (Y: target -> agent, X: agent -> target). Returns the
+    agent it outbid, now holding nothing (-1: none)."""
+    j = ti.cast(w[2], ti.i32)
+    prev = -1
+    if j >= 0:
+        raise_by = eps
+        if w[1] < INF:
+            raise_by = w[1] - w[0] + eps
+        f[V + j] = f[V + j] + raise_by
+        prev = ib[Y + j]
+        ib[Y + j] = i
+        ib[X + i] = j
+        if prev >= 0:
+            ib[X + prev] = -1
+    return prev
 
 
 @ti.func
@@ -331,6 +341,7 @@ def _release_stale(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32):
     the slack, so the passes repeat until one releases nothing (each releases a holder or ends:
     at most M + 1 passes)."""
     V, Y, X = blocks.bid_price.env(ib, b), blocks.bid_holder.env(ib, b), blocks.bid_won.env(ib, b)
+    D2, CAND, COUNT = blocks.bid_d2.env(ib, b), blocks.bid_cand.env(ib, b), blocks.bid_count.env(ib, b)
     slack = HOLD_SLACK * f[P_BID_EPS]
     released = 1
     while released > 0:
@@ -338,11 +349,10 @@ def _release_stale(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32):
         for i in range(M):
             j = ib[X + i]
             if j >= 0:
-                d2 = blocks.bid_d2.row(ib, blocks.bid_d2.env(ib, b), i)
-                idx = blocks.bid_cand.row(ib, blocks.bid_cand.env(ib, b), i)
+                d2, idx = blocks.bid_d2.row(ib, D2, i), blocks.bid_cand.row(ib, CAND, i)
                 sensed = False
                 value = 0.0
-                for k in range(ib[blocks.bid_count.env(ib, b) + i]):
+                for k in range(ib[COUNT + i]):
                     if ib[idx + k] == j:
                         sensed = True
                         value = ti.sqrt(f[d2 + k]) + f[V + j]
@@ -366,15 +376,8 @@ def _bid_rounds(f: ti.template(), ib: ti.template(), b: ti.i32, M: ti.i32, round
         bids = 0
         for i in range(M):
             if ib[X + i] < 0:
-                w = _local_best(f, ib, b, i, M)  # w[1] <= the finite cost of staying out
-                j = ti.cast(w[2], ti.i32)
-                if j >= 0:
-                    bids += 1
-                    prev = ib[Y + j]
-                    if prev >= 0:
-                        ib[X + prev] = -1
-                    f[V + j] = f[V + j] + w[1] - w[0] + eps
-                    ib[Y + j] = i
-                    ib[X + i] = j
+                w = _local_best(f, ib, b, i, M)
+                bids += ti.cast(w[2] >= 0.0, ti.i32)
+                _place_bid(f, ib, i, w, eps, V, X, Y)
         if bids == 0:
             break

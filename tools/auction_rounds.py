@@ -68,14 +68,13 @@ def main(argv=None) -> int:
             ap.error(f"--{name} must be >= 1, got {value}")
 
     import taichi_swarm
-    from trainer.checkpoint import load_policy
-    from trainer.zoo import get, looks_like_name
+    from trainer.checkpoint import load
 
     print(f"M = {args.agents}, {args.episodes} episode starts at seed {args.seed}, agents held where they spawned")
     head = f"{'policy':32} {'increment':>9} {'rounds: median':>15} {'p90':>6} {'most':>6}  "
     print(head + "  ".join(f"held@{r:<4}" for r in BUDGETS))
     for name in args.policies:
-        _, payload = load_policy(get(name).path if looks_like_name(name) and not os.path.exists(name) else name)
+        payload = load(name)  # a zoo name, a checkpoint file or a run directory
         swarm = dict(payload.get("swarm") or {})
         if swarm.get("landmark_order") != "auction":
             print(
