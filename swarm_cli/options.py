@@ -162,21 +162,26 @@ class SwarmOptions:
     agent holds (open), or the matching gives no other agent (claim; claim-zero: a claimed
     landmark reads 0), or only the landmark the agent wins in the agents' own auction (auction;
     with --assignment nearest or free); needs the policy's occupancy input"""
-    auction_rounds: Annotated[int | None, Default("solved to the end each step", "R")] = None
+    auction_rounds: Annotated[int | None, Default(OWN, "R")] = None
     """with --landmark-order auction: a radio's budget of R bid rounds a step, the auction carried
-    over from step to step (an agent still bidding reads claim-zero lists)"""
+    over from step to step (an agent still bidding reads claim-zero lists); 0: the auction solved
+    to the end each step, whatever budget the policy trained with"""
     auction_eps: Annotated[float | None, Default("0.5", "EPS")] = None
     """with --auction-rounds: the least a bid raises a landmark's price, the matching's bound per agent"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")
-        at_least(self.auction_rounds, 1, "auction-rounds")
+        at_least(self.auction_rounds, 0, "auction-rounds")
         positive(self.auction_eps, "auction-eps")
+        if self.auction_rounds == 0 and self.auction_eps is not None:
+            raise OptionError("--auction-eps is the budget's bid increment: --auction-rounds 0 has no budget")
         at_least(self.landmark_neighbours, 1, "landmark-neighbours")
         positive(self.sense_radius, "sense-radius")
 
     def swarm_kwargs(self) -> dict:
-        return {
+        """The options set, as make() keywords over the policy's own; --auction-rounds 0 sets the
+        budget and its increment to None, which clears the ones the policy trained with."""
+        kwargs = {
             k: v
             for k, v in (
                 ("neighbours", self.neighbours),
@@ -190,6 +195,9 @@ class SwarmOptions:
             )
             if v is not None
         }
+        if self.auction_rounds == 0:
+            kwargs.update(auction_rounds=None, auction_eps=None)
+        return kwargs
 
 
 @dataclass(kw_only=True)

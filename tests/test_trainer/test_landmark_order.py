@@ -62,3 +62,21 @@ def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, o
     assert manifest["contract"]["swarm"]["landmark_order"] == order
     with pytest.raises(ValueError, match=f"landmark_order '{order}' needs landmark occupancy"):
         dataclasses.replace(cfg, landmark_occupancy=False).validate()
+    if rounds:  # --auction-rounds 0 clears the trained budget: the auction solved to the end each step
+        from deploy.executor import ExportedModel, resolve_settings
+        from swarm_cli.options import EvalOptions, ExecuteOptions, parse
+        from swarm_cli.train import swarm_setting
+
+        for argv, budget in (([], {"auction_rounds": rounds}), (["--auction-rounds", "0"], {})):
+            opts = parse(EvalOptions, ["policy.pt", *argv], "swarm eval")
+            setting = swarm_setting(opts, payload)
+            assert {k: setting[k] for k in ("auction_rounds", "auction_eps") if k in setting} == budget
+            opts = parse(ExecuteOptions, [str(tmp_path / "export"), *argv], "swarm execute")
+            s = resolve_settings(ExportedModel(str(tmp_path / "export")), swarm=opts.swarm_kwargs())
+            assert {k: v for k, v in s.swarm.items() if k.startswith("auction") and v is not None} == budget
+        for argv, line in (
+            (["--auction-rounds", "0", "--auction-eps", "0.3"], "--auction-rounds 0 has no budget"),
+            (["--auction-rounds", "-1"], "--auction-rounds must be >= 0, got -1"),
+        ):
+            with pytest.raises(SystemExit):
+                parse(EvalOptions, ["policy.pt", *argv], "swarm eval")
