@@ -105,6 +105,16 @@ SINGLES = (
     ("formation-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k12-auction", 100,
      "formation-rc-m100-k12 on auction lists (the lattice point each agent wins in the agents' own auction), "
      "25 updates (s-formation-rc-lattice-m100-k12-auction)"),
+    ("coverage-rc-m100-auction-r4", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-auction-r4", 100,
+     "coverage-rc-m100-auction with the auction spread over time: a budget of 4 bid rounds a step, the auction "
+     "carried over from step to step, an agent still bidding reading claim-zero lists; 25 more updates "
+     "(s-coverage-rc-rel-m100-auction-r4)"),
+    ("line-rc-m100-auction-r4", "swarm", "results/reproduce-swarm", "s-line-rc-rows-m100-k12-auction-r4", 100,
+     "line-rc-m100-auction with a budget of 4 bid rounds a step in the agents' own auction, 25 more updates "
+     "(s-line-rc-rows-m100-k12-auction-r4)"),
+    ("formation-rc-m100-auction-r4", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k12-auction-r4",
+     100, "formation-rc-m100-auction with a budget of 4 bid rounds a step in the agents' own auction, 25 more "
+     "updates (s-formation-rc-lattice-m100-k12-auction-r4)"),
 )  # fmt: skip
 
 

@@ -47,7 +47,7 @@ def test_swarm_options_take_the_landmark_order():
 @pytest.mark.parametrize(
     "order, assignment, rounds", [("free", None, None), ("auction", "free", None), ("auction", "free", 2)]
 )
-def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, order, assignment, rounds):
+def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, capsys, order, assignment, rounds):
     extra = {"assignment": assignment} if assignment else {}
     extra.update({"auction_rounds": rounds} if rounds else {})
     cfg = tiny(tmp_path, order, agents=6, updates=1, landmark_occupancy=True, landmark_order=order, **LISTS, **extra)
@@ -80,3 +80,4 @@ def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, o
         ):
             with pytest.raises(SystemExit):
                 parse(EvalOptions, ["policy.pt", *argv], "swarm eval")
+            assert line in capsys.readouterr().err
