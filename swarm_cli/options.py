@@ -165,7 +165,8 @@ class SwarmOptions:
     auction_rounds: Annotated[int | None, Default(OWN, "R")] = None
     """with --landmark-order auction: a radio's budget of R bid rounds a step, the auction carried
     over from step to step (an agent still bidding reads claim-zero lists); 0: the auction solved
-    to the end each step, whatever budget the policy trained with"""
+    to the end each step, whatever budget the policy trained with (another --landmark-order drops
+    that budget too)"""
     auction_eps: Annotated[float | None, Default("0.5", "EPS")] = None
     """with --auction-rounds: the least a bid raises a landmark's price, the matching's bound per agent"""
 
@@ -179,8 +180,9 @@ class SwarmOptions:
         positive(self.sense_radius, "sense-radius")
 
     def swarm_kwargs(self) -> dict:
-        """The options set, as make() keywords over the policy's own; --auction-rounds 0 sets the
-        budget and its increment to None, which clears the ones the policy trained with."""
+        """The options set, as make() keywords over the policy's own. --auction-rounds 0, or a
+        --landmark-order other than auction, sets the budget and its increment to None, which
+        clears the ones the policy trained with."""
         kwargs = {
             k: v
             for k, v in (
@@ -195,7 +197,8 @@ class SwarmOptions:
             )
             if v is not None
         }
-        if self.auction_rounds == 0:
+        other_order = self.landmark_order not in (None, "auction") and self.auction_rounds is None
+        if self.auction_rounds == 0 or other_order:  # a trained budget belongs to the auction's lists
             kwargs.update(auction_rounds=None, auction_eps=None)
         return kwargs
 

@@ -67,13 +67,14 @@ def test_a_free_first_run_carries_its_lists_to_evaluation_and_export(tmp_path, c
         from swarm_cli.options import EvalOptions, ExecuteOptions, parse
         from swarm_cli.train import swarm_setting
 
-        for argv, budget in (([], {"auction_rounds": rounds}), (["--auction-rounds", "0"], {})):
+        cleared = (["--auction-rounds", "0"], {}), (["--landmark-order", "claim-zero"], {})
+        for argv, budget in (([], {"auction_rounds": rounds}), *cleared):
             opts = parse(EvalOptions, ["policy.pt", *argv], "swarm eval")
             setting = swarm_setting(opts, payload)
             assert {k: setting[k] for k in ("auction_rounds", "auction_eps") if k in setting} == budget
             opts = parse(ExecuteOptions, [str(tmp_path / "export"), *argv], "swarm execute")
             s = resolve_settings(ExportedModel(str(tmp_path / "export")), swarm=opts.swarm_kwargs())
-            assert {k: v for k, v in s.swarm.items() if k.startswith("auction") and v is not None} == budget
+            assert {k: v for k, v in s.swarm.items() if k.startswith("auction")} == budget
         for argv, line in (
             (["--auction-rounds", "0", "--auction-eps", "0.3"], "--auction-rounds 0 has no budget"),
             (["--auction-rounds", "-1"], "--auction-rounds must be >= 0, got -1"),
