@@ -285,8 +285,9 @@ class SwarmEnv:
             auction_eps = _check_float("auction_eps", auction_eps, auction.MIN_ROUND_EPS)
             if auction_eps > auction.MAX_ROUND_EPS:
                 raise ValueError(f"auction_eps must be <= {auction.MAX_ROUND_EPS}, got {auction_eps}")
-        # the increment in effect (recorded whenever there is a budget, so equal runs share a key)
-        self.auction_eps = auction_eps if auction_eps is not None or auction_rounds is None else auction.ROUND_EPS
+        elif auction_rounds is not None:  # the increment in effect, recorded so equal runs share a key
+            auction_eps = auction.ROUND_EPS
+        self.auction_eps = auction_eps
         if landmark_order in CLAIM_ORDERS and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
                 f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "

@@ -85,7 +85,6 @@ def main(argv=None) -> int:
         swarm["auction_rounds"] = 1
         if args.eps is not None:
             swarm["auction_eps"] = args.eps
-        swarm["auction_eps"] = swarm.get("auction_eps", taichi_swarm.auction.ROUND_EPS)
         setting = payload["task"]  # the task it trained on: {"task", "agents", "comm", "comm_radius"}
         env = taichi_swarm.make(
             setting["task"], args.episodes, args.agents, comm=setting["comm"], comm_radius=setting["comm_radius"],
@@ -94,7 +93,7 @@ def main(argv=None) -> int:
         rounds, held = settle(env, args.max_rounds)
         more = ">" if (rounds > args.max_rounds).any() else ""
         stats = f"{np.median(rounds):>15.0f} {np.percentile(rounds, 90):>6.0f} {more}{rounds.max():>5d}"
-        print(f"{name:32} {swarm['auction_eps']:>9g} {stats}  " + "  ".join(f"{held[r]:<9.3f}" for r in BUDGETS))
+        print(f"{name:32} {env.auction_eps:>9g} {stats}  " + "  ".join(f"{held[r]:<9.3f}" for r in BUDGETS))
     return 0
 
 
