@@ -408,7 +408,7 @@ def run(cfg: BaselineConfig) -> dict:
         },
     )
     out_json = os.path.join(cfg.out, "results.json")
-    ensure_writable(out_json, "--out")
+    ensure_writable(out_json, "--out", make_dirs=True)  # (the run's directory, made below)
     os.makedirs(cfg.out, exist_ok=True)
     config = experiment_config(
         cfg.frames,

@@ -52,7 +52,6 @@ acts on losses only, so it is refused with a delay, where every message is late 
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from collections import deque
 from dataclasses import dataclass
@@ -60,8 +59,14 @@ from dataclasses import dataclass
 import numpy as np
 import onnxruntime as ort
 
-from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, edge_position, validate
+from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, edge_position, parse, validate
+from taichi_swarm.files import MAX_ONNX_BYTES, InputFileError, read_input
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
+
+# A mean loss burst (--burst-len, in messages) longer than this is a link that never recovers
+# within any episode (at most max_steps x 64 rounds of messages on a link); inf would make
+# the chain's return probability 0
+MAX_BURST_LEN = 1e6
 
 
 class DeployError(ValueError):
@@ -83,11 +88,10 @@ class ExportedModel:
         path = os.path.join(directory, MANIFEST)
         if not os.path.exists(path):
             raise DeployError(f"{directory} has no {MANIFEST}: not a `swarm export` directory")
-        try:
-            with open(path) as f:
-                manifest = json.load(f)
-        except (OSError, json.JSONDecodeError) as exc:
-            raise DeployError(f"cannot read {path}: {exc}") from None
+        try:  # a regular file of bounded size: a FIFO would block, /dev/zero fill the memory
+            manifest = parse(read_input(path, "manifest"), path)  # (at most MAX_DEPTH deep)
+        except (InputFileError, ManifestError) as exc:
+            raise DeployError(str(exc)) from None
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
             raise DeployError(f"{path} is not a taichi-swarm ONNX manifest")
         try:
@@ -108,8 +112,10 @@ class ExportedModel:
             raise DeployError(f"{', '.join(missing)} missing (listed in {MANIFEST}): export again")
         for name, entry in manifest["files"].items():
             file = files[name]
-            with open(file, "rb") as f:
-                data = f.read()
+            try:
+                data = read_input(file, "ONNX model", MAX_ONNX_BYTES)
+            except InputFileError as exc:
+                raise DeployError(str(exc)) from None
             if _sha256(data) != entry["sha256"]:
                 raise DeployError(
                     f"{file} does not match the sha256 in {MANIFEST}: the file is corrupted or "
@@ -197,8 +203,11 @@ class MessageBus:
             raise DeployError(f"drop probability must be in [0, 1], got {drop}")
         if delay < 0:
             raise DeployError(f"delay must be >= 0 steps, got {delay}")
-        if not 0.0 <= burst_loss < 1.0 or not burst_len >= 1.0:
-            raise DeployError(f"burst loss must be in [0, 1) and burst length >= 1, got {burst_loss}, {burst_len}")
+        if not 0.0 <= burst_loss < 1.0 or not 1.0 <= burst_len <= MAX_BURST_LEN:
+            raise DeployError(
+                f"burst loss must be in [0, 1) and burst length in [1, {MAX_BURST_LEN:g}], "
+                f"got {burst_loss}, {burst_len}"
+            )
         if hold < 0 or (hold and delay):
             raise DeployError(f"hold must be >= 0 steps and acts on lost messages only (no delay), got {hold}")
         self.drop, self.delay, self.hold = float(drop), int(delay), int(hold)
@@ -430,10 +439,23 @@ class ExecuteSettings:
             raise DeployError(f"--drop values must be probabilities in [0, 1], got {self.drop}")
         if not 0.0 <= self.burst_loss < 1.0:
             raise DeployError(f"--burst-loss must be in [0, 1), got {self.burst_loss}")
-        if not self.burst_len >= 1.0:
-            raise DeployError(f"--burst-len must be >= 1 message, got {self.burst_len}")
+        if not 1.0 <= self.burst_len <= MAX_BURST_LEN:  # (inf and NaN too)
+            raise DeployError(f"--burst-len must be in [1, {MAX_BURST_LEN:g}] messages, got {self.burst_len}")
         if self.hold and self.delay:
             raise DeployError("--hold replaces lost messages; with --delay every message is late already: not both")
+        steps = episode_length(self.task)
+        if self.delay >= steps:  # a message would arrive after its episode ended: none would be heard
+            raise DeployError(f"--delay must be < the episode length ({steps} steps), got {self.delay}")
+        if self.hold > steps:  # (the bus keeps hold + 1 steps of messages per agent pair)
+            raise DeployError(f"--hold must be at most the episode length ({steps} steps), got {self.hold}")
+
+
+def episode_length(task: str) -> int:
+    """The steps of an episode of ``task`` as execute runs it (the task's max_steps)."""
+    from taichi_swarm import TASK_SPECS
+    from taichi_swarm.tasks import COMMON_PARAMS
+
+    return int({**COMMON_PARAMS, **TASK_SPECS[task].params}["max_steps"])
 
 
 def resolve_settings(

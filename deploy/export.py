@@ -32,7 +32,7 @@ import warnings
 import torch
 from torch import nn
 
-from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, integrator_contract, seal
+from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, integrator_contract, metadata, seal
 from taichi_swarm import TaskSetting
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
@@ -150,8 +150,9 @@ def _example_inputs(name: str, policy: SwarmPolicy) -> tuple[tuple[torch.Tensor,
     return args, dynamic
 
 
-def export_piece(name: str, policy: SwarmPolicy, path: str) -> None:
-    """Export one piece to a single self-contained .onnx file (no external data)."""
+def export_piece(name: str, policy: SwarmPolicy, path: str, props: dict[str, str] | None = None) -> None:
+    """Export one piece to a single self-contained .onnx file (no external data), carrying
+    ``props`` as its metadata_props (deploy.manifest.metadata: what the manifest must claim)."""
     cls, _, output_names = PIECES[name]
     input_names = piece_inputs(name, policy.config)
     module = cls(policy).eval()
@@ -168,9 +169,22 @@ def export_piece(name: str, policy: SwarmPolicy, path: str) -> None:
             output_names=list(output_names),
             verbose=False,
         )
+    import onnx
+
     tmp = path + ".tmp"
-    program.save(tmp, external_data=False)
-    os.replace(tmp, path)
+    try:
+        program.save(tmp, external_data=False)
+        if props:  # K and the task are not in any shape: the graph names them itself
+            model = onnx.load(tmp)
+            for key, value in props.items():
+                entry = model.metadata_props.add()
+                entry.key, entry.value = key, value
+            onnx.save(model, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
 
 
 def _versions() -> dict:
@@ -222,16 +236,15 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     except ValueError as exc:
         raise CheckpointError(str(exc)) from None
     _check_landmarks_fit(cfg, setting)
-    if cfg.goal_pass:  # two networks per agent, the policy's landmark attention taking the goal network's h
-        raise CheckpointError("this policy has a goal network (ModelConfig.goal_pass), which export does not write yet")
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise FileExistsError(f"--out {out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)
 
     files = {}
+    props = metadata({"model_config": cfg.to_dict(), "task": setting.to_dict()})
     for name, (_, _, outputs) in PIECES.items():
         path = os.path.join(out_dir, f"{name}.onnx")
-        export_piece(name, policy, path)
+        export_piece(name, policy, path, props)
         onnx.checker.check_model(path, full_check=True)
         files[name] = {
             "file": f"{name}.onnx",
@@ -315,14 +328,12 @@ def swarm_contract(payload: dict) -> dict:
         "(within comm_radius under rc), never more; landmark_neighbours KL: entities holds the KL nearest "
         "landmarks within sense_radius, nearest first (unsensed slots left out of entities); "
         "landmark_occupancy: each landmark row adds its distance to the nearest other agent; "
-        "landmark_order free: the landmarks no other agent holds within the success threshold listed first; "
-        "open: the same, held only by an agent nearer the landmark than the observer; "
-        "claim: held by the agent the threshold matching gives it, its occupancy that agent's distance; "
-        "claim-zero: the same, a claimed landmark's occupancy 0; "
+        "landmark_order claim-zero: the landmarks the threshold matching gives no other agent listed first, "
+        "a claimed landmark's occupancy 0; "
         "auction: only the landmark the agent wins in the agents' auction over the landmarks each senses "
         "(its occupancy floored at the success threshold), claim-zero lists where it wins none; "
         "auction_rounds R: that auction with a budget of R bid rounds a step, carried over from step to step, "
-        "each bid raising a price by at least auction_eps (0.5 unless set); "
+        "each bid raising a price by at least 0.5; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

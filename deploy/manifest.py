@@ -9,6 +9,14 @@ it and when the executor reads it (no torch here).
   the width of the hidden state the graphs take must be the manifest's ``hidden``.
 - edge_position ("none" | "relative"; absent in manifests older than it: "none"): the
   round pieces take ``offsets`` exactly when it is "relative".
+- Consistency: the top-level fields, ``model_config``, ``task`` and ``contract`` agree; every
+  static dimension of the graphs is the one the manifest implies (self_obs [4], entities
+  [L, F], message [2, H], logits [A], ...).
+- ONNX metadata (``metadata_props``, exports since it was added): each graph carries the
+  model config and task setting it was exported with; a manifest resealed to claim other
+  rounds or another task is refused, since the shapes alone do not pin K or the task.
+- Size: a manifest is parsed only at most MAX_DEPTH levels deep (100,000 nested arrays
+  would exhaust Python's recursion in the parser or the schema check).
 """
 
 from __future__ import annotations
@@ -26,6 +34,10 @@ MANIFEST = "manifest.json"
 FORMAT = "taichi-swarm-onnx"
 VERSION = 1
 PIECES = ("encode", "round", "round_heads", "heads")
+MAX_DEPTH = 32  # a manifest nests about 5 deep
+META_MODEL = "taichi_swarm.model_config"  # ONNX metadata_props keys: canonical JSON of each
+META_TASK = "taichi_swarm.task"
+SELF_DIM = 4  # self_obs: vx, vy, px, py (taichi_swarm.layout.SELF_DIM)
 
 _POSITIVE_INT = {"type": "integer", "minimum": 1}
 SCHEMA = {
@@ -135,12 +147,30 @@ def integrator_contract(task: dict, rounds: int, hidden: int) -> dict:
         f"{SENSITIVITY} along the axis held for one control period (mass {MASS}, damping {DAMPING} per step)",
         "message_schema_version": SCHEMA_VERSION,
         "message": f"little-endian: a {HEADER_BYTES}-byte header (magic TSWM, schema version, kind, run, step, "
-        f"worlds B, round, sender; deploy/net/protocol.py) then float32 [B, 2, {hidden}] (key; value per world)",
+        f"worlds B, round, sender, nonce; deploy/net/protocol.py) then float32 [B, 2, {hidden}] (key; value per world)",
     }
 
 
 class ManifestError(ValueError):
     """A manifest that does not follow the schema, was edited, or does not fit its files."""
+
+
+def parse(data: bytes | str, where: str = MANIFEST) -> dict:
+    """A manifest's JSON text -> its object, refused (ManifestError) unless it is UTF-8 JSON
+    nested at most MAX_DEPTH deep."""
+    try:
+        manifest = json.loads(data)
+    except RecursionError:
+        raise ManifestError(f"{where} is nested more than {MAX_DEPTH} levels deep: not a manifest") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ManifestError(f"cannot read {where}: {exc}") from None
+    depth, level = 0, [manifest]
+    while level:  # breadth first, no recursion: the check must not fail the way the parser does
+        depth += 1
+        if depth > MAX_DEPTH:
+            raise ManifestError(f"{where} is nested more than {MAX_DEPTH} levels deep: not a manifest")
+        level = [c for x in level for c in (x.values() if isinstance(x, dict) else x if isinstance(x, list) else ())]
+    return manifest
 
 
 def content_hash(manifest: dict) -> str:
@@ -182,6 +212,18 @@ def validate(manifest, where: str = MANIFEST) -> None:
                 f"{where}: edge_position {own['edge_position']!r}, but files.{name} "
                 f"{'takes' if takes else 'does not take'} offsets (the senders' p_j - p_i)"
             )
+    contract = manifest.get("contract")
+    if contract is not None:  # what an integrator reads must be what the executor runs
+        own_contract = {"rounds": manifest["rounds"], **{k: manifest["task"][k] for k in ("comm", "comm_radius")}}
+        for key, value in own_contract.items():
+            if contract[key] != value:
+                where_from = "rounds" if key == "rounds" else f"task.{key}"
+                raise ManifestError(f"{where}: contract.{key} {contract[key]!r} differs from {where_from} {value!r}")
+    if manifest["entity_mode"] == "concat" and manifest.get("num_landmarks") != mc["num_landmarks"]:
+        raise ManifestError(
+            f"{where}: num_landmarks {manifest.get('num_landmarks')!r} differs from model_config.num_landmarks "
+            f"{mc['num_landmarks']!r}"
+        )
     meanings = manifest.get("action_meanings")
     if meanings is not None and len(meanings) != manifest["num_actions"]:
         raise ManifestError(f"{where}: {len(meanings)} action_meanings for num_actions {manifest['num_actions']}")
@@ -194,8 +236,39 @@ def edge_position(manifest: dict) -> str:
     return manifest.get("edge_position", "none")
 
 
+def expected_shapes(manifest: dict) -> dict[str, list[int | None]]:
+    """Every graph input and output name -> its shape as the manifest implies it (None: a
+    dynamic axis, n heard or L landmarks)."""
+    mc = manifest["model_config"]
+    H, A = manifest["hidden"], manifest["num_actions"]
+    L = manifest.get("num_landmarks") if manifest["entity_mode"] == "concat" else None
+    features = 3 if mc.get("landmark_occupancy") else 2
+    return {
+        "self_obs": [SELF_DIM],
+        "entities": [L, features],
+        "h": [H],
+        "h_out": [H],
+        "message": [2, H],
+        "heard": [None, 2, H],
+        "offsets": [None, 2],
+        "logits": [A],
+        "value": [],
+        "weights": [None],
+    }
+
+
+def metadata(manifest: dict) -> dict[str, str]:
+    """The metadata_props export writes into every graph: what the manifest must keep claiming."""
+    return {
+        META_MODEL: json.dumps(manifest["model_config"], sort_keys=True, separators=(",", ":")),
+        META_TASK: json.dumps(manifest["task"], sort_keys=True, separators=(",", ":")),
+    }
+
+
 def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:
-    """The graph in ``data`` takes and gives what the manifest says, at its hidden width."""
+    """The graph in ``data`` takes and gives what the manifest says, every static dimension the
+    one the manifest implies, and (where it carries them) was exported with the manifest's
+    model config and task."""
     import onnx
 
     try:
@@ -209,11 +282,32 @@ def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:
         raise ManifestError(
             f"{where} takes {inputs} and gives {outputs}; the manifest lists {entry['inputs']} -> {entry['outputs']}"
         )
+    want = expected_shapes(manifest)
     for value in list(model.graph.input) + list(model.graph.output):
-        if value.name != "h":
+        if value.name not in want or not value.type.tensor_type.HasField("shape"):
             continue
-        dims = value.type.tensor_type.shape.dim
-        if dims and dims[-1].HasField("dim_value") and dims[-1].dim_value != manifest["hidden"]:
+        dims = [d.dim_value if d.HasField("dim_value") else None for d in value.type.tensor_type.shape.dim]
+        shape = want[value.name]
+        if len(dims) != len(shape) or any(d != s for d, s in zip(dims, shape, strict=True) if None not in (d, s)):
+            shown, implied = (["?" if d is None else d for d in x] for x in (dims, shape))
             raise ManifestError(
-                f"{where}: h has width {dims[-1].dim_value}, the manifest says hidden {manifest['hidden']}"
+                f"{where}: {value.name} has shape {shown}, the manifest implies {implied} "
+                f"(hidden {manifest['hidden']}, num_actions {manifest['num_actions']})"
             )
+    props = {p.key: p.value for p in model.metadata_props}
+    for key, field in ((META_MODEL, "model_config"), (META_TASK, "task")):
+        if key not in props:  # (an export from before the metadata: its shapes are all there is)
+            continue
+        try:
+            recorded = json.loads(props[key])
+        except (ValueError, RecursionError):
+            recorded = None
+        claimed = manifest[field]
+        if not isinstance(recorded, dict):
+            raise ManifestError(f"{where}: its metadata {key} is not a JSON object")
+        for name in sorted(set(recorded) | set(claimed)):
+            if recorded.get(name) != claimed.get(name):
+                raise ManifestError(
+                    f"{where} was exported with {field}.{name} {recorded.get(name)!r}; "
+                    f"the manifest says {claimed.get(name)!r}"
+                )

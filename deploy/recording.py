@@ -101,10 +101,12 @@ def write_rrd(traj, path: str, app_id: str = "taichi_swarm") -> None:
         if hasattr(rec, "disconnect"):
             rec.disconnect()
         os.replace(partial, path)
-    except (OSError, RuntimeError) as exc:  # Rerun's own error (a path it cannot create, a full disk)
+    except BaseException as exc:  # any failure, a record that does not draw included: no .tmp-* left
         if os.path.exists(partial):
             os.unlink(partial)
-        raise OSError(f"cannot write the recording {path}: {exc}") from None
+        if isinstance(exc, (OSError, RuntimeError)):  # Rerun's own error (a path it cannot create, a full disk)
+            raise OSError(f"cannot write the recording {path}: {exc}") from None
+        raise
 
 
 def _log(rec, traj, task: str, M: int, D: int, spec) -> None:

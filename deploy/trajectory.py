@@ -28,8 +28,10 @@ The file is an .npz (numpy's zip of arrays, read without pickle), written atomic
 from __future__ import annotations
 
 import json
+import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +41,7 @@ SCHEMA = 1
 SUFFIX = ".npz"
 PER_STEP = ("pos", "vel", "landmarks", "targets", "actions", "arena", "reward")
 OPTIONAL = ("assignment", "matched_dist")
+MAX_ACTIONS = 9  # the fine action space's (taichi_swarm.physics.NUM_FINE_ACTIONS); the paper's is 5
 
 
 class TrajectoryError(ValueError):
@@ -149,14 +152,14 @@ class Trajectory:
         try:
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
             raise TrajectoryError(
                 f"cannot read {path} as a trajectory record (.npz written by --record): {exc}"
             ) from None
         try:
             header = json.loads(str(arrays.pop("header")))
             assert isinstance(header, dict) and header.get("format") == FORMAT
-        except (KeyError, ValueError, AssertionError):
+        except (KeyError, ValueError, AssertionError, RecursionError):
             raise TrajectoryError(f"{path} is an .npz but not a taichi-swarm trajectory record (no header)") from None
         if header.get("schema") != SCHEMA:
             raise TrajectoryError(
@@ -171,18 +174,127 @@ class Trajectory:
             raise TrajectoryError(
                 f"{path}: the trajectory record lacks {', '.join(missing)} (a truncated or edited file)"
             )
-        T = len(arrays["step"])
-        D, M, B = (int(header.get(k, -1)) for k in ("drawn", "agents", "envs"))
-        bad = [k for k in PER_STEP if len(arrays[k]) != T]
-        bad += [k for k in ("pos", "vel") if arrays[k].shape[1:] != (D, M, 2)]
-        bad += [k for k in ("end_step", "success", "length", "dist") if arrays[k].shape != (B,)]
-        bad += [k for k in ("graph_offsets",) if arrays[k].shape != (T + 1,)]
-        bad += [k for k in ("end_pos",) if k in arrays and arrays[k].shape != (D, M, 2)]
-        if T == 0 or bad:
-            raise TrajectoryError(
-                f"{path}: the trajectory record's arrays do not fit its header ({', '.join(bad) or 'no steps'})"
-            )
+        problem = check_record(header, arrays)
+        if problem:  # checked as a whole here, so no renderer meets an index out of range or a NaN
+            raise TrajectoryError(f"{path}: not a valid trajectory record: {problem}")
         return cls(header, arrays)
+
+
+def _int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _check_header(h: dict) -> str:
+    """What is wrong with a record's header ("" if nothing)."""
+    from taichi_swarm import COMMS, TASKS
+
+    if h.get("task") not in TASKS:
+        return f"header task {h.get('task')!r} is not one of {list(TASKS)}"
+    for key in ("agents", "envs", "drawn"):
+        if not _int(h.get(key)) or h[key] < 1:
+            return f"header {key} {h.get(key)!r} is not an integer >= 1"
+    if h["drawn"] > h["envs"]:
+        return f"header drawn {h['drawn']} exceeds envs {h['envs']}"
+    if h.get("comm") not in COMMS:
+        return f"header comm {h.get('comm')!r} is not one of {list(COMMS)}"
+    radius = h.get("comm_radius")
+    if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not math.isfinite(radius) or radius < 0:
+        return f"header comm_radius {radius!r} is not a finite number >= 0"
+    if not isinstance(h.get("attention", False), bool):
+        return f"header attention {h.get('attention')!r} is not true or false"
+    return ""
+
+
+def _check_sparse(name: str, a: dict, T: int, D: int, M: int) -> str:
+    """``{name}_index`` [E, 3] rows (b, i, j) in range, ``{name}_offsets`` [T + 1] from 0 to E,
+    never decreasing."""
+    index, offsets = a[f"{name}_index"], a[f"{name}_offsets"]
+    if offsets.shape != (T + 1,) or offsets.dtype.kind not in "iu":
+        return f"{name}_offsets has shape {offsets.shape} ({offsets.dtype}), expected ({T + 1},) integers"
+    if index.ndim != 2 or index.shape[1] != 3 or index.dtype.kind not in "iu":
+        return f"{name}_index has shape {index.shape} ({index.dtype}), expected (E, 3) integers"
+    if offsets[0] != 0 or offsets[-1] != len(index) or (np.diff(offsets) < 0).any():
+        return f"{name}_offsets must rise from 0 to {len(index)} (the rows of {name}_index), never decreasing"
+    for col, (what, n) in enumerate((("env", D), ("agent i", M), ("agent j", M))):
+        if len(index) and (index[:, col].min() < 0 or index[:, col].max() >= n):
+            return f"{name}_index holds an {what} index outside 0..{n - 1}"
+    return ""
+
+
+def check_record(header: dict, a: dict) -> str:
+    """What is wrong with a record (header and arrays, as ``Trajectory.load`` reads them),
+    one line, naming the field; "" if nothing: every index in range, offsets monotone,
+    positions finite, counts and shapes consistent with the header and with each other."""
+    from taichi_swarm import TASK_SPECS
+
+    problem = _check_header(header)
+    if problem:
+        return problem
+    T = len(a["step"])
+    D, M, B = header["drawn"], header["agents"], header["envs"]
+    if T == 0:
+        return "no steps"
+    if "steps" in header and header["steps"] != T:
+        return f"header steps {header['steps']!r}, but {T} steps recorded"
+    spec = TASK_SPECS[header["task"]]
+    L = {spec.num_landmarks(M), spec.num_landmarks(M, listed=True)}
+    shapes = {
+        "step": ((T,), "iu"),
+        "pos": ((T, D, M, 2), "f"),
+        "vel": ((T, D, M, 2), "f"),
+        "targets": ((T, D, M, 2), "f"),
+        "actions": ((T, D, M), "iu"),
+        "arena": ((T,), "f"),
+        "reward": ((T, B), "f"),
+        "assignment": ((T, D, M), "iu"),
+        "matched_dist": ((T, D, M), "f"),
+        "end_step": ((B,), "iu"),
+        "success": ((B,), "b"),
+        "length": ((B,), "iu"),
+        "dist": ((B,), "f"),
+        "end_pos": ((D, M, 2), "f"),
+    }
+    for name, (shape, kinds) in shapes.items():
+        if name in a and (a[name].shape != shape or a[name].dtype.kind not in kinds):
+            kind = {"iu": "integers", "f": "floats", "b": "booleans"}[kinds]
+            return f"{name} has shape {a[name].shape} ({a[name].dtype}), expected {shape} {kind}"
+    lm = a["landmarks"]
+    if lm.ndim != 4 or lm.shape[:2] != (T, D) or lm.shape[2] not in L or lm.shape[3] != 2 or lm.dtype.kind != "f":
+        return f"landmarks has shape {lm.shape} ({lm.dtype}), expected ({T}, {D}, L, 2) floats, L in {sorted(L)}"
+    for name in ("pos", "vel", "landmarks", "targets", "reward"):
+        if not np.isfinite(a[name]).all():
+            return f"{name} holds NaN or inf"
+    if (np.diff(a["step"]) <= 0).any() or a["step"][0] < 0:
+        return "step must rise from >= 0, one entry per logged state"
+    if not (np.isfinite(a["arena"]).all() and (a["arena"] > 0).all()):
+        return "arena (the half side) must be finite and > 0 at every step"
+    if a["actions"].min() < 0 or a["actions"].max() >= MAX_ACTIONS:
+        return f"actions must lie in 0..{MAX_ACTIONS - 1}"
+    if "assignment" in a and (a["assignment"].min() < -1 or a["assignment"].max() >= M):
+        return f"assignment must lie in -1..{M - 1} (a target index, -1: none)"
+    end, first, last = a["end_step"], int(a["step"][0]), int(a["step"][-1])
+    if ((end != -1) & ((end <= first) | (end > last + 1))).any():
+        return f"end_step must be -1 (not ended) or in {first + 1}..{last + 1}, the steps recorded"
+    if (a["length"] < 0).any():
+        return "length holds a negative episode length"
+    for name in ("dist", "end_pos"):  # NaN where an episode did not end (or its task has no DIST)
+        if name in a and np.isinf(a[name]).any():
+            return f"{name} holds inf"
+    if "end_pos" in a:
+        nan = np.isnan(a["end_pos"]).reshape(D, -1)
+        if (nan.any(1) & ~nan.all(1)).any():  # a drawn env's end is known for every agent or for none
+            return "end_pos holds NaN for some agents of an env and not for others"
+    for name in ("graph", "attention") if header.get("attention") else ("graph",):
+        problem = _check_sparse(name, a, T, D, M)
+        if problem:
+            return problem
+    if header.get("attention"):
+        w = a["attention_weights"]
+        if w.shape != a["attention_index"].shape[:1] or w.dtype.kind != "f":
+            return f"attention_weights has shape {w.shape}, expected one per attention_index row"
+        if not (np.isfinite(w).all() and (w >= 0).all() and (w <= 1 + 1e-5).all()):
+            return "attention_weights must lie in 0..1"
+    return ""
 
 
 class TrajectoryRecorder:

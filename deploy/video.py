@@ -63,10 +63,15 @@ def render_trajectory(traj, path: str, fps: int = 10) -> str:
 
 def check_video_path(path: str) -> None:
     """Fail before any work if ``path`` cannot be written or has an unknown kind."""
+    if not path:  # (it would name a folder of frames in the working directory)
+        raise ValueError("--video: an empty path names no file")
     is_dir_target = not os.path.splitext(path)[1]
     if not is_dir_target and not path.lower().endswith(VIDEO_SUFFIXES):
         raise ValueError(f"{path}: a video must end in .gif or .mp4 (or name a directory for PNG frames)")
-    ensure_writable(os.path.join(path, "frame_0000.png") if is_dir_target else path, "video")
+    if is_dir_target:  # a folder of frames, made if missing
+        ensure_writable(os.path.join(path, "frame_0000.png"), "--video", make_dirs=True)
+    else:
+        ensure_writable(path, "--video")
     if path.lower().endswith(".mp4") and ffmpeg_path() is None:
         raise ValueError(
             f'{path}: writing MP4 needs ffmpeg (on PATH, or pip install -e ".[video]" for imageio-ffmpeg); '

@@ -41,7 +41,8 @@ from dataclasses import dataclass, field
 
 from baselines.config import BaselineConfig
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
-from trainer.config import PRESETS, CurriculumConfig, TrainConfig
+from taichi_swarm.files import InputFileError, read_input_text
+from trainer.config import PRESETS, RETIRED, CurriculumConfig, TrainConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -52,11 +53,14 @@ SPECS_DIR = os.path.join(os.path.dirname(__file__), "specs")
 SCHEMA_VERSION = 2
 """Of ``Cell.definition()``: 1 was one flat dict of every cell key; 2 is {kind, asdict(run)}."""
 MAX_TEAM_SIZE = 2**16  # any team size a cell names (the simulator's buffers are indexed with int32)
+# PPO updates a cell may name (updates, polish_updates, max_updates_per_stage): paper.toml's
+# largest is 4000 a stage; a typo of 10**12 would otherwise pass --dry-run as a plan
+MAX_UPDATES = 10**6
 # TrainConfig fields that are swarm reproduce's, not the spec's: the run's seed, directory and
 # machine (set per run), its start (init_from names a cell), what it logs (transfer_offsets:
 # the cell's, reporting only) and a curriculum's fresh evaluations (the cell's final ones instead)
 SET_BY_REPRODUCE = {
-    "seed": 0, "run_dir": "", "init_from": "", "init_carry": "weights", "trust_unsigned": False, "arch": "cpu",
+    "seed": 0, "run_dir": "", "init_from": "", "trust_unsigned": False, "arch": "cpu",
     "device": "cpu", "torch_threads": 1, "progress": False, "transfer_offsets": (),
     "fresh_eval_episodes": 0, "fresh_eval_seed": 777,
 }  # fmt: skip
@@ -78,6 +82,15 @@ def _check_sizes(name: str, sizes, task: str) -> None:
         raise ValueError(f"{name} must be team sizes in [{smallest}, {MAX_TEAM_SIZE}], got {list(sizes)}")
     if len(set(sizes)) != len(sizes):
         raise ValueError(f"{name} repeats a size: {list(sizes)}")
+
+
+def _check_counts(config, **updates: int) -> None:
+    """The update counts, and the evaluation episodes (one environment each, as final_episodes)."""
+    for name, n in updates.items():
+        if n > MAX_UPDATES:
+            raise ValueError(f"{name} must be <= {MAX_UPDATES}, got {n}")
+    if config.eval_episodes > 2**20:
+        raise ValueError(f"eval_episodes must be <= 2^20 (one environment each), got {config.eval_episodes}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -133,6 +146,7 @@ class Train(_FromCell):
         _check_sizes("agents", [self.config.agents], self.task)
         if self.config.team_sizes:
             _check_sizes("team_sizes", self.config.team_sizes, self.task)
+        _check_counts(self.config, updates=self.config.updates, polish_updates=self.polish_updates)
         if self.polish_updates < 0:
             raise ValueError(f"polish_updates must be >= 0, got {self.polish_updates}")
         if not 0 < self.polish_lr <= 1:  # (NaN and inf too)
@@ -159,6 +173,7 @@ class Curriculum(_FromCell):
         super().__post_init__()
         c = self.config
         _check_sizes("sizes", c.sizes, c.task)
+        _check_counts(c, max_updates_per_stage=c.max_updates_per_stage, polish_updates=c.polish_updates)
         if c.model.entity_mode == "concat" and c.task == "coverage":
             raise ValueError(
                 "entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size"
@@ -333,10 +348,21 @@ def migrate(definition: dict, version: int) -> dict:
     return {**head, "config": config, **pick("init_from init_agents"), **evaluation}
 
 
+def _without_retired(d: dict) -> dict:
+    """A definition less the options of experiments that lost (trainer.config.RETIRED), where
+    they hold the value that meant "off": such a cell ran as today's code runs it."""
+    out = {}
+    for k, v in d.items():
+        if k in RETIRED and v == RETIRED[k]:
+            continue
+        out[k] = _without_retired(v) if isinstance(v, dict) else v
+    return out
+
+
 def canonical(stored: dict) -> dict:
     """A stored definition (result.json, definition.json) as ``Cell.definition()`` of today's
     code would write it: migrated from its schema, read into the run's dataclass."""
-    d = migrate(stored, stored.get("schema", 1))
+    d = _without_retired(migrate(stored, stored.get("schema", 1)))
     run = RUNS[d["kind"]]
     values = {k: v for k, v in d.items() if k not in ("schema", "kind")}
     return _as_json({"schema": SCHEMA_VERSION, "kind": d["kind"], **dataclasses.asdict(convert(run, values))})
@@ -494,9 +520,10 @@ def resolve_spec_path(name_or_path: str) -> str:
 
 def load_spec(name_or_path: str) -> Spec:
     path = resolve_spec_path(name_or_path)
-    try:
-        with open(path, "rb") as f:
-            raw = tomllib.load(f)
+    try:  # a regular file of bounded size: a FIFO would block the read
+        raw = tomllib.loads(read_input_text(path, "--spec"))
+    except InputFileError as exc:
+        raise SpecError(str(exc)) from None
     except RecursionError:  # (tomllib recurses per nesting level)
         raise SpecError(f"{path}: nested too deeply to be a spec") from None
     except tomllib.TOMLDecodeError as exc:

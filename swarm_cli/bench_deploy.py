@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> int:
     from trainer.checkpoint import CheckpointError
 
     try:
-        if args.json:
+        if args.json is not None:  # ('' too: refused, not skipped)
             from taichi_swarm.files import ensure_writable
 
             ensure_writable(args.json, "--json")  # before the benchmark, not after it

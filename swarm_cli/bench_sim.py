@@ -18,6 +18,7 @@ B * M * steps / seconds of that chunk; ms/step is one step of the whole batch.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import platform
@@ -425,21 +426,18 @@ def machine_info(torch_threads: int, comm: str, seconds: float, steps: int | Non
 
 
 def write_json(path: str, payload: dict) -> None:
-    """Write atomically: a temporary file next to ``path``, then os.replace."""
-    tmp = f"{path}.tmp{os.getpid()}"
-    try:
-        _write(tmp, payload)
-        os.replace(tmp, path)
-    except BaseException:  # a failed write leaves nothing behind
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write atomically (taichi_swarm.files: the temp file removed on any failure, a FIFO
+    or device at ``path`` refused rather than replaced)."""
+    from taichi_swarm.files import atomic_write_bytes
 
+    def write(f):
+        text = io.TextIOWrapper(f, encoding="utf-8")
+        json.dump(payload, text, indent=2)
+        text.write("\n")
+        text.flush()
+        text.detach()  # (f stays open for atomic_write_bytes' fsync)
 
-def _write(tmp: str, payload: dict) -> None:
-    with open(tmp, "w") as fh:
-        json.dump(payload, fh, indent=2)
-        fh.write("\n")
+    atomic_write_bytes(path, write)
 
 
 def serial_sweep(

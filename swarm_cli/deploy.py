@@ -101,7 +101,7 @@ def execute_main(argv: list[str]) -> int:
     finally:
         tmp.cleanup()
     print(format_table(rows))
-    if args.json:
+    if args.json is not None:  # ('' was refused by check_outputs)
         from taichi_swarm.files import atomic_write_json
 
         atomic_write_json(args.json, {"directory": args.directory, "rows": rows})
@@ -113,8 +113,12 @@ def replay_main(argv: list[str]) -> int:
     args = parse(ReplayOptions, argv, "swarm replay")
     if os.path.isdir(args.file):
         return fail("swarm replay", f"{args.file} is a directory: pass the file written by --record")
-    if not os.path.isfile(args.file):
-        return fail("swarm replay", f"recording {args.file} does not exist")
+    from taichi_swarm.files import InputFileError, check_input
+
+    try:  # a FIFO would block the reads below, a device never end
+        check_input(args.file, "recording", None)
+    except InputFileError as exc:
+        return fail("swarm replay", exc)
     from deploy import replay
 
     if replay.looks_like_npz(args.file):
@@ -150,11 +154,11 @@ def _replay_trajectory(args) -> int:
     from deploy.trajectory import Trajectory
 
     try:
-        if args.video:
+        if args.video is not None:  # ('' too: refused, not skipped)
             from deploy.video import check_video_path
 
             check_video_path(args.video)  # before the record is read
-        if args.rrd:
+        if args.rrd is not None:  # ('' too: refused, not skipped)
             from taichi_swarm.files import ensure_writable
 
             ensure_writable(args.rrd, "--rrd")

@@ -53,6 +53,10 @@ class ModelsOptions:
             raise OptionError(f"--seed must be in [0, 2**40), got {self.seed}")
         if self.render and (self.check or self.name):
             raise OptionError("--render writes every card: give it alone")
+        filters = [f"--{k}" for k in ("task", "comm", "agents") if getattr(self, k) is not None]
+        if self.name and filters:  # a filter would be silently ignored: NAME is one entry already
+            names = " ".join(filters)
+            raise OptionError(f"{names}: filters of the list, not of a NAME ({self.name}): give one or the other")
 
 
 def _pct(x: float | None, digits: int = 1) -> str:

@@ -155,34 +155,26 @@ class SwarmOptions:
     assignment: Annotated[Literal["exact", "auction", "nearest", "free"] | None, Default(OWN)] = None
     """targets to agents: exact (min-sum), auction, nearest (local, covered by max matching; needs
     --neighbours) or free (nearest, each agent paid by its matched or nearest free target)"""
-    landmark_order: Annotated[
-        Literal["nearest", "free", "open", "claim", "claim-zero", "auction"] | None, Default(OWN)
-    ] = None
-    """landmark lists: the nearest, the landmarks no other agent holds first (free), no nearer
-    agent holds (open), or the matching gives no other agent (claim; claim-zero: a claimed
-    landmark reads 0), or only the landmark the agent wins in the agents' own auction (auction;
-    with --assignment nearest or free); needs the policy's occupancy input"""
+    landmark_order: Annotated[Literal["nearest", "claim-zero", "auction"] | None, Default(OWN)] = None
+    """landmark lists: the nearest, the landmarks the matching gives no other agent first, a
+    claimed one reading 0 (claim-zero), or only the landmark the agent wins in the auction
+    (auction; with --assignment free); needs the policy's occupancy input"""
     auction_rounds: Annotated[int | None, Default(OWN, "R")] = None
-    """with --landmark-order auction: a radio's budget of R bid rounds a step, the auction carried
-    over from step to step (an agent still bidding reads claim-zero lists); 0: the auction solved
-    to the end each step, whatever budget the policy trained with (another --landmark-order drops
+    """with --landmark-order auction: a budget of R bid rounds a step, the auction carried over
+    from step to step (an agent still bidding reads claim-zero lists); 0: the auction solved to
+    the end each step, whatever budget the policy trained with (another --landmark-order drops
     that budget too)"""
-    auction_eps: Annotated[float | None, Default("0.5", "EPS")] = None
-    """with --auction-rounds: the least a bid raises a landmark's price, the matching's bound per agent"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")
         at_least(self.auction_rounds, 0, "auction-rounds")
-        positive(self.auction_eps, "auction-eps")
-        if self.auction_rounds == 0 and self.auction_eps is not None:
-            raise OptionError("--auction-eps is the budget's bid increment: --auction-rounds 0 has no budget")
         at_least(self.landmark_neighbours, 1, "landmark-neighbours")
         positive(self.sense_radius, "sense-radius")
 
     def swarm_kwargs(self) -> dict:
         """The options set, as make() keywords over the policy's own. --auction-rounds 0, or a
-        --landmark-order other than auction, sets the budget and its increment to None, which
-        clears the ones the policy trained with."""
+        --landmark-order other than auction, sets the budget to None, which clears the one the
+        policy trained with."""
         kwargs = {
             k: v
             for k, v in (
@@ -193,13 +185,12 @@ class SwarmOptions:
                 ("assignment", self.assignment),
                 ("landmark_order", self.landmark_order),
                 ("auction_rounds", self.auction_rounds),
-                ("auction_eps", self.auction_eps),
             )
             if v is not None
         }
         other_order = self.landmark_order not in (None, "auction") and self.auction_rounds is None
         if self.auction_rounds == 0 or other_order:  # a trained budget belongs to the auction's lists
-            kwargs.update(auction_rounds=None, auction_eps=None)
+            kwargs.update(auction_rounds=None)
         return kwargs
 
 
@@ -225,9 +216,9 @@ class OutputOptions(VideoOption):
         from taichi_swarm.files import ensure_writable
 
         for out, what in ((getattr(self, "json", None), "--json"), (self.record, "--record")):
-            if out:
+            if out is not None:  # ('' too: refused, not skipped)
                 ensure_writable(out, what)
-        if self.video:
+        if self.video is not None:
             from deploy.video import check_video_path
 
             check_video_path(self.video)

@@ -31,13 +31,12 @@ GROUPS = {
     ),
     "large teams": (
         "neighbour lists and density scaling (docs/SWARM.md)",
-        "neighbours landmark_neighbours sense_radius landmark_occupancy landmark_order auction_rounds auction_eps "
-        "scale assignment",
+        "neighbours landmark_neighbours sense_radius landmark_occupancy landmark_order auction_rounds scale assignment",
     ),
-    "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop message_burst drop_per_round"),
+    "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop drop_per_round"),
     "training": (
         "what the run learns from",
-        "reward hold_reward action_space team_sizes init_from init_carry trust_unsigned target_success min_updates",
+        "reward action_space team_sizes init_from trust_unsigned target_success min_updates",
     ),
     "evaluation": ("the evaluations during the run", "eval_every eval_episodes transfer_offsets"),
     "run management": ("the run directory and its display", "resume checkpoint_every progress tensorboard"),
@@ -86,7 +85,7 @@ def _schema(config_type):
 
     configs = {p: config_type.with_preset(p) for p in PRESETS}
     fields = _options(config_type, lambda name: {p: getattr(c, name) for p, c in configs.items()})
-    if config_type.carry_needs_init_from:  # (a curriculum resumes by its own command)
+    if not hasattr(config_type, "sizes"):  # (a curriculum resumes by its own command)
         fields["resume"] = RESUME
     top = {}
     for title, (about, names) in [*GROUPS.items(), ("other", ("", " ".join(fields)))]:
@@ -252,7 +251,7 @@ def zero_shot_main(argv: list[str]) -> int:
     from trainer.evaluate import evaluate, format_table, parse_sizes
 
     try:
-        if opts.json:
+        if opts.json is not None:  # ('' too: refused, not skipped)
             ensure_writable(opts.json, "--json")
         sizes = parse_sizes(list(opts.sizes))
         torch.set_num_threads(1)

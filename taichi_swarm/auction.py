@@ -259,15 +259,12 @@ def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
 # bidding reads claim-zero lists.
 OUT = 2.0  # staying out costs this many sense radii: more than any sensed landmark's distance
 LOCAL_EPS = 0.01  # the local auction's final eps: each agent within 0.01 of its best
-# With a budget of rounds, each bid raises a price by at least the increment ``auction_eps``
-# (header P_BID_EPS; ROUND_EPS unless set). A bidding war's rounds grow as the prices it must
+# With a budget of rounds, each bid raises a price by at least the increment ROUND_EPS
+# (header P_BID_EPS). A bidding war's rounds grow as the prices it must
 # climb (3-5 at M = 100 from a random start) over the increment, and a policy needs its landmark
 # within its first steps (docs/SWARM.md measures S% against both). The matching is then within
 # the increment per agent of the optimum: at most that much more travel for an agent.
 ROUND_EPS = 0.5
-# auction_eps's range: above the float32 spacing of any price an auction reaches (prices stay
-# below OUT sense radii), so that every bid moves a price; and below any arena's distances
-MIN_ROUND_EPS, MAX_ROUND_EPS = 1e-4, 1e3
 # A holder keeps its landmark until another option is better by HOLD_SLACK increments: more than
 # a fresh winner's one (it won at its second best plus the increment), with room for a step's
 # motion; each release reopens the bidding for the landmark at price 0.

@@ -49,7 +49,6 @@ from .layout import (
     P_CELL,
     P_COMM_RADIUS,
     P_EPS,
-    P_HOLD,
     P_LCELL,
     P_SENSE,
     P_SUCCESS,
@@ -66,10 +65,10 @@ ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "auction", "nearest", "free")
 LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
-# landmark lists: the KL nearest, or the free (open, unclaimed) ones first
-LANDMARK_ORDERS = ("nearest", "free", "open", "claim", "claim-zero", "auction")
-# held by the threshold matching's holder ("auction": an agent its own auction leaves out reads claim-zero lists)
-CLAIM_ORDERS = ("claim", "claim-zero", "auction")
+# landmark lists: the KL nearest; the ones the threshold matching gives no other agent first
+# ("claim-zero"); or the landmark the agent wins in the agents' own auction ("auction": an agent
+# its auction leaves out reads claim-zero lists)
+LANDMARK_ORDERS = ("nearest", "claim-zero", "auction")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -127,10 +126,8 @@ class SwarmEnv:
     torch). action_space: "discrete" (the paper's 5 actions, int64 [B, M]), "fine" (9: the
     paper's 5, then -x, +x, -y, +y at a quarter of the force, so an agent can park within
     0.035 of any point: physics.FINE) or "continuous" (MPE's continuous mode: float32
-    [B, M, 2], force 5 clip(u, -1, 1) per axis). task_params: ``max_steps`` (50), ``success_threshold`` and
-    ``hold_reward`` (0: added to an agent's own reward, info["agent_reward"], at each step
-    it is within the threshold of its target; the team reward stays the paper's) for all
-    tasks; ``formation_radius`` (formation); ``line_length`` (line).
+    [B, M, 2], force 5 clip(u, -1, 1) per axis). task_params: ``max_steps`` (50) and
+    ``success_threshold`` for all tasks; ``formation_radius`` (formation); ``line_length`` (line).
 
     neighbours: K, each agent's K nearest heard agents as index lists (obs["nbr"],
     obs["nbr_mask"]) found through a cell grid, which also finds the contacts; no M x M
@@ -142,31 +139,23 @@ class SwarmEnv:
     the third feature each listed landmark's distance to its nearest agent other than the
     observer, capped at sense_radius: whether someone else already holds it.
     landmark_order (with landmark_occupancy): "nearest" (the default), the KL nearest landmarks
-    within sense_radius; or "free", every landmark in range that no other agent holds within
-    success_threshold listed before any held one, each kind nearest first: an agent on a held
-    landmark senses the nearest free ones, however many held ones lie nearer; or "open", the
-    same with a landmark held only where that other agent is nearer it than the observer, so
-    that of two agents on one landmark the nearer lists it first and the farther sees it held;
-    or "claim" (with assignment "nearest" or "free"), the same with a landmark held where the
-    threshold matching gives it to another agent, who keeps it while it stays within
-    success_threshold (incumbent, not nearer, holds), and the occupancy reading that agent's
-    distance: of two agents on one landmark the holder reads it free and the other held, and
-    jostling does not swap them; or "claim-zero", "claim" with a claimed landmark's reading 0
-    (held by someone nearer, to an occupancy policy, whichever of the two is nearer); or
-    "auction", the landmark the agent wins in the agents' own auction alone (one listed slot,
-    its reading floored at success_threshold: free to it), and claim-zero lists for an agent
-    that wins none. Each agent bids only for its KL nearest landmarks within sense_radius, and
-    the auction is solved afresh each step: the eps-optimal (0.01) min-sum matching of agents to
-    the landmarks they sense (auction.local_solve). It gives the choice of landmark to a planner
-    and leaves the network the driving: docs/SWARM.md, "The agents' own auction".
+    within sense_radius; or "claim-zero" (with assignment "free"), every landmark in range that the
+    threshold matching gives no other agent listed before any it gives another, each kind nearest
+    first, a claimed landmark's occupancy reading 0: a duplicate senses the nearest free ones,
+    however many held ones lie nearer, and the matching's incumbent keeps its landmark while it
+    stays within success_threshold, so jostling does not swap holders; or "auction", the landmark
+    the agent wins in the auction alone (one listed slot, its reading floored at
+    success_threshold: free to it), and claim-zero lists for an agent that wins none. Each agent
+    bids only for its KL nearest landmarks within sense_radius, and the auction is solved afresh
+    each step: the eps-optimal (0.01) min-sum matching of agents to the landmarks they sense
+    (auction.local_solve). The auction keeps one price and holder per landmark in the simulator
+    (landmarks as beacons that answer bids), and the claim-zero readings come from a team-wide
+    matching: neither is yet a message between agents within comm_radius (docs/SWARM.md).
     auction_rounds (with landmark_order "auction"): None (the default), the auction solved to
-    the end each step; or R >= 1, a radio's budget of R bid rounds a step: the auction carries
-    over from step to step (prices and holders kept at the landmarks) and runs up to R rounds
-    a step, each agent without a landmark bidding once a round; an agent still bidding reads
-    claim-zero lists (auction.py, docs/SWARM.md).
-    auction_eps (with auction_rounds): the budgeted auction's bid increment, the least a bid raises
-    a price (None: auction.ROUND_EPS, 0.5); the matching is within it per agent of the optimum,
-    and a bidding war's rounds grow as the prices it climbs over it.
+    the end each step; or R >= 1, a budget of R bid rounds a step: the auction carries over
+    from step to step (prices and holders kept at the landmarks) and runs up to R rounds a step,
+    each agent without a landmark bidding once a round at the increment auction.ROUND_EPS; an
+    agent still bidding reads claim-zero lists (auction.py).
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -204,7 +193,6 @@ class SwarmEnv:
         landmark_occupancy: bool = False,
         landmark_order: str = "nearest",
         auction_rounds: int | None = None,
-        auction_eps: float | None = None,
         agent_parallel: bool | None = None,
         **task_params,
     ):
@@ -276,19 +264,10 @@ class SwarmEnv:
                 )
             auction_rounds = _check_int("auction_rounds", auction_rounds, 1, INT32_MAX)
         self.auction_rounds = auction_rounds
-        if auction_eps is not None:
-            if auction_rounds is None:
-                raise ValueError(
-                    "auction_eps is the bid increment of the budgeted auction: it needs auction_rounds (the auction "
-                    f"solved to the end each step bids at {auction.LOCAL_EPS})"
-                )
-            auction_eps = _check_float("auction_eps", auction_eps, auction.MIN_ROUND_EPS)
-            if auction_eps > auction.MAX_ROUND_EPS:
-                raise ValueError(f"auction_eps must be <= {auction.MAX_ROUND_EPS}, got {auction_eps}")
-        elif auction_rounds is not None:  # the increment in effect, recorded so equal runs share a key
-            auction_eps = auction.ROUND_EPS
+        # the budget's bid increment, recorded so equal runs share a key (None: solved to the end)
+        auction_eps = None if auction_rounds is None else auction.ROUND_EPS
         self.auction_eps = auction_eps
-        if landmark_order in CLAIM_ORDERS and assignment not in LOCAL_ASSIGNMENTS:
+        if landmark_order != "nearest" and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
                 f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "
                 "landmark is claimed by the agent the threshold matching gives it"
@@ -313,10 +292,7 @@ class SwarmEnv:
             | (kernels.NEAREST if assignment in LOCAL_ASSIGNMENTS else 0)
             | (kernels.FREE_TARGET if assignment == "free" else 0)
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
-            | (kernels.FREE_FIRST if landmark_order != "nearest" else 0)
-            | (kernels.OPEN_FIRST if landmark_order == "open" else 0)
-            | (kernels.CLAIM if landmark_order in CLAIM_ORDERS else 0)
-            | (kernels.CLAIM_ZERO if landmark_order in ("claim-zero", "auction") else 0)
+            | (kernels.CLAIM if landmark_order != "nearest" else 0)
             | (kernels.WON if landmark_order == "auction" else 0)
         )
 
@@ -489,7 +465,6 @@ class SwarmEnv:
         fparams[P_AGENT_RADIUS] = spec.agent_radius
         fparams[P_SUCCESS] = self.params["success_threshold"]
         fparams[P_TASK_PARAM] = self.params.get(spec.kernel_param, 0.0)
-        fparams[P_HOLD] = self.params["hold_reward"]
         # the agents' grid: cells hold everything an agent hears ("rc") and touches
         contact_reach = 2.0 * spec.agent_radius + CUTOFF_MARGINS * CONTACT_MARGIN
         heard = self.comm_radius if self.comm == "rc" else 0.0

@@ -46,17 +46,14 @@ from .layout import (
 
 # bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment,
 # nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS), landmark
-# occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), landmark lists with the
-# landmarks no other agent holds first (needs OCCUPANCY: ``free_first``), each agent's own reward
-# from its matched or nearest free target (needs NEAREST: nearest.agent_free), and with FREE_FIRST a
-# landmark held only by an agent nearer it than the observer (OPEN_FIRST: landmark_order="open"), or
-# held by the agent the threshold matching gives it, who keeps it while it stays within the threshold
-# (CLAIM: landmark_order="claim"; needs NEAREST and FREE_FIRST), its reading 0 rather than the
-# holder's distance (CLAIM_ZERO with CLAIM: landmark_order="claim-zero"), and with CLAIM_ZERO the
-# landmark an agent wins in the agents' own auction as its one listed landmark (WON:
-# landmark_order="auction", auction.local_solve)
-AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_FIRST, FREE_TARGET = 1, 2, 4, 8, 16, 32, 64
-OPEN_FIRST, CLAIM, CLAIM_ZERO, WON = 128, 256, 512, 1024
+# occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), each agent's own reward
+# from its matched or nearest free target (needs NEAREST: nearest.agent_free), landmark lists with
+# the landmarks the threshold matching gives no other agent first, a claimed one reading 0 (CLAIM:
+# landmark_order="claim-zero"; needs NEAREST and OCCUPANCY; the holder keeps its landmark while it
+# stays within the threshold), and with CLAIM the landmark an agent wins in the agents' own auction
+# as its one listed landmark (WON: landmark_order="auction", auction.local_solve)
+AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_TARGET = 1, 2, 4, 8, 16, 64
+CLAIM, WON = 256, 1024
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -270,9 +267,7 @@ def agent_landmarks(
     row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
     # the search's indices go in row i of ent_idx (one row per agent: agents may search at once)
     idx = blocks.ent_idx.row(ib, IDX, i)
-    # (CLAIM_ZERO holds the same landmarks as CLAIM: its readings differ only below the threshold)
-    first = ti.static(claim_first if lists & CLAIM else open_first if lists & OPEN_FIRST else free_first)
-    rank = ti.static(first if lists & FREE_FIRST else neighbours.by_distance)
+    rank = ti.static(claim_first if lists & CLAIM else neighbours.by_distance)
     ctx = ti.math.ivec2(b, i)
     won = -1
     if ti.static(lists & WON):
@@ -292,7 +287,7 @@ def agent_landmarks(
             d = blocks.landmarks.get2(f, ib, LM, ib[idx + k]) - p
         f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
         if ti.static(lists & OCCUPANCY):
-            claim = ti.static(lists & (CLAIM | CLAIM_ZERO))
+            claim = ti.static(lists & CLAIM)
             occ = 0.0
             if listed:
                 if won >= 0:  # WON: free to the agent that won it, whoever else is near
@@ -302,71 +297,42 @@ def agent_landmarks(
             f[row + EF * k + 2] = occ
 
 
-def held_last(nearer_only: bool, claim: int = 0):
-    """FREE_FIRST's rank of landmark l for agent ctx[1] of environment ctx[0]: its squared
-    distance, plus more than any listed one has (sense_radius^2) where another agent holds it
-    (within the success threshold), so that every free landmark in range is listed before any
-    held one: a duplicate senses the nearest free landmarks, however many held ones lie nearer.
-
-    ``nearer_only`` (OPEN_FIRST): held only where that other agent is nearer the landmark than
-    the observer. Without it two agents on one landmark both see it held, so in a crowd of free
-    ones it drops out of both lists and the pair observe the same; with it the nearer sees it
-    first, as the matching's holder (nearest.matching gives a shared target to the nearer
-    agent), and the farther sees it held, as the duplicate that ``assignment="free"`` pays for
-    leaving.
-
-    ``claim`` (CLAIM): held where the threshold matching gives it to another agent (``claimed``;
-    the same landmarks under CLAIM_ZERO, whose readings differ only below the threshold)."""
-
-    @ti.func
-    def rank(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
-        occ = reading(claim, f, ib, ctx[0], l, ctx[1])
-        held = occ < f[P_SUCCESS]
-        if ti.static(nearer_only):
-            held = held and occ * occ < d2
-        return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
-
-    return rank
-
-
-free_first, open_first, claim_first = held_last(False), held_last(True), held_last(False, claim=CLAIM)
+@ti.func
+def claim_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
+    """CLAIM's rank of landmark l for agent ctx[1] of environment ctx[0]: its squared distance,
+    plus more than any listed one has (sense_radius^2) where the threshold matching gives it to
+    another agent (``claimed``), so that every unclaimed landmark in range is listed before any
+    claimed one: a duplicate senses the nearest free landmarks, however many held ones lie nearer."""
+    held = claimed(f, ib, ctx[0], l, ctx[1]) < f[P_SUCCESS]
+    return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
 
 
 @ti.func
 def reading(claim: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
-    """Landmark l's occupancy reading for agent i: ``claimed`` under CLAIM (``claim`` holds the
-    lists' CLAIM and CLAIM_ZERO bits), else ``occupancy``."""
+    """Landmark l's occupancy reading for agent i: ``claimed`` under CLAIM, else ``occupancy``."""
     out = 0.0
     if ti.static(claim & CLAIM):
-        out = claimed(f, ib, b, l, i, ti.static((claim & CLAIM_ZERO) != 0))
+        out = claimed(f, ib, b, l, i)
     else:
         out = occupancy(f, ib, b, l, i)
     return out
 
 
 @ti.func
-def claimed(f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32, zero: ti.template()) -> ti.f32:
-    """CLAIM's occupancy of landmark l for agent i: the distance to l of the agent the threshold
-    matching gives it (lap_y: target -> agent; the list tasks' landmarks are their targets), where
-    that is another agent; else ``occupancy``'s reading, the nearest other agent's distance,
-    floored at the success threshold (it never reads held). Under the matching's incumbent rule a
-    holder keeps its landmark while it stays within the threshold, so the reading is stable where
-    the nearer of two jostling agents is not: a second agent on a claimed landmark reads it held
-    and is the one ``assignment="free"`` pays for leaving, and the holder reads it free. The floor
-    keeps every other reading ``occupancy``'s, so an occupancy policy starts from what it knows
-    (all-free landmarks reading sense_radius take its coverage to 0.08 at M = 100).
-
-    ``zero`` (CLAIM_ZERO): a landmark the matching gives another agent reads 0. The holder's
-    distance can exceed the reader's own (the incumbent, not the nearer, holds), which to an
-    occupancy policy reads "mine: no one nearer"; 0 is nearer than any reader, so a second agent
-    on a claimed landmark reads it held by someone nearer, whatever the distances."""
+def claimed(f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
+    """CLAIM's occupancy of landmark l for agent i: 0 where the threshold matching gives it to
+    another agent (lap_y: target -> agent; the list tasks' landmarks are their targets); else
+    ``occupancy``'s reading, the nearest other agent's distance, floored at the success threshold
+    (it never reads held). Under the matching's incumbent rule a holder keeps its landmark while
+    it stays within the threshold, so the reading is stable where the nearer of two jostling
+    agents is not. The holder's distance can exceed the reader's own (the incumbent, not the
+    nearer, holds), which to an occupancy policy would read "mine: no one nearer"; 0 is nearer
+    than any reader, so a second agent on a claimed landmark reads it held by someone nearer,
+    whatever the distances. The floor keeps every other reading ``occupancy``'s, so an occupancy
+    policy starts from what it knows."""
     h = ib[blocks.lap_y.env(ib, b) + l]
     out = 0.0
-    if h >= 0 and h != i:
-        if ti.static(not zero):
-            q = blocks.landmarks.get2(f, ib, blocks.landmarks.env(ib, b), l)
-            out = ti.min((q - blocks.pos.get2(f, ib, blocks.pos.env(ib, b), h)).norm(), f[P_SENSE])
-    else:
+    if not (h >= 0 and h != i):
         out = ti.max(occupancy(f, ib, b, l, i), f[P_SUCCESS])
     return out
 

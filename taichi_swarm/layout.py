@@ -227,11 +227,11 @@ blocks = Blocks()
 # --- float32 header: physical and task parameters ------------------------------------
 # P_CELL / P_LCELL / P_TCELL: cell sides of the agents', landmarks' and targets' grids;
 # P_ARENA: the spawn square's half-width (1, or sqrt(M / 10) with scale="density");
-# P_EPS: the auction assignment's eps; P_HOLD: the hold_reward parameter (tasks.base.on_target);
-# P_BID_EPS: the agents' own auction's bid increment under a budget of rounds (auction_eps)
+# P_EPS: the auction assignment's eps; P_BID_EPS: the agents' own auction's bid increment under a
+# budget of rounds (auction.ROUND_EPS)
 (P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA, P_TCELL, P_EPS,
- P_HOLD, P_BID_EPS) = range(12)  # fmt: skip
-FLOAT_HEADER = 12
+ P_BID_EPS) = range(11)  # fmt: skip
+FLOAT_HEADER = 11
 
 
 # Teams up to this size get kernels compiled for their exact M: every loop over agents

@@ -239,7 +239,7 @@ def nearest_in_grid(
     """The K points (not ``skip``) with squared distance <= r2 from (px, py) that rank first,
     into the sorted list at IDX (their ranks at D2); returns (listed, in range). ``rank(f, ib,
     ctx, j, d2)`` orders them: ``by_distance``, the K nearest; a rank that adds to d2 moves some
-    points behind others (kernels.free_first), with ``ctx`` what it needs besides (b, i)."""
+    points behind others (kernels.claim_first), with ``ctx`` what it needs besides (b, i)."""
     rp = padded(ti.sqrt(r2))
     span_y = rows(py, rp, h)
     kept, in_range = 0, 0

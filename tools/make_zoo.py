@@ -4,7 +4,8 @@
     python tools/make_zoo.py --check    # exit 1 if the written index differs from a rebuild
 
 One entry per published setting: each task x UC/RC x M = 3, 5, 6, 7, 10 from the recipe
-spec (seed 0), and the transfer policy from the beyond spec. Where the recipe has two
+spec (seed 0), the transfer policy from the beyond spec, the robust policy, and the frozen
+large-team entries of models/large-teams.toml (trained at the git tag swarm-chains). Where the recipe has two
 policies of one setting (a Table 1 run and a curriculum stage of the same size), the entry
 is the one with the higher S% on its 500 fresh episodes, the Table 1 run on a tie. Then
 ``swarm models --render`` writes the cards and models/README.md from the index.
@@ -17,6 +18,8 @@ import json
 import os
 import sys
 
+import tomllib
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
@@ -28,6 +31,7 @@ TASKS = ("coverage", "formation", "line")
 COMMS = ("uc", "rc")
 SIZES = (3, 5, 6, 7, 10)
 RECIPE_ROOT = "results/reproduce-recipe"
+LARGE_TEAMS = os.path.join(ROOT, "models", "large-teams.toml")
 BEYOND_ROOT = "results/reproduce-beyond"
 # the transfer policy: M = 3 and 4 trained together (beyond spec), the seed of four whose
 # M = 3 policy carried furthest to M = 5 on 500 fresh episodes (x-zs-coverage-uc-m34)
@@ -36,85 +40,6 @@ TRANSFER = ("x-coverage-uc-m34", 7, "x-zs-coverage-uc-m34")
 SINGLES = (
     ("coverage-rc-m5-robust", "recipe", RECIPE_ROOT, "f-coverage-rc-m5-rounds", 0,
      "coverage RC M = 5: the zoo's, trained on through message losses per round (f-coverage-rc-m5-rounds)"),
-    ("coverage-rc-m5-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m5", 5,
-     "coverage RC on neighbour lists, density-scaled, relative inputs and edges (s-coverage-rc-rel-m5)"),
-    ("coverage-rc-m10-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m10-cut", 10,
-     "the same at M = 10 from coverage-rc-m5-swarm, on lists cut to K = 4, KL = 5 (s-coverage-rc-rel-m10-cut)"),
-    ("coverage-rc-m50-swarm", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-agent", 50,
-     "the same at M = 50 from coverage-rc-m10-swarm, each agent on its own reward (s-coverage-rc-rel-m50-agent)"),
-    ("coverage-rc-m10-occupancy", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m10-occupancy", 10,
-     "coverage-rc-m10-swarm fine-tuned with landmark occupancy (s-coverage-rc-rel-m10-occupancy)"),
-    ("coverage-rc-m50-occupancy", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy", 50,
-     "coverage-rc-m50-swarm fine-tuned with landmark occupancy (s-coverage-rc-rel-m50-occupancy)"),
-    ("coverage-rc-m100-occupancy", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-occupancy", 100,
-     "coverage-rc-m50-occupancy trained on at M = 100 (s-coverage-rc-rel-m100-occupancy)"),
-    ("coverage-rc-m50-wide", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy-wide", 50,
-     "coverage-rc-m50-occupancy on landmark lists of 12 within 1.5 (s-coverage-rc-rel-m50-occupancy-wide)"),
-    ("coverage-rc-m50-wider", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-occupancy-wider", 50,
-     "coverage-rc-m50-wide on landmark lists of 16 within 2 (s-coverage-rc-rel-m50-occupancy-wider)"),
-    ("coverage-rc-m50-free", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-free", 50,
-     "coverage-rc-m50-wider on the fine action set, the free landmarks within 3 listed first "
-     "(s-coverage-rc-rel-m50-free)"),
-    ("formation-rc-m50-lattice", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50", 50,
-     "formation RC at M = 50 on its density-scaled lattice, the points sensed as landmarks with their occupancy, "
-     "from coverage-rc-m50-wide (s-formation-rc-lattice-m50)"),
-    ("formation-rc-m50-fine", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine", 50,
-     "formation-rc-m50-lattice on the fine action set, four quarter-strength pushes beside the paper's five "
-     "(s-formation-rc-lattice-m50-fine)"),
-    ("formation-rc-m100-fine", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-fine", 100,
-     "formation-rc-m50-fine trained on at M = 100 (s-formation-rc-lattice-m100-fine)"),
-    ("formation-rc-m50-kl24", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine-kl24", 50,
-     "formation-rc-m50-fine seeing the 24 nearest lattice points instead of 12 (s-formation-rc-lattice-m50-fine-kl24)"),
-    ("formation-rc-m50-kl24-on", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-fine-kl24-on", 50,
-     "formation-rc-m50-kl24 trained on at a third of the step (s-formation-rc-lattice-m50-fine-kl24-on)"),
-    ("coverage-rc-m50-free-reward", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m50-free-reward", 50,
-     "coverage-rc-m50-free paid by its matched or nearest free landmark, assignment free "
-     "(s-coverage-rc-rel-m50-free-reward)"),
-    ("formation-rc-m50-free-reward", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m50-free-reward", 50,
-     "formation-rc-m50-kl24-on paid by its matched or nearest free lattice point, assignment free "
-     "(s-formation-rc-lattice-m50-free-reward)"),
-    ("formation-rc-m100-free-reward", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-free-reward-on",
-     100, "formation-rc-m50-free-reward trained on at M = 100, 500 updates in two cells "
-     "(s-formation-rc-lattice-m100-free-reward, then s-formation-rc-lattice-m100-free-reward-on)"),
-    ("formation-rc-m100-k8", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-free-reward-k8", 100,
-     "formation-rc-m100-free-reward on at M = 100 hearing its 8 nearest teammates instead of 4 "
-     "(s-formation-rc-lattice-m100-free-reward-k8)"),
-    ("formation-rc-m100-k8-sharp", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k8-sharp", 100,
-     "formation-rc-m100-k8 on at M = 100 with 12 environments an update and a third of the entropy bonus "
-     "(s-formation-rc-lattice-m100-k8-sharp)"),
-    ("formation-rc-m100-k12", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k12-sharp", 100,
-     "formation-rc-m100-k8-sharp on at M = 100 hearing its 12 nearest teammates instead of 8 "
-     "(s-formation-rc-lattice-m100-k12-sharp)"),
-    ("coverage-rc-m100-free-far", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-free-far", 100,
-     "coverage-rc-m50-free-reward on at M = 100, hearing 8 teammates and sensing free landmarks within 6 "
-     "(s-coverage-rc-rel-m100-free-far)"),
-    ("coverage-rc-m100-claim", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-claim-sharp-on", 100,
-     "coverage-rc-m100-free-far on at M = 100 on claim lists (the matching's holder keeps its landmark, and "
-     "every agent reads who holds it), 12 environments an update, a third of the entropy bonus, 200 updates "
-     "(s-coverage-rc-rel-m100-claim-sharp, then s-coverage-rc-rel-m100-claim-sharp-on)"),
-    ("coverage-rc-m100-claim-zero", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-claim-zero-k12", 100,
-     "coverage-rc-m100-claim on at M = 100 on claim-zero lists (a claimed landmark reads 0: held by someone "
-     "nearer), hearing its 12 nearest teammates, 100 updates (s-coverage-rc-rel-m100-claim-zero-k12)"),
-    ("coverage-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-auction", 100,
-     "coverage-rc-m100-claim-zero on auction lists: each agent lists only the landmark it wins in the agents' "
-     "own auction over the landmarks each senses, so the landmark is the auction's choice and the network "
-     "drives; 25 updates (s-coverage-rc-rel-m100-auction)"),
-    ("line-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-line-rc-rows-m100-k12-auction", 100,
-     "the K = 12 claim-zero line policy at M = 100 on auction lists (the landmark each agent wins in the "
-     "agents' own auction), 25 updates (s-line-rc-rows-m100-k12-auction)"),
-    ("formation-rc-m100-auction", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k12-auction", 100,
-     "formation-rc-m100-k12 on auction lists (the lattice point each agent wins in the agents' own auction), "
-     "25 updates (s-formation-rc-lattice-m100-k12-auction)"),
-    ("coverage-rc-m100-auction-r4", "swarm", "results/reproduce-swarm", "s-coverage-rc-rel-m100-auction-r4", 100,
-     "coverage-rc-m100-auction with the auction spread over time: a budget of 4 bid rounds a step, the auction "
-     "carried over from step to step, an agent still bidding reading claim-zero lists; 25 more updates "
-     "(s-coverage-rc-rel-m100-auction-r4)"),
-    ("line-rc-m100-auction-r4", "swarm", "results/reproduce-swarm", "s-line-rc-rows-m100-k12-auction-r4", 100,
-     "line-rc-m100-auction with a budget of 4 bid rounds a step in the agents' own auction, 25 more updates "
-     "(s-line-rc-rows-m100-k12-auction-r4)"),
-    ("formation-rc-m100-auction-r4", "swarm", "results/reproduce-swarm", "s-formation-rc-lattice-m100-k12-auction-r4",
-     100, "formation-rc-m100-auction with a budget of 4 bid rounds a step in the agents' own auction, 25 more "
-     "updates (s-formation-rc-lattice-m100-k12-auction-r4)"),
 )  # fmt: skip
 
 
@@ -234,6 +159,8 @@ def build() -> list[dict]:
         weights = _rel(os.path.join(ROOT, policy_path(root, cell, 0, stage)))
         entry = _entry(cell, 0, agents, rows[agents], weights, {}, trained_on)
         entries.append({"name": name, **entry, "summary": summary})
+    with open(LARGE_TEAMS, "rb") as f:  # as they are: their spec and its options left main
+        entries += tomllib.load(f)["model"]
     return entries
 
 

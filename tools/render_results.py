@@ -40,7 +40,6 @@ BLOCKS = {
         ],
     ),  # fmt: skip
     "paper": ("results/reproduce", "docs/media/reproduce", [(["t1-coverage-rc-m3", "t1-coverage-uc-m6"], [0])]),
-    "swarm": ("results/reproduce-swarm", "docs/media/reproduce-swarm", [(None, [0])]),
 }
 
 

@@ -11,7 +11,15 @@ import zipfile
 
 import torch
 
-from taichi_swarm.files import atomic_write_bytes, atomic_write_json, clean_leftovers, ensure_writable  # noqa: F401
+from taichi_swarm.files import (  # noqa: F401
+    MAX_CHECKPOINT_BYTES,
+    InputFileError,
+    atomic_write_bytes,
+    atomic_write_json,
+    check_input,
+    clean_leftovers,
+    ensure_writable,
+)
 from trainer import zoo
 from trainer.model import ModelConfig, SwarmPolicy
 from trainer.rundir import CHECKPOINT, POLICY
@@ -20,6 +28,7 @@ from trainer.zoo import file_sha256
 MAX_ROUNDS = 64  # message rounds (the export manifest's schema has the same bound)
 MAX_HIDDEN = 4096  # hidden width: 4096 is ~170 M weights, 0.7 GB
 MAX_LANDMARKS = 1024  # of a "concat" network
+MAX_UPDATES = 10**9  # PPO updates of one run: at one update a second, 30 years
 
 FORMAT = "taichi-swarm-checkpoint"
 # 3: one sha256 over the whole payload ("sha256"), one reward normaliser per team size
@@ -37,6 +46,51 @@ class CheckpointError(ValueError):
 
 class UnsignedCheckpoint(CheckpointError):
     """A checkpoint without a digest: its contents cannot be checked (``trust_unsigned``)."""
+
+
+class CheckpointArgumentError(CheckpointError, TypeError):
+    """An argument of ``load`` / ``load_policy`` of the wrong kind (a path of None, a
+    ``trust_unsigned`` that is not a bool): caught as the ValueError every caller handles,
+    and as the TypeError it is."""
+
+
+def _check_arguments(path, trust_unsigned, expected_sha256) -> str:
+    """``path`` as a str, once the arguments are of the kinds ``load`` takes."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise CheckpointArgumentError(
+            f"checkpoint path must be a file, a run directory or a model zoo name, got {path!r}"
+        )
+    path = os.fspath(path)
+    if not isinstance(path, str) or not path:
+        raise CheckpointArgumentError(f"checkpoint path must be a non-empty str, got {path!r}")
+    # a truthy string ('no') must not count as consent to load a file that cannot be checked
+    if not isinstance(trust_unsigned, bool):
+        raise CheckpointArgumentError(f"trust_unsigned must be True or False, got {trust_unsigned!r}")
+    if expected_sha256 is not None and not (
+        isinstance(expected_sha256, str)
+        and len(expected_sha256) == 64
+        and all(c in "0123456789abcdef" for c in expected_sha256.lower())
+    ):
+        raise CheckpointArgumentError(f"expected_sha256 must be 64 hex digits or None, got {expected_sha256!r}")
+    return path
+
+
+def check_device(device) -> torch.device:
+    """``device`` as a torch.device this machine has; one CheckpointError line otherwise (torch
+    itself fails with an AssertionError deep in ``.to``)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise CheckpointArgumentError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise CheckpointError(f"device {device!r}: this machine has no CUDA device (use device='cpu')")
+        if dev.index is not None and dev.index >= count:
+            raise CheckpointError(f"device {device!r}: this machine has {count} CUDA device(s), 0..{count - 1}")
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise CheckpointError(f"device {device!r}: MPS is not available on this machine (use device='cpu')")
+    return dev
 
 
 def _tensor_bytes(t: torch.Tensor) -> bytes:
@@ -107,10 +161,10 @@ def resolve_path(path: str) -> str:
         if not found:
             raise CheckpointError(f"{path} is a directory without {CHECKPOINT} or {POLICY}")
         path = found[0]
-    if not os.path.exists(path):
-        raise CheckpointError(f"checkpoint {path} does not exist")
-    if not os.path.isfile(path):  # a FIFO or a device would block or never end
-        raise CheckpointError(f"checkpoint {path} is not a regular file")
+    try:  # a FIFO would block torch.load, a device never end; a bounded size
+        check_input(path, "checkpoint", MAX_CHECKPOINT_BYTES)
+    except InputFileError as exc:
+        raise CheckpointError(str(exc)) from None
     return path
 
 
@@ -137,12 +191,14 @@ def load(path: str, map_location="cpu", *, trust_unsigned: bool = False, expecte
     A file must be signed: its stored sha256 over the whole payload (written by ``save``),
     or for files from before it existed, over the weights (``model_sha256``), must match.
     ``expected_sha256``: the sha256 of the file's bytes as a model index records it; a
-    match counts as signed, a mismatch is refused. A file with no digest at all is refused
-    (``UnsignedCheckpoint``) unless ``trust_unsigned``. A digest that does not match is
-    always refused."""
+    match counts as signed, a mismatch is refused; given with a zoo name, it is checked in
+    place of the entry's own. A file with no digest at all is refused (``UnsignedCheckpoint``)
+    unless ``trust_unsigned`` (a bool). A digest that does not match is always refused."""
+    path = _check_arguments(path, trust_unsigned, expected_sha256)
     if not os.path.exists(path) and zoo.looks_like_name(path):  # a model zoo name: its entry's file and sha256
         entry = zoo.get(path)
-        path, expected_sha256 = entry.path, entry.sha256
+        # the caller's digest wins: it pins the bytes they measured, whatever the index says now
+        path, expected_sha256 = entry.path, expected_sha256 if expected_sha256 is not None else entry.sha256
     path = resolve_path(path)
     if expected_sha256 is not None:
         actual = file_sha256(path)
@@ -252,12 +308,22 @@ def check_model_config(config: ModelConfig, where: str = "checkpoint") -> ModelC
     return config
 
 
-def policy_from_payload(payload: dict, device="cpu") -> SwarmPolicy:
+def model_config_from_payload(payload: dict, where: str = "checkpoint") -> ModelConfig:
+    """The payload's "model_config", every field of its type and within the bounds."""
+    raw = payload["model_config"]
+    if not isinstance(raw, dict) or not all(isinstance(k, str) for k in raw):
+        raise CheckpointError(f"{where} entry model_config is a {type(raw).__name__}, expected a dict of fields")
     try:
-        config = ModelConfig(**payload["model_config"])
+        config = ModelConfig.from_dict(raw)  # (its __post_init__ checks every field's type and range)
     except (TypeError, ValueError) as exc:
-        raise CheckpointError(f"checkpoint has an invalid model config: {exc}") from None
-    policy = SwarmPolicy(check_model_config(config))
+        raise CheckpointError(f"{where} has an invalid model config: {exc}") from None
+    return check_model_config(config, where)
+
+
+def policy_from_payload(payload: dict, device="cpu") -> SwarmPolicy:
+    config = model_config_from_payload(payload)
+    check_device(device)
+    policy = SwarmPolicy(config)
     load_weights(policy, payload["model"])
     return policy.to(device)
 
@@ -284,6 +350,15 @@ def load_weights(policy: SwarmPolicy, state_dict: dict) -> None:
             + "; ".join(parts)
             + "): was it trained with another --model configuration?"
         )
+    # load_state_dict would cast silently: int64 weights become whole-number floats, a network
+    # that runs and fails at its task
+    odd = sorted(k for k in own if state_dict[k].dtype != own[k].dtype)
+    if odd:
+        k = odd[0]
+        raise CheckpointError(
+            f"checkpoint weights must be {own[k].dtype}; {', '.join(odd[:4])} "
+            f"{'is' if len(odd) == 1 else 'are'} {state_dict[k].dtype}: refusing to convert them"
+        )
     bad = sorted(k for k, v in state_dict.items() if v.is_floating_point() and not torch.isfinite(v).all())
     if bad:
         raise CheckpointError(f"checkpoint weights hold NaN or inf ({', '.join(bad[:4])}): refusing to use them")
@@ -293,7 +368,10 @@ def load_weights(policy: SwarmPolicy, state_dict: dict) -> None:
 def load_policy(
     path: str, device="cpu", *, trust_unsigned: bool = False, expected_sha256: str | None = None
 ) -> tuple[SwarmPolicy, dict]:
-    """(policy in eval mode, payload) from a checkpoint file or run directory (``load``'s checks)."""
+    """(policy in eval mode, payload) from a checkpoint file, run directory or zoo name
+    (``load``'s checks); ``device`` one this machine has."""
+    _check_arguments(path, trust_unsigned, expected_sha256)
+    check_device(device)  # before the file is read: a wrong device is no reason to read 100 MB
     payload = load(path, trust_unsigned=trust_unsigned, expected_sha256=expected_sha256)
     policy = policy_from_payload(payload, device)
     policy.eval()
@@ -353,13 +431,26 @@ def check_scaler_state(where: str, state: dict, num_envs: int | None) -> None:
     check_number(f"{where} reward_scaler.rms.count", rms.get("count"), minimum=1e-300)
 
 
-def check_counters(where: str, counters) -> dict:
+def check_counters(where: str, counters, steps_per_update: int | None = None) -> dict:
+    """Counters of a run: integers >= 0, at most MAX_UPDATES updates, and consistent with each
+    other (an update takes at least one environment step; with ``steps_per_update``, the
+    run's num_steps x num_envs, exactly that many)."""
     if not isinstance(counters, dict):
         raise CheckpointError(f"{where}: 'counters' is not a dict")
     for key in ("update", "env_steps"):
         check_number(f"{where} counters.{key}", counters.get(key), integer=True)
     check_number(f"{where} counters.wall_time", counters.get("wall_time"))
     check_number(f"{where} counters.skipped_minibatches", counters.get("skipped_minibatches"), integer=True)
+    update, env_steps = counters["update"], counters["env_steps"]
+    if update > MAX_UPDATES:
+        raise CheckpointError(f"{where} counters.update is {update}; a run holds at most {MAX_UPDATES} updates")
+    if update > env_steps:
+        raise CheckpointError(f"{where} counters.update {update} exceeds counters.env_steps {env_steps}")
+    if steps_per_update is not None and env_steps != update * steps_per_update:
+        raise CheckpointError(
+            f"{where} counters.env_steps is {env_steps}; {update} updates of {steps_per_update} steps "
+            f"(ppo.num_steps x ppo.num_envs) make {update * steps_per_update}"
+        )
     return counters
 
 

@@ -11,13 +11,20 @@ import dataclasses
 import math
 import os
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from typing import Literal
 
 from taichi_swarm import COMMS, NUM_ACTIONS, TASK_SPECS, TASKS, num_actions
 from trainer.checkpoint import MAX_HIDDEN, MAX_ROUNDS
 from trainer.model import ENTITY_MODES, ModelConfig
 
-INIT_CARRY = ("weights", "normaliser", "optimiser")  # what --init-from carries, cumulative
+# Options of experiments that lost, with the value that meant "off": a stored run that set one
+# needs the release that still had it (the git tag swarm-chains; docs/FINDINGS.md)
+RETIRED = {
+    "init_carry": "weights",
+    "message_burst": 0.0,
+    "hold_reward": 0.0,
+    "auction_eps": None,
+}
 MAX_TRANSFER_OFFSET = 1000  # |d| of a --transfer-offsets entry
 MAX_SEED = 2**31 - 1  # training seeds (the environments' seeds: trainer.train.train_seed)
 MAX_NUM_ENVS = 2**20
@@ -167,23 +174,18 @@ class TrainConfig:
     """With neighbours and landmark_neighbours: each sensed landmark also carries its distance
     to the nearest other agent (capped at sense_radius), whether a teammate already holds it;
     the network takes it as a third landmark input (docs/SWARM.md)."""
-    landmark_order: Literal["nearest", "free", "open", "claim", "claim-zero", "auction"] = "nearest"
-    """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; free, the
-    landmarks no other agent holds listed before the held ones, so that an agent on a held
-    landmark senses the nearest free ones within sense_radius; open, the same with a landmark held
-    only by an agent nearer it than the observer, so that of two agents on one landmark only the
-    farther sees it held; claim (with assignment nearest or free), held by the agent the threshold
-    matching gives it, who keeps it while it stays on it; claim-zero, the same with a claimed
-    landmark reading 0; auction (with assignment nearest or free), only the landmark the agent
-    wins in the agents' own auction over the landmarks each senses (claim-zero lists for an
-    agent that wins none): a planner picks the landmark, the network drives (docs/SWARM.md)."""
+    landmark_order: Literal["nearest", "claim-zero", "auction"] = "nearest"
+    """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; claim-zero
+    (with assignment free), the landmarks the threshold matching gives no other agent listed
+    before the others, a claimed one reading 0, so that an agent on a held landmark senses the
+    nearest free ones within sense_radius; auction (with assignment free), only the landmark the
+    agent wins in an auction over the landmarks each senses (claim-zero lists for an agent that
+    wins none): a planner picks the landmark, the network drives. The auction's prices live in
+    the simulator, and the claim readings come from a team-wide matching (docs/SWARM.md)."""
     auction_rounds: int | None = None
-    """With landmark_order auction: a radio's budget of R bid rounds a step, the auction carried
-    over from step to step, an agent still bidding reading claim-zero lists (None: the auction
+    """With landmark_order auction: a budget of R bid rounds a step, the auction carried over
+    from step to step, an agent still bidding reading claim-zero lists (None: the auction
     solved to the end each step)."""
-    auction_eps: float | None = None
-    """With auction_rounds: the least a bid raises a landmark's price, and the matching's bound per
-    agent (None: the simulator's, taichi_swarm.auction.ROUND_EPS)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
@@ -204,25 +206,15 @@ class TrainConfig:
     from [0, message_drop], and every step drops each message (an edge of the communication
     graph, never an agent's own) with that rate, in the rollout and in the PPO update alike, so a
     policy learns to act on what it hears (0: no faults; evaluations are always fault-free)."""
-    message_burst: float = 0.0
-    """With message_drop: the losses come in bursts, as on a real radio (Gilbert-Elliott, per
-    sender: a sender in a burst reaches nobody), of this mean length in control steps, at the
-    environment's drawn rate on average (0: each message dropped independently)."""
     drop_per_round: bool = False
-    """With message_drop (independent losses): every round of the step draws its own drops, as
-    `swarm execute --drop` and the networked agents lose messages, instead of one draw per step
-    that the rounds share (the buffer then holds each round's graph: R times the adjacency)."""
+    """With message_drop: every round of the step draws its own drops, as `swarm execute --drop`
+    and the networked agents lose messages, instead of one draw per step that the rounds share
+    (the buffer then holds each round's graph: R times the adjacency)."""
     reward: Literal["team", "agent"] = "team"
     """team: every agent is trained on the team reward (the paper); agent: each on its own
     terms (the simulator's info["agent_reward"], whose mean the team reward is), each with its
     own running return in the reward normaliser: the signal a team reward gives one agent is
     diluted M times, which matters for large teams (docs/SWARM.md)."""
-    hold_reward: float = 0.0
-    """With reward "agent": added to an agent's reward at each step it is within the task's
-    success threshold of its target (the simulator's ``hold_reward``). Success needs every agent
-    inside at once, and -d*_i barely tells a miss at 0.06 from a hit at 0.04, so large teams
-    hover across the threshold. Measured on formation (docs/SWARM.md): less hovering at M = 100,
-    and a lower S% at M = 50. 0: the paper's reward."""
     preset: str = "paper"
     """PPO preset, the values of the ``ppo`` options and ``updates`` not given (``with_preset``
     makes a config from one): fast (the recipe behind the model zoo) | paper (the paper's schedule) |
@@ -255,16 +247,11 @@ class TrainConfig:
     run_dir: str = ""
     """Where the run lives (default runs/<task>-m<agents>-<comm>-s<seed>)."""
     init_from: str = ""
-    """Start from these weights (a checkpoint); what else it carries: ``init_carry``."""
+    """Start from these weights (a checkpoint: its weights only, with a fresh optimiser and reward
+    normaliser, as the paper's curriculum does)."""
     trust_unsigned: bool = False
     """Take ``init_from`` even if it carries no sha256 (from before digests existed): corruption
     in it cannot be detected."""
-    init_carry: Literal["weights", "normaliser", "optimiser"] = "weights"
-    """What ``init_from`` carries into the new run. weights: the weights only (fresh Adam and
-    reward normaliser: the paper's curriculum); normaliser: also the reward normaliser's
-    running statistics; optimiser: also those and Adam's moments. The last two need a
-    checkpoint.pt (policy.pt holds weights only). Carrying the normaliser removes the value-loss
-    spike of a restart (docs/FINDINGS.md, "Carrying the reward normaliser across a restart")."""
     arch: str = "cpu"
     """Where the simulator runs: cpu | cuda | auto."""
     device: str = "cpu"
@@ -310,10 +297,6 @@ class TrainConfig:
             raise ValueError(f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
         if self.reward not in ("team", "agent"):
             raise ValueError(f"reward must be 'team' or 'agent', got {self.reward!r}")
-        if not 0 <= self.hold_reward < float("inf"):
-            raise ValueError(f"hold_reward must be a finite number >= 0, got {self.hold_reward}")
-        if self.hold_reward and self.reward != "agent":
-            raise ValueError("hold_reward enters each agent's own reward: set reward='agent' with it")
         if self.model.entity_mode not in ENTITY_MODES:
             raise ValueError(f"model.entity_mode must be one of {ENTITY_MODES}")
         for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):
@@ -346,7 +329,6 @@ class TrainConfig:
             raise ValueError(f"model.rounds must be in [0, {MAX_ROUNDS}], got {self.model.rounds}")
         if not 1 <= self.model.hidden <= MAX_HIDDEN:
             raise ValueError(f"model.hidden must be in [1, {MAX_HIDDEN}], got {self.model.hidden}")
-        self.validate_init_carry()
         if any(abs(d) > MAX_TRANSFER_OFFSET for d in self.transfer_offsets):
             raise ValueError(f"transfer_offsets must be small team-size offsets, got {self.transfer_offsets}")
         if len(set(self.transfer_offsets)) != len(self.transfer_offsets):
@@ -357,12 +339,8 @@ class TrainConfig:
             raise ValueError(f"min_updates must be in [0, updates={self.updates}], got {self.min_updates}")
         if not 0 <= self.message_drop < 1:
             raise ValueError(f"message_drop must be in [0, 1), got {self.message_drop}")
-        if self.message_burst and not (1 <= self.message_burst < float("inf") and self.message_drop > 0):
-            raise ValueError(f"message_burst must be 0 or >= 1 step, with message_drop > 0, got {self.message_burst}")
-        if self.drop_per_round and not (self.message_drop > 0 and not self.message_burst):
-            raise ValueError(
-                "drop_per_round draws independent losses per round: set message_drop > 0, without message_burst"
-            )
+        if self.drop_per_round and not self.message_drop > 0:
+            raise ValueError("drop_per_round draws losses per round: set message_drop > 0 with it")
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
         if self.comm_radius < 0:
@@ -394,15 +372,6 @@ class TrainConfig:
                 f"this machine has {have / 2**30:.1f} GiB: lower ppo.num_steps or ppo.num_envs"
             )
 
-    carry_needs_init_from: ClassVar[bool] = True
-    """A run carries from its --init-from; a curriculum (False) from each last stage."""
-
-    def validate_init_carry(self) -> None:
-        if self.init_carry not in INIT_CARRY:
-            raise ValueError(f"init_carry must be one of {INIT_CARRY}, got {self.init_carry!r}")
-        if self.carry_needs_init_from and self.init_carry != "weights" and not self.init_from:
-            raise ValueError(f"init_carry={self.init_carry!r} needs init_from (a checkpoint.pt to carry it from)")
-
     def swarm_options(self) -> dict:
         """The simulator's neighbour-list, density and action-set options that are set (``make()`` keywords)."""
         from trainer.evaluate import swarm_options
@@ -410,12 +379,7 @@ class TrainConfig:
         return swarm_options(
             self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
             self.landmark_occupancy, self.action_space, self.landmark_order, self.auction_rounds,
-            self.auction_eps,
         )  # fmt: skip
-
-    def task_params(self) -> dict:
-        """The simulator's task parameters this run sets (``make()`` keywords)."""
-        return {"hold_reward": self.hold_reward} if self.hold_reward else {}
 
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""
@@ -428,7 +392,7 @@ class TrainConfig:
 @dataclass
 class CurriculumConfig(TrainConfig):
     """``swarm curriculum``: train stage by stage over team sizes, each stage from the last
-    stage's weights (fresh optimiser and reward normaliser unless ``init_carry``), moving on once a greedy
+    stage's weights (fresh optimiser and reward normaliser), moving on once a greedy
     evaluation of at least 200 episodes reaches ``threshold`` (docs/PAPER.md s.6). Every
     option of ``swarm train`` applies to every stage, except ``agents``, ``updates`` and
     ``target_success`` and ``min_updates``, which the stages set. The run directory (default
@@ -461,10 +425,6 @@ class CurriculumConfig(TrainConfig):
     polish_lr: float = 3e-5
     """Constant learning rate of the polish."""
 
-    # between stages init_carry carries from the last stage's checkpoint; the first stage
-    # takes only the weights of --init-from (which may be a weights-only policy.pt)
-    carry_needs_init_from: ClassVar[bool] = False
-
     def train_config(self) -> TrainConfig:
         """The options every stage shares, as a TrainConfig."""
         names = [f.name for f in dataclasses.fields(TrainConfig)]
@@ -481,11 +441,14 @@ def to_dict(cfg) -> dict:
 def train_config_from_dict(d: dict) -> TrainConfig:
     """Inverse of ``to_dict`` (for resuming); unknown keys are an error."""
     d = dict(d)
+    for key, off in RETIRED.items():
+        if key in d and d.pop(key) != off:
+            raise ValueError(f"{key}: the run was made with an option this version no longer has (tag swarm-chains)")
     d.setdefault("compile", False)  # runs from before the option existed ran eagerly
     d.setdefault("tensorboard", False)
     for key in ("transfer_offsets", "team_sizes"):
         d[key] = tuple(d.get(key, ()))
-    model = ModelConfig(**d.pop("model"))
+    model = ModelConfig.from_dict(d.pop("model"))
     ppo_dict = dict(d.pop("ppo"))
     ppo_dict.setdefault("reset_return", True)  # runs from before the option existed reset it
     ppo = PPOConfig(**ppo_dict)

@@ -1,6 +1,6 @@
 """Curriculum over team sizes (s.6): train M = 3, then 5, 7, 10, each stage
 starting from the previous stage's weights with a fresh optimiser and reward
-normaliser (``init_carry`` carries those too), moving on once evaluation success reaches the threshold.
+normaliser, moving on once evaluation success reaches the threshold.
 Records S% and the number of updates N per stage (the paper's tables 2, 3), and,
 with ``fresh_eval_episodes``, each stage's final policy on that many fresh greedy
 episodes: the evaluation that ended a stage is the first of several noisy ones to
@@ -90,8 +90,8 @@ def check_curriculum(
         raise ValueError(f"--fresh-eval-seed must be >= 0, got {fresh_eval_seed}")
     if polish_updates < 0:
         raise ValueError(f"--polish-updates must be >= 0, got {polish_updates}")
-    if not polish_lr > 0:
-        raise ValueError(f"--polish-lr must be > 0, got {polish_lr}")
+    if not 0 < polish_lr <= 1:  # (NaN and inf too: before stage 1 trains, not after it)
+        raise ValueError(f"--polish-lr must be in (0, 1], got {polish_lr}")
     if base.team_sizes:  # every stage would train on them and be judged at its own size
         raise ValueError(
             f"--team-sizes {list(base.team_sizes)} cannot go with a curriculum: each stage trains on its "
@@ -104,7 +104,6 @@ def check_curriculum(
             updates=max_updates_per_stage,
             target_success=threshold,
             min_updates=min_updates_per_stage,
-            init_carry="weights",  # what a stage carries comes from the stage before it (checked as it starts)
         ).validate()
 
 
@@ -128,7 +127,7 @@ def run_curriculum(
     results_path = os.path.join(run_dir, CURRICULUM)
     stages: list[dict] = []
     previous_ckpt, previous_update = base.init_from, None
-    for stage_index, M in enumerate(sizes):
+    for M in sizes:
         stage_dir = os.path.join(run_dir, f"stage-m{M}")
         if previous_update is not None:
             previous_dir = os.path.dirname(previous_ckpt)
@@ -143,8 +142,6 @@ def run_curriculum(
             agents=M,
             run_dir=stage_dir,
             init_from=previous_ckpt,
-            # the first stage takes only the weights of --init-from (often a policy.pt)
-            init_carry=base.init_carry if stage_index else "weights",
             updates=max_updates_per_stage,
             target_success=threshold,
             min_updates=min_updates_per_stage,
@@ -227,6 +224,16 @@ def polish_stage(
     resumes like a stage. ``stage_update``: where the stage ended; a polish of the stage as
     it ended before (a stage given more updates since) is an error, never reused. Returns
     its record for curriculum.json."""
+    polish_cfg = dataclasses.replace(
+        stage_cfg,
+        run_dir=polish_dir,
+        init_from=os.path.join(stage_cfg.run_dir, CHECKPOINT),
+        updates=updates,
+        target_success=0.0,
+        min_updates=0,
+        ppo=dataclasses.replace(stage_cfg.ppo, lr=lr, lr_end=None),
+    )
+    polish_cfg.validate()  # before its directory and polish-of.json are made
     then = _pin_upstream(
         polish_dir, POLISH_OF, {"stage": stage_cfg.run_dir, "stage_update": stage_update}, "stage_update"
     )
@@ -235,16 +242,6 @@ def polish_stage(
             f"{polish_dir} polished {stage_cfg.run_dir} as it was at update {then}; it now ends at "
             f"update {stage_update}: move {polish_dir} away to polish the stage again"
         )
-    polish_cfg = dataclasses.replace(
-        stage_cfg,
-        run_dir=polish_dir,
-        init_from=os.path.join(stage_cfg.run_dir, CHECKPOINT),
-        init_carry="weights",
-        updates=updates,
-        target_success=0.0,
-        min_updates=0,
-        ppo=dataclasses.replace(stage_cfg.ppo, lr=lr, lr_end=None),
-    )
     summary = train_or_resume(polish_cfg)
     record = {**run_record(summary), "lr": lr, "run_dir": polish_dir}
     if fresh_eval_episodes:

@@ -7,7 +7,6 @@ import numbers
 import torch
 
 import taichi_swarm
-from taichi_swarm.auction import MAX_ROUND_EPS, MIN_ROUND_EPS
 from taichi_swarm.env import ASSIGNMENTS, LANDMARK_ORDERS, LOCAL_ASSIGNMENTS
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
@@ -15,7 +14,7 @@ from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 ACTION_MODES = ("greedy", "sampled")
 SWARM_KEYS = (
     "neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy", "action_space",
-    "landmark_order", "auction_rounds", "auction_eps",
+    "landmark_order", "auction_rounds",
 )  # fmt: skip
 # the simulator's discrete action spaces, those a policy (a head of logits) can be trained on
 ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swarm.num_actions(space))
@@ -23,7 +22,7 @@ ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swar
 
 def swarm_options(
     neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None,
-    action_space=None, landmark_order=None, auction_rounds=None, auction_eps=None,
+    action_space=None, landmark_order=None, auction_rounds=None,
 ) -> dict:  # fmt: skip
     """The simulator's neighbour-list, scaling, assignment, occupancy, landmark-order, auction-budget
     and action-set options that are set, as ``make()`` keywords (none set: the dense layout, the
@@ -31,7 +30,7 @@ def swarm_options(
     given = dict(
         neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale,
         assignment=assignment, landmark_occupancy=landmark_occupancy, action_space=action_space,
-        landmark_order=landmark_order, auction_rounds=auction_rounds, auction_eps=auction_eps,
+        landmark_order=landmark_order, auction_rounds=auction_rounds,
     )  # fmt: skip
     for key in ("neighbours", "landmark_neighbours"):
         v = given[key]
@@ -71,15 +70,6 @@ def swarm_options(
                 f"auction_rounds is the budget of the agents' own auction: it needs landmark_order 'auction' "
                 f"(--landmark-order auction), got {landmark_order!r}"
             )
-    if auction_eps is not None:
-        if isinstance(auction_eps, bool) or not (
-            isinstance(auction_eps, numbers.Real) and MIN_ROUND_EPS <= auction_eps <= MAX_ROUND_EPS
-        ):
-            raise ValueError(
-                f"auction_eps must be a number from {MIN_ROUND_EPS} to {MAX_ROUND_EPS}, got {auction_eps!r}"
-            )
-        if auction_rounds is None:
-            raise ValueError("auction_eps is the bid increment of the budgeted auction: it needs auction_rounds")
     if landmark_order == "nearest":  # the default: recorded as unset
         given["landmark_order"] = None
     if action_space is not None and action_space not in ACTION_SETS:

@@ -24,7 +24,8 @@ whose input width is fixed by the task's L).
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+import numbers
+from dataclasses import asdict, dataclass, fields
 from typing import NamedTuple
 
 import torch
@@ -100,6 +101,9 @@ def lists_to_dense(weights: torch.Tensor, slots: torch.Tensor, mask: torch.Tenso
     return dense.scatter_add_(-1, slots, weights * mask.to(weights.dtype))
 
 
+_FIELD_KINDS = {"int": int, "str": str, "bool": bool}  # ModelConfig's annotations (strings: future annotations)
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Architecture of the policy; stored in every checkpoint and export manifest."""
@@ -132,23 +136,23 @@ class ModelConfig:
     which start at zero, so a policy without it is the same function with it and may be
     fine-tuned into it ("emp" only; the trainer sets it from ``landmark_occupancy``)."""
 
-    goal_pass: bool = False
-    """A goal network ("emp" only): a second network of the same shape, with weights of its own
-    (``goal_net``, its heads unused), runs its landmark attention and message rounds first, and
-    the policy's landmark attention's query is raised by W_g h, h that network's final
-    embedding, so the landmark an agent heads for can depend on its teammates. The landmark
-    attention is otherwise the first thing an agent does, before any message: a policy whose
-    attention is set on a good plan's landmark follows it (docs/SWARM.md, "The actor follows
-    its attention"). W_g starts at zero, so a policy without it is the same function with it,
-    whatever the goal network holds, and may be trained into it (tools/imitate.py --goal
-    --goal-pass, which starts the goal network as a copy of the policy's own layers). It costs
-    a second forward and 2 x rounds message rounds. Not exported yet."""
-
     num_actions: int = NUM_ACTIONS
     """Logits of the policy head: the simulator's actions, 5 (the paper's) or 9 with
     ``action_space="fine"`` (the trainer sets it from that)."""
 
     def __post_init__(self):
+        # types first: a crafted or hand-edited config (hidden = 128.0, rounds = True) must be
+        # refused here, by field, not deep inside torch's layer constructors
+        for f in fields(self):
+            value = getattr(self, f.name)
+            kind = _FIELD_KINDS[f.type]
+            if kind is int:
+                # bool is an int subclass and 3.0 == 3: both are refused, neither is what was written
+                if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                    raise ValueError(f"{f.name} must be an integer, got {value!r} ({type(value).__name__})")
+                object.__setattr__(self, f.name, int(value))  # (a numpy integer -> int: configs are JSON)
+            elif not isinstance(value, kind):
+                raise ValueError(f"{f.name} must be a {kind.__name__}, got {value!r} ({type(value).__name__})")
         if self.num_actions not in (NUM_ACTIONS, NUM_FINE_ACTIONS):
             raise ValueError(f"num_actions must be {NUM_ACTIONS} or {NUM_FINE_ACTIONS}, got {self.num_actions!r}")
         if self.entity_mode not in ENTITY_MODES:
@@ -163,8 +167,6 @@ class ModelConfig:
             raise ValueError(f"num_landmarks must be >= 0, got {self.num_landmarks}")
         if self.landmark_occupancy and self.entity_mode != "emp":
             raise ValueError(f"landmark_occupancy needs entity_mode 'emp', got {self.entity_mode!r}")
-        if self.goal_pass and self.entity_mode != "emp":
-            raise ValueError(f"goal_pass needs entity_mode 'emp', got {self.entity_mode!r}")
 
     @property
     def entity_features(self) -> int:
@@ -188,6 +190,17 @@ class ModelConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ModelConfig:
+        """A stored config: ``to_dict``'s, or one written while ``goal_pass`` (a goal network,
+        an experiment since removed) was a field, where it is false in every shipped file."""
+        d = dict(d)
+        if d.get("goal_pass") is True:
+            raise ValueError("goal_pass: this policy has a goal network, which this version no longer supports")
+        if d.get("goal_pass") is False:
+            del d["goal_pass"]
+        return cls(**d)
 
 
 class Attention(nn.Module):
@@ -229,7 +242,6 @@ class FusedWeights(NamedTuple):
     heads: tuple[torch.Tensor, torch.Tensor]  # first layers of both heads: [H, 2H], [2H]
     # edge_position "relative": h -> its score with an offset [H, 2], pooled offset -> update [2, H]
     edge: tuple[torch.Tensor, torch.Tensor] | None = None
-    goal: FusedWeights | None = None  # goal_pass: the goal network's own
 
 
 class SwarmPolicy(nn.Module):
@@ -240,8 +252,7 @@ class SwarmPolicy(nn.Module):
     -> logits [N, M, A] (A = config.num_actions), value [N, M].
     """
 
-    def __init__(self, config: ModelConfig = ModelConfig(), heads: bool = True):
-        """``heads`` False: no policy and value heads (a goal network's: only its embedding is read)."""
+    def __init__(self, config: ModelConfig = ModelConfig()):
         super().__init__()
         if config.entity_mode == "concat" and config.num_landmarks < 1:
             raise ValueError("entity_mode='concat' needs num_landmarks >= 1 (the trainer takes the task's)")
@@ -256,15 +267,11 @@ class SwarmPolicy(nn.Module):
             self.entity_update = nn.Linear(2 * H, H)
         self.comm_attention = Attention(H)
         self.comm_update = nn.Linear(2 * H, H)
-        if config.goal_pass:
-            self.goal_query = nn.Linear(H, H, bias=False)
-            self.goal_net = SwarmPolicy(replace(config, goal_pass=False), heads=False)
         if config.edge_position == "relative":
             self.edge_key = nn.Linear(2, H, bias=False)
             self.edge_value = nn.Linear(2, H, bias=False)
-        if heads:
-            self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, config.num_actions))
-            self.value_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, 1))
+        self.policy_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, config.num_actions))
+        self.value_head = nn.Sequential(nn.Linear(H, H), nn.ReLU(), nn.Linear(H, 1))
         self._init_weights()
 
     def _init_weights(self) -> None:
@@ -285,8 +292,6 @@ class SwarmPolicy(nn.Module):
             nn.init.zeros_(self.edge_value.weight)
         if self.config.landmark_occupancy:  # likewise: the network without occupancy until trained
             nn.init.zeros_(self.entity_occupancy.weight)
-        if self.config.goal_pass:  # likewise: the network without a goal until trained
-            nn.init.zeros_(self.goal_query.weight)
 
     # --- the three pieces one agent runs (deploy/ exports exactly these) -----------------
     def own_input(self, self_obs: torch.Tensor) -> torch.Tensor:
@@ -302,11 +307,9 @@ class SwarmPolicy(nn.Module):
         self_obs: torch.Tensor,
         entities: torch.Tensor,
         entity_mask: torch.Tensor | None = None,
-        goal: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """[..., 4], [..., L, 2] (and the sensed slots [..., L] bool) -> h [..., H]: agent
-        encoder and entity message passing; ``goal`` [..., H] (goal_pass: the goal network's
-        final h) adds (W_g goal) . e_l to landmark l's score."""
+        encoder and entity message passing."""
         mode = self.config.entity_mode
         self._check_entity_mask(entities, entity_mask)
         self_obs = self.own_input(self_obs)
@@ -315,9 +318,6 @@ class SwarmPolicy(nn.Module):
             e = self.embed_entities(entities)  # [..., L, H]
             att = self.entity_attention
             q, k = att.w_q(h).unsqueeze(-2), att.w_k(e)  # [..., 1, H], [..., L, H]
-            if goal is not None:  # q.k / sqrt(H) + (W_g goal).e, as one dot product of [q; W_g goal sqrt(H)] and [k; e]
-                q = torch.cat([q, self.goal_query(goal).unsqueeze(-2) * math.sqrt(self.config.hidden)], dim=-1)
-                k = torch.cat([k, e], dim=-1)
             mask = None if entity_mask is None else entity_mask.unsqueeze(-2)  # [..., 1, L]
             m_e, _ = att.attend(q, k, att.w_v(e), mask)
             return torch.relu(self.entity_update(torch.cat([h, m_e.squeeze(-2)], dim=-1)))
@@ -409,10 +409,8 @@ class SwarmPolicy(nn.Module):
 
         entity = fuse(self.entity_attention, self.entity_update) if self.config.entity_mode == "emp" else None
         comm = fuse(self.comm_attention, self.comm_update)
-        heads = None
-        if hasattr(self, "policy_head"):
-            p0, v0 = self.policy_head[0], self.value_head[0]
-            heads = (torch.cat([p0.weight, v0.weight]).t(), torch.cat([p0.bias, v0.bias]))  # [H, 2H], [2H]
+        p0, v0 = self.policy_head[0], self.value_head[0]
+        heads = (torch.cat([p0.weight, v0.weight]).t(), torch.cat([p0.bias, v0.bias]))  # [H, 2H], [2H]
         edge = None
         if self.config.edge_position == "relative":
             # score_ij += (h_i W_q^T E_k / sqrt(H)) . r_ij; update += (sum_j w_ij r_ij) E_v^T W_out^T W_u2^T
@@ -421,8 +419,7 @@ class SwarmPolicy(nn.Module):
                 (att.w_q.weight.t() @ self.edge_key.weight) * scale,  # [H, 2]
                 self.edge_value.weight.t() @ (att.w_out.weight.t() @ upd.weight[:, H:].t()),  # [2, H]
             )
-        goal = self.goal_net.fused_weights() if self.config.goal_pass else None
-        return FusedWeights(entity, comm, heads, edge, goal)
+        return FusedWeights(entity, comm, heads, edge)
 
     def edge_offsets(self, self_obs: torch.Tensor, slots: torch.Tensor | None) -> torch.Tensor | None:
         """p_j - p_i of every heard pair (edge_position "relative"; else None), from the
@@ -493,8 +490,7 @@ class SwarmPolicy(nn.Module):
             # than gathering 1 + K slots (the same function: the slots scattered into adj)
             masks, slots = [lists_to_adj(slots, m) for m in masks], None
         fw = self.fused_weights() if fused is None else fused
-        goal = self._goal(self_obs, entities, entity_mask, masks, slots, fw)
-        h, _ = self._landmarks(self_obs, entities, entity_mask, fw, goal)
+        h, _ = self._landmarks(self_obs, entities, entity_mask, fw)
         h, attention = self._rounds(h, self_obs, masks, slots, fw)
         H, N, M = self.config.hidden, self_obs.shape[0], self_obs.shape[1]
         w_heads, b_heads = fw.heads
@@ -505,9 +501,8 @@ class SwarmPolicy(nn.Module):
             return logits, value, attention  # K x [N, M, M] or [N, M, 1 + K]
         return logits, value
 
-    def _landmarks(self, self_obs, entities, entity_mask, fw, goal=None):
-        """``forward``'s landmark attention (its query raised by W_g ``goal`` [NM, H], the goal
-        network's final h, with goal_pass) -> (h [NM, H], its scores [NM, L], unsensed slots
+    def _landmarks(self, self_obs, entities, entity_mask, fw):
+        """``forward``'s landmark attention -> (h [NM, H], its scores [NM, L], unsensed slots
         MASK_FILL; None outside "emp")."""
         H = self.config.hidden
         N, M = self_obs.shape[0], self_obs.shape[1]
@@ -519,8 +514,7 @@ class SwarmPolicy(nn.Module):
         q_own = torch.addmm(own_bias, h, own)  # [NM, 2H]
         # NOTE: broadcast-multiply-sum, not bmm: batched GEMMs of these tiny matrices
         # ran 3x slower forward+backward on the CPU (docs/BENCHMARKS.md, training)
-        query = q_own[:, :H] if goal is None else q_own[:, :H] + self.goal_query(goal)
-        scores = (e * query[:, None, :]).sum(-1)  # [NM, L]
+        scores = (e * q_own[:, None, :H]).sum(-1)  # [NM, L]
         if entity_mask is None:
             weights = torch.softmax(scores, dim=-1)
         else:
@@ -573,23 +567,12 @@ class SwarmPolicy(nn.Module):
 
     def landmark_scores(self, self_obs, entities, adj=None, *, nbr=None, nbr_mask=None, entity_mask=None):
         """The landmark attention's scores [N, M, L] (unsensed slots MASK_FILL) that decide
-        which landmarks an agent's summary holds (with goal_pass, raised by the goal network's).
-        tools/imitate.py --goal fits them to a teacher's landmark."""
+        which landmarks an agent's summary holds."""
         masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
         self._check_entity_mask(entities, entity_mask)
         if self.config.entity_mode != "emp":
             raise ValueError("landmark scores need entity_mode 'emp'")
-        fw = self.fused_weights()
-        goal = self._goal(self_obs, entities, entity_mask, masks, slots, fw)
-        return self._landmarks(self_obs, entities, entity_mask, fw, goal)[1].view(*self_obs.shape[:2], -1)
-
-    def _goal(self, self_obs, entities, entity_mask, masks, slots, fw) -> torch.Tensor | None:
-        """goal_pass: the goal network's final h [NM, H] (its landmark attention and message
-        rounds over the same graph, with its weights in ``fw.goal``); None without one."""
-        if not self.config.goal_pass:
-            return None
-        g = self.goal_net
-        return g._rounds(g._landmarks(self_obs, entities, entity_mask, fw.goal)[0], self_obs, masks, slots, fw.goal)[0]
+        return self._landmarks(self_obs, entities, entity_mask, self.fused_weights())[1].view(*self_obs.shape[:2], -1)
 
     def forward_reference(
         self, self_obs, entities, adj=None, return_attention=False, *, nbr=None, nbr_mask=None, entity_mask=None
@@ -597,11 +580,7 @@ class SwarmPolicy(nn.Module):
         """The network written as the paper states it (the per-agent pieces deploy exports):
         with lists, each agent's query attends over the keys and values of [self; listed]."""
         masks, slots = self._graph(self_obs, adj, nbr, nbr_mask)
-        goal = None
-        if self.config.goal_pass:
-            g = self.goal_net
-            goal, _ = g._rounds_reference(g.encode(self_obs, entities, entity_mask), self_obs, masks, slots)
-        h = self.encode(self_obs, entities, entity_mask, goal)
+        h = self.encode(self_obs, entities, entity_mask)
         h, attention = self._rounds_reference(h, self_obs, masks, slots)
         logits, value = self.heads(h)
         if return_attention:

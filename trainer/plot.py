@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 
+from taichi_swarm.files import ensure_writable, read_input_text
 from trainer.rundir import CURVES, METRICS
 
 
@@ -12,11 +13,11 @@ def read_metrics(run_dir: str) -> list[dict]:
     path = os.path.join(run_dir, METRICS)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{run_dir} has no {METRICS} (is it a run directory?)")
-    with open(path) as f:
-        try:
-            rows = [json.loads(line) for line in f if line.strip()]
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path} is not JSON lines ({exc})") from None
+    text = read_input_text(path, "metrics file")
+    try:
+        rows = [json.loads(line) for line in text.splitlines() if line.strip()]
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not JSON lines ({exc})") from None
     for number, row in enumerate(rows, 1):
         missing = [k for k in ("update", "env_steps", "reward") if not isinstance(row, dict) or k not in row]
         if missing:
@@ -30,8 +31,9 @@ def plot_run(run_dir: str, out: str | None = None) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = read_metrics(run_dir)
     out = out or os.path.join(run_dir, CURVES)
+    ensure_writable(out, "--out")  # before the work (a FIFO there would be replaced by the PNG)
+    rows = read_metrics(run_dir)
     steps = [r["env_steps"] / 1e6 for r in rows]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     axes[0].plot(steps, [r["reward"] for r in rows])
@@ -83,13 +85,14 @@ def plot_zero_shot(json_paths: list[str], out: str, labels: list[str] | None = N
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    ensure_writable(out, "--out")
+    texts = [read_input_text(path, "--zero-shot file") for path in json_paths]  # every one before drawing
     fig, ax = plt.subplots(figsize=(5.5, 3.4))
     for k, path in enumerate(json_paths):
-        with open(path) as f:
-            try:
-                data = json.load(f)
-            except json.JSONDecodeError:
-                data = None
+        try:
+            data = json.loads(texts[k])
+        except json.JSONDecodeError:
+            data = None
         rows = data.get("results") if isinstance(data, dict) else None
         fields = ("agents", "success_rate")
         if (

@@ -203,36 +203,6 @@ def drop_messages(inputs: dict, rate: torch.Tensor) -> None:
     graph &= keep
 
 
-def burst_step(bad: torch.Tensor, rate: torch.Tensor, burst_len: float) -> torch.Tensor:
-    """One control step of each sender's Gilbert-Elliott radio ``bad`` [E, M] (True: in a loss
-    burst), the chain the networked agents' faults use (deploy/net/faults.py): a burst lasts
-    ``burst_len`` steps on average (P(bad -> good) = 1 / burst_len) and the stationary loss is
-    the environment's ``rate`` [E] (< 1)."""
-    u = torch.rand(bad.shape, device=bad.device)
-    to_good = 1.0 / burst_len
-    to_bad = rate[:, None] * to_good / (1.0 - rate[:, None])
-    return torch.where(bad, u >= to_good, u < to_bad)
-
-
-def burst_start(rate: torch.Tensor, num_agents: int) -> torch.Tensor:
-    """Each sender's first state [E, M], from the chain's stationary law (in a burst with p = rate)."""
-    return torch.rand(rate.shape[0], num_agents, device=rate.device) < rate[:, None]
-
-
-def drop_senders(inputs: dict, bad: torch.Tensor) -> None:
-    """Drop, in place, every message of the senders in a loss burst ``bad`` [E, M] (a lost
-    broadcast reaches nobody); an agent always keeps its own state."""
-    if "adj" in inputs:
-        adj = inputs["adj"]  # [E, M, M]: adj[e, i, j], i hears j
-        keep = ~bad[:, None, :].expand_as(adj).clone()
-        keep.diagonal(dim1=-2, dim2=-1).fill_(True)
-        adj &= keep
-    else:
-        nbr, mask = inputs["nbr"], inputs["nbr_mask"]  # [E, M, K]
-        E, M, K = nbr.shape
-        mask &= ~bad.gather(1, nbr.reshape(E, M * K).long()).view(E, M, K)
-
-
 @dataclasses.dataclass
 class RolloutResult:
     """What ``collect_rollout`` returns besides the filled buffer."""
@@ -259,15 +229,12 @@ def collect_rollout(
     device,
     message_drop: float = 0.0,
     per_agent: bool = False,
-    message_burst: float = 0.0,
 ) -> RolloutResult:
     """T steps of every environment with sampled actions into ``buf`` [T, E, M, ...];
     then per-agent GAE and advantage normalisation (``p``: a PPOConfig). ``message_drop``
     > 0: each environment drops messages at a rate drawn from [0, message_drop] for the
     rollout (TrainConfig.message_drop). ``per_agent``: each agent's own reward terms
-    (info["agent_reward"]) instead of the team's, normalised per agent slot (TrainConfig.reward).
-    ``message_burst`` >= 1: the drops come in bursts of that mean length in steps, per sender
-    (TrainConfig.message_burst), instead of independently per message."""
+    (info["agent_reward"]) instead of the team's, normalised per agent slot (TrainConfig.reward)."""
     T = buf.actions.shape[0]
     # drawn from torch's generator, which the checkpoint carries: a resumed run draws the same
     rate = torch.rand(buf.actions.shape[1], device=device) * message_drop if message_drop > 0 else None
@@ -277,15 +244,9 @@ def collect_rollout(
     ep_success, ep_length = [], []
     raw_reward = torch.zeros((), device=device)  # summed on device: no host sync per step
     t_sim = t_policy = 0.0
-    # each sender's burst state, drawn afresh per rollout from the chain's stationary law
-    bad = burst_start(rate, buf.actions.shape[2]) if rate is not None and message_burst else None
     for t in range(T):
         inputs = buf.store(t, obs)  # dense adj or neighbour lists, as the simulator observes
-        if bad is not None:
-            if t > 0:
-                bad = burst_step(bad, rate, message_burst)
-            drop_senders(inputs, bad)
-        elif rate is not None:
+        if rate is not None:
             drop_messages(inputs, rate)
         ta = time.perf_counter()
         logits, value = policy(**inputs, fused=fused)
@@ -583,7 +544,6 @@ def one_update(state: TrainingState, cfg, loss_fn, device: str) -> dict:
                 device,
                 cfg.message_drop,
                 cfg.reward == "agent",
-                cfg.message_burst,
             )
         )
         g.obs = rollouts[-1].next_obs

@@ -25,6 +25,7 @@ import os
 import torch
 
 from taichi_swarm import TaskSetting
+from taichi_swarm.files import MAX_CHECKPOINT_BYTES, InputFileError, check_input
 from trainer.checkpoint import CheckpointError, save
 from trainer.model import SELF_DIM, ModelConfig, SwarmPolicy
 
@@ -43,8 +44,10 @@ _LINEAR = {
 
 
 def _read(path: str) -> list[dict]:
-    if not os.path.isfile(path):
-        raise CheckpointError(f"published checkpoint {path} does not exist")
+    try:  # a regular file of bounded size (a FIFO would block torch.load)
+        check_input(path, "published checkpoint", MAX_CHECKPOINT_BYTES)
+    except InputFileError as exc:
+        raise CheckpointError(str(exc)) from None
     try:
         raw = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - corrupted, truncated or not a torch file

@@ -78,10 +78,16 @@ class RunDirLock:
         self.path = os.path.join(run_dir, name)
         self.holder, self.advice = holder, advice  # what a refused caller is told
         self.fd: int | None = None
+        self.created = False  # this acquire made the lock file (a failed run removes it: __exit__)
 
     def acquire(self) -> RunDirLock:
         os.makedirs(os.path.dirname(self.path), exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:  # O_EXCL first, to know whether the file is this process's own
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+            created = True
+        except FileExistsError:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            created = False
         try:
             for attempt in range(PROBE_RETRIES + 1):
                 try:
@@ -107,7 +113,7 @@ class RunDirLock:
         except BaseException:
             os.close(fd)  # (closing drops the lock if it was taken: a failed acquire holds nothing)
             raise
-        self.fd = fd
+        self.fd, self.created = fd, created
         return self
 
     def release(self) -> None:
@@ -119,7 +125,15 @@ class RunDirLock:
     def __enter__(self) -> RunDirLock:
         return self.acquire()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, *exc) -> None:
+        # work that failed (a refused --resume DIR) leaves no lock file it made behind. (A second
+        # process that opened the file in these milliseconds would go on under the unlinked one:
+        # only a third could then meet it, as with the run directory a failed new run removes.)
+        if exc_type is not None and self.created and self.fd is not None:
+            try:
+                os.unlink(self.path)
+            except OSError:
+                pass
         self.release()
 
 
@@ -243,6 +257,8 @@ def open_run(cfg, resume: str | None, overrides: dict | None = None):
         raise checkpoint.CheckpointError(
             f"{run.checkpoint} holds a training config this version cannot read: {exc}"
         ) from None
+    checkpoint.check_counters(run.checkpoint, payload["counters"], cfg.ppo.num_steps * cfg.ppo.num_envs)
+    checkpoint.model_config_from_payload(payload, run.checkpoint)  # (policy.pt is written from it)
     if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
         if checkpoint.load(run.policy)["counters"] != payload["counters"]:
             checkpoint.save_policy_only(payload, run.policy)
@@ -346,34 +362,6 @@ def restore(state, payload: dict, device: str) -> None:
         raise checkpoint.CheckpointError(f"the checkpoint's env_states do not hold one state per team size {sizes}")
     for k, g in enumerate(groups):  # resume bit-identically: the environments' buffers as they were
         g.obs = restore_env(g.env, env_states[k], f"env_states[{k}]")
-
-
-def carry_training_state(init_payload: dict, cfg, state) -> None:
-    """--init-carry normaliser|optimiser: the reward normalisers' running statistics (not
-    the per-environment running returns, which start at 0) and, for optimiser, Adam's moments
-    (at this run's learning rate) from the --init-from checkpoint."""
-    from trainer import checkpoint
-
-    scaler_states = init_payload.get("reward_scalers", [])  # (a policy file holds none)
-    if not scaler_states:
-        raise checkpoint.CheckpointError(
-            f"--init-carry {cfg.init_carry} needs a training checkpoint ({CHECKPOINT}): "
-            f"{cfg.init_from} holds weights only"
-        )
-    if len(scaler_states) not in (1, len(state.groups)):
-        raise checkpoint.CheckpointError(
-            f"--init-from {cfg.init_from} holds {len(scaler_states)} reward normalisers; "
-            f"this run has {len(state.groups)} team sizes (carry needs 1 or as many)"
-        )
-    for k, g in enumerate(state.groups):
-        scaler_state = scaler_states[k if len(scaler_states) > 1 else 0]
-        checkpoint.check_scaler_state(f"--init-from {cfg.init_from}", scaler_state, None)
-        g.scaler.rms.load_state_dict(scaler_state["rms"])
-    if cfg.init_carry == "optimiser":
-        checkpoint.check_optimizer_state(f"--init-from {cfg.init_from}", init_payload["optimizer"], state.policy)
-        state.optimizer.load_state_dict(init_payload["optimizer"])
-        for group in state.optimizer.param_groups:
-            group["lr"] = cfg.ppo.lr
 
 
 # ----------------------------------------------------------------------------- metrics sinks

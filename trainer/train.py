@@ -145,15 +145,14 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     if cfg.init_from and payload is None:
         init_policy, init_payload = checkpoint.load_policy(cfg.init_from, trust_unsigned=cfg.trust_unsigned)
         # the same shapes; self_position only changes what the encoder is fed, and relative
-        # edges, landmark occupancy and a goal network add weights that start at zero (the same
-        # function), so a policy may be fine-tuned into relative inputs, edges, occupancy and a
-        # goal network; the fine actions' logits start from the full pushes' (greedy: the same function)
-        grown = ("self_position", "edge_position", "landmark_occupancy", "goal_pass", "num_actions")
+        # edges and landmark occupancy add weights that start at zero (the same function), so a
+        # policy may be fine-tuned into relative inputs, edges and occupancy; the fine actions'
+        # logits start from the full pushes' (greedy: the same function)
+        grown = ("self_position", "edge_position", "landmark_occupancy", "num_actions")
         relative = {k: getattr(policy.config, k) for k in grown}
         dropped = (
             (init_policy.config.edge_position == "relative" and policy.config.edge_position == "none")
             or (init_policy.config.landmark_occupancy and not policy.config.landmark_occupancy)
-            or (init_policy.config.goal_pass and not policy.config.goal_pass)
             or init_policy.config.num_actions > policy.config.num_actions
         )
         if dropped or dataclasses.replace(init_policy.config, **relative) != policy.config:
@@ -177,7 +176,6 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
             comm_radius=cfg.comm_radius,
             arch=cfg.arch,
             **cfg.swarm_options(),
-            **cfg.task_params(),
         )
         # one running return per agent slot when each agent is rewarded on its own terms
         scaler = RewardScaler(
@@ -186,8 +184,6 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
         rounds = cfg.model.rounds if cfg.drop_per_round else 0  # a graph per round to drop from
         groups.append(TeamGroup(size, env, {}, Rollout.for_env(p.num_steps, env, device, rounds), scaler))
     state = TrainingState(policy, optimizer, groups, fresh_counters(), [])
-    if init_payload is not None and cfg.init_carry != "weights":
-        rundir.carry_training_state(init_payload, cfg, state)
     if payload is not None:
         rundir.restore(state, payload, device)
     else:

@@ -29,14 +29,8 @@ from dataclasses import dataclass
 
 import taichi as ti
 
-from ..layout import P_HOLD, P_SUCCESS
-
 # Overridable parameters every task has (``taichi_swarm.make(..., max_steps=...)``).
-# hold_reward: each step an agent is within success_threshold of its target adds this to its
-# own reward (``on_target``); 0, the default, is the paper's reward. A matched distance of
-# 0.04 and one of 0.06 differ by 0.02 in -d*_i, yet only one counts towards success, which
-# needs every agent inside at the same step: large teams hover across the threshold.
-COMMON_PARAMS = {"max_steps": 50, "hold_reward": 0.0}
+COMMON_PARAMS = {"max_steps": 50}
 FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward", "agent_reward")
 
 
@@ -106,10 +100,3 @@ def clipped_matched_distance(f: ti.template(), d: ti.f32) -> ti.f32:
     """-clip(d*_i, 0, 2): a per-agent term whose mean is the team reward -mean_clipped_d
     (formation's and line's ``matched_distance``)."""
     return -ti.math.clamp(d, 0.0, 2.0)
-
-
-@ti.func
-def on_target(f: ti.template(), d: ti.f32) -> ti.f32:
-    """hold_reward while the agent is within the success threshold of its target (every task's
-    second term; 0 unless make(..., hold_reward=) sets it)."""
-    return ti.select(d < f[P_SUCCESS], f[P_HOLD], 0.0)

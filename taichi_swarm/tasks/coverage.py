@@ -17,7 +17,7 @@ import taichi as ti
 
 from .. import rng
 from ..layout import P_ARENA, blocks, team_size
-from .base import Task, on_target
+from .base import Task
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ def matched_distance(f: ti.template(), d: ti.f32) -> ti.f32:
 
 @ti.func
 def agent_reward(f: ti.template(), d: ti.f32) -> ti.f32:
-    return matched_distance(f, d) + on_target(f, d)
+    return matched_distance(f, d)
 
 
 TASK = Task(
@@ -78,6 +78,6 @@ TASK = Task(
     reports_dist=True,
     density_scale=True,
     landmark_lists=True,
-    reward_terms=("matched_distance", "on_target"),
+    reward_terms=("matched_distance",),
     doc="M agents cover M landmarks (MPE simple_spread with matched distances).",
 )

@@ -29,7 +29,7 @@ import taichi as ti
 
 from .. import rng
 from ..layout import H_DENSITY, H_L, P_TASK_PARAM, blocks, team_size
-from .base import Task, on_target
+from .base import Task
 from .base import clipped_matched_distance as matched_distance  # the reward term line and formation share
 
 
@@ -138,7 +138,7 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
 
 @ti.func
 def agent_reward(f: ti.template(), d: ti.f32) -> ti.f32:
-    return matched_distance(f, d) + on_target(f, d)
+    return matched_distance(f, d)
 
 
 TASK = Task(
@@ -154,6 +154,6 @@ TASK = Task(
     kernel_param="formation_radius",
     density_scale=True,
     landmark_lists=True,
-    reward_terms=("matched_distance", "on_target"),
+    reward_terms=("matched_distance",),
     doc="M agents form a regular M-gon round one landmark.",
 )

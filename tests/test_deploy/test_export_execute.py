@@ -494,3 +494,87 @@ def test_export_refuses_an_unknown_task(tmp_path, capsys):
     ckpt = _save(str(tmp_path / "c.pt"), policy, "coverage", 3)
     with pytest.raises(ValueError, match="task"):
         export(ckpt, str(tmp_path / "o"), task={"task": "foo"})
+
+
+# ------------------------------------------------------------------------------ resealed manifests
+def _resealed(directory: str, tmp_path, edit) -> str:
+    """A copy of the export whose manifest, edited, carries a valid seal (as a buggy writer would
+    leave it): only the cross-checks and the ONNX files themselves can refuse it."""
+    from deploy.manifest import content_hash
+
+    bad = tmp_path / "resealed"
+    shutil.copytree(directory, bad)
+    manifest = json.loads((bad / "manifest.json").read_text())
+    edit(manifest)
+    manifest["manifest_sha256"] = content_hash(manifest)  # (seal itself would refuse some)
+    (bad / "manifest.json").write_text(json.dumps(manifest))
+    return str(bad)
+
+
+def _rounds(k: int):
+    def edit(m):
+        m["rounds"] = m["model_config"]["rounds"] = m["contract"]["rounds"] = k
+
+    return edit
+
+
+def _task(name: str):
+    def edit(m):
+        m["task"]["task"] = name
+
+    return edit
+
+
+def _actions(m):
+    m["num_actions"] = m["model_config"]["num_actions"] = 9
+    m["action_meanings"] = [str(i) for i in range(9)]
+
+
+def _hidden(m):
+    m["hidden"] = m["model_config"]["hidden"] = 64
+
+
+@pytest.mark.parametrize(
+    "edit, needle",
+    [
+        (_rounds(2), "rounds"),  # a 3-round policy run with 2: S% 100 -> 0 before the graphs named K
+        (_rounds(0), "rounds"),
+        (_task("line"), "task"),
+        (_actions, "num_actions"),  # (the graphs' own shapes too: 5 logits)
+        (_hidden, "hidden"),
+        (lambda m: m["contract"].update(rounds=2), "contract.rounds"),
+        (lambda m: m["contract"].update(comm="rc"), "contract.comm"),
+        (lambda m: m["contract"].update(comm_radius=0.5), "contract.comm_radius"),
+    ],
+    ids=["rounds-2", "rounds-0", "task", "actions", "hidden", "contract-rounds", "contract-comm", "contract-radius"],
+)
+def test_a_resealed_manifest_that_misdescribes_its_graphs_is_refused(emp, tmp_path, capsys, edit, needle):
+    _, directory = emp
+    bad = _resealed(directory, tmp_path, edit)
+    with pytest.raises(DeployError, match=needle):
+        ExportedModel(bad)
+    code, err = _run(execute_main, [bad, "--episodes", "1"], capsys)
+    assert code == 2 and needle in err and "Traceback" not in err and err.count("\n") == 1, err
+
+
+def test_the_graphs_carry_the_model_config_and_task_they_were_exported_with(emp):
+    from deploy.manifest import META_MODEL, META_TASK
+
+    _, directory = emp
+    manifest = json.loads(open(os.path.join(directory, "manifest.json")).read())
+    for entry in manifest["files"].values():
+        props = {p.key: json.loads(p.value) for p in onnx.load(os.path.join(directory, entry["file"])).metadata_props}
+        assert props[META_MODEL] == manifest["model_config"] and props[META_MODEL]["rounds"] == 3
+        assert props[META_TASK] == manifest["task"]
+
+
+@pytest.mark.parametrize("depth", [100_000, 40])
+def test_a_deeply_nested_manifest_is_one_line(emp, tmp_path, capsys, depth):
+    _, directory = emp
+    bad = tmp_path / "deep"
+    shutil.copytree(directory, bad)
+    (bad / "manifest.json").write_text('{"format": ' + "[" * depth + "]" * depth + "}")
+    with pytest.raises(DeployError, match="nested"):
+        ExportedModel(str(bad))
+    code, err = _run(execute_main, [str(bad), "--episodes", "1"], capsys)
+    assert code == 2 and "nested" in err and err.count("\n") == 1, err

@@ -230,3 +230,112 @@ def test_the_record_keeps_where_each_finished_env_ended(tmp_path):
     assert summarize(rrd)["entities"]["/env_0/agents"]["steps"] == (0, 6)
     write_rrd(older, rrd)
     assert summarize(rrd)["entities"]["/env_0/agents"]["steps"] == (0, 5)
+
+
+# ------------------------------------------------------------------------------ crafted records
+def _header(key, value):
+    def edit(h, a):
+        h[key] = value
+
+    return edit
+
+
+def _array(name, change):
+    def edit(h, a):
+        a[name] = change(a[name].copy())
+
+    return edit
+
+
+def _set(index, value):
+    def change(x):
+        x[index] = value
+        return x
+
+    return change
+
+
+CRAFTED = {
+    # header
+    "drawn > envs": (_header("drawn", 5), "drawn"),
+    "drawn 0": (_header("drawn", 0), "drawn"),
+    "agents float": (_header("agents", 3.0), "agents"),
+    "task soccer": (_header("task", "soccer"), "task"),
+    "comm": (_header("comm", "telepathy"), "comm"),
+    "comm_radius NaN": (_header("comm_radius", float("nan")), "comm_radius"),
+    "steps": (_header("steps", 99), "steps"),
+    # per-step arrays
+    "pos NaN": (_array("pos", _set((0, 0, 0, 0), np.nan)), "pos"),
+    "vel inf": (_array("vel", _set((1, 0, 0, 1), np.inf)), "vel"),
+    "reward NaN": (_array("reward", _set((0, 0), np.nan)), "reward"),
+    "landmarks shape": (_array("landmarks", lambda x: x[:, :, :1]), "landmarks"),
+    "landmarks NaN": (_array("landmarks", _set((0, 0, 0, 0), np.nan)), "landmarks"),
+    "targets shape": (_array("targets", lambda x: x[:, :, :, :1]), "targets"),
+    "actions 100": (_array("actions", _set((0, 0, 0), 100)), "actions"),
+    "actions -1": (_array("actions", _set((0, 0, 0), -1)), "actions"),
+    "actions float": (_array("actions", lambda x: x.astype(np.float32)), "actions"),
+    "arena 0": (_array("arena", _set(0, 0.0)), "arena"),
+    "step decreasing": (_array("step", _set(1, 0)), "step"),
+    "assignment": (_array("assignment", _set((0, 0, 0), 7)), "assignment"),
+    # the sparse graph and attention
+    "graph offsets decreasing": (_array("graph_offsets", _set(1, 100)), "graph_offsets"),
+    "graph offsets short": (_array("graph_offsets", lambda x: x[:-1]), "graph_offsets"),
+    "graph env index": (_array("graph_index", _set((0, 0), 2)), "graph_index"),
+    "graph agent index": (_array("graph_index", _set((0, 2), 3)), "graph_index"),
+    "graph index negative": (_array("graph_index", _set((0, 1), -4)), "graph_index"),
+    "attention index": (_array("attention_index", _set((0, 1), 9)), "attention_index"),
+    "attention weights": (_array("attention_weights", _set(0, 5.0)), "attention_weights"),
+    # outcomes
+    "end_step past the record": (_array("end_step", _set(0, 50)), "end_step"),
+    "end_step 0": (_array("end_step", _set(0, 0)), "end_step"),
+    "length negative": (_array("length", _set(0, -3)), "length"),
+    "success shape": (_array("success", lambda x: x[:2]), "success"),
+    "end_pos partly NaN": (_array("end_pos", _set((0, 0, 0), np.nan)), "end_pos"),
+}
+
+
+@pytest.fixture(scope="module")
+def good_record(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("good") / "t.npz")
+    traj = _record_numpy(path, steps=3)
+    # (the record's env 0 ended: its end_pos is known for every agent)
+    traj.arrays["end_pos"][0] = 0.0
+    traj.arrays["assignment"] = np.zeros((3, 2, 3), np.int32)
+    traj.save(path)
+    Trajectory.load(path)  # the unedited record is valid
+    return path
+
+
+@pytest.mark.parametrize("what", list(CRAFTED))
+def test_a_crafted_record_is_refused_in_one_line_naming_the_field(good_record, tmp_path, capsys, what):
+    import json
+
+    edit, field = CRAFTED[what]
+    z = dict(np.load(good_record))
+    header = json.loads(str(z.pop("header")))
+    edit(header, z)
+    path = str(tmp_path / "crafted.npz")
+    np.savez(path, header=np.array(json.dumps(header)), **z)
+    with pytest.raises(TrajectoryError, match=field):
+        Trajectory.load(path)
+    rrd, gif = str(tmp_path / "out.rrd"), str(tmp_path / "out.gif")
+    assert replay_main([path, "--stats", "--rrd", rrd, "--video", gif]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and field in err and "Traceback" not in err, err
+    assert sorted(os.listdir(tmp_path)) == ["crafted.npz"]  # no recording, video or temp file
+
+
+def test_a_failed_rrd_leaves_no_temp_file(good_record, tmp_path, capsys, monkeypatch):
+    import deploy.recording
+
+    def fail(*args):
+        raise IndexError("drawing failed")
+
+    monkeypatch.setattr(deploy.recording, "_log", fail)
+    rrd = tmp_path / "out.rrd"
+    with pytest.raises(IndexError):
+        write_rrd(Trajectory.load(good_record), str(rrd))
+    assert os.listdir(tmp_path) == []
+    monkeypatch.setattr(deploy.recording, "_log", lambda *args: (_ for _ in ()).throw(OSError("disk full")))
+    assert replay_main([good_record, "--rrd", str(rrd)]) == 2
+    assert "disk full" in capsys.readouterr().err and os.listdir(tmp_path) == []

@@ -733,7 +733,7 @@ def test_a_cell_starts_from_another_cells_policy_and_polishes(tmp_path, monkeypa
     d = cells_mod.cell_dir(root, curr_cell, 0)
     first = json.loads(open(os.path.join(d, "stage-m2", "config.json")).read())
     assert first["init_from"] == cells_mod.policy_path(root, train_cell, 0) == os.path.join(polish_dir, "policy.pt")
-    assert first["comm"] == "rc" and first["init_carry"] == "weights"
+    assert first["comm"] == "rc" and "init_carry" not in first
     second = json.loads(open(os.path.join(d, "stage-m3", "config.json")).read())
     assert second["init_from"] == os.path.join(d, "stage-m2-polish", "checkpoint.pt")
     assert cells_mod.run_dirs(root, curr_cell, 0) == [

@@ -203,8 +203,6 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
         "cur",
         "--fresh-eval-episodes",
         "6",
-        "--init-carry",
-        "optimiser",
         *common,
     ]
     r = swarm(*curriculum, cwd=tmp_path)
@@ -212,7 +210,6 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
     stages = json.load(open(tmp_path / "cur" / "curriculum.json"))["stages"]
     assert [s["agents"] for s in stages] == [2, 3]
     carried = [json.load(open(tmp_path / "cur" / f"stage-m{m}" / "config.json")) for m in (2, 3)]
-    assert [c["init_carry"] for c in carried] == ["weights", "optimiser"]  # the first stage had nothing to carry
     assert carried[1]["init_from"].endswith(os.path.join("stage-m2", "checkpoint.pt"))
     fresh = [s["fresh_eval"] for s in stages]  # each stage's final policy on fresh episodes
     assert [(f["episodes"], f["seed"], f["update"]) for f in fresh] == [(6, 777, 2), (6, 777, 2)]
@@ -486,42 +483,6 @@ def test_zero_shot_plot(tmp_path):
     assert swarm(["plot", "--zero-shot", str(path), "--labels", "x", "--out", str(out)]) == 0
     assert out.stat().st_size > 5000
     assert swarm(["plot", "--zero-shot", str(path)]) == 2  # needs --out
-
-
-def test_init_carry_takes_the_normaliser_and_adam_from_a_checkpoint(tmp_path):
-    from trainer.train import build_state
-
-    source = tiny(tmp_path, updates=2)
-    train(source)
-    ckpt = checkpoint.load(os.path.join(source.run_dir, "checkpoint.pt"))
-    rms = ckpt["reward_scalers"][0]["rms"]
-    lr = 3e-4
-    fresh = tiny(tmp_path, run_dir=str(tmp_path / "r2"), ppo=PPOConfig(**(vars(TINY_PPO) | {"lr": lr})))
-
-    def state_for(carry, init_from=os.path.join(source.run_dir, "checkpoint.pt")):
-        cfg = dataclasses.replace(fresh, init_from=init_from, init_carry=carry)
-        cfg.validate()
-        return build_state(cfg, None, "cpu")
-
-    weights_only = state_for("weights")
-    assert weights_only.groups[0].scaler.rms.count != rms["count"]
-    assert not weights_only.optimizer.state
-    normaliser = state_for("normaliser")
-    got = normaliser.groups[0].scaler.rms
-    assert got.count == rms["count"] and torch.equal(got.var.cpu(), rms["var"])
-    assert torch.count_nonzero(normaliser.groups[0].scaler.ret) == 0  # running returns start afresh
-    assert not normaliser.optimizer.state
-    everything = state_for("optimiser")
-    moments = everything.optimizer.state_dict()["state"]
-    assert moments and torch.equal(moments[0]["exp_avg"], ckpt["optimizer"]["state"][0]["exp_avg"])
-    assert everything.optimizer.param_groups[0]["lr"] == lr  # this run's learning rate, not the source's
-
-    with pytest.raises(checkpoint.CheckpointError, match="weights only"):
-        state_for("normaliser", init_from=os.path.join(source.run_dir, "policy.pt"))
-    with pytest.raises(ValueError, match="needs init_from"):
-        dataclasses.replace(fresh, init_carry="optimiser").validate()
-    with pytest.raises(ValueError, match="init_carry must be one of"):
-        dataclasses.replace(fresh, init_from="x", init_carry="adam").validate()
 
 
 def test_sigterm_takes_the_ctrl_c_path_and_exits_143(monkeypatch):

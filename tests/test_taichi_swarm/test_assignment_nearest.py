@@ -325,19 +325,17 @@ def test_the_nearer_of_two_agents_on_a_target_holds_it(wide):
                 assert assign[i] == t
 
 
-# claim-zero's reading is the same kernels.claimed under both step kernels: one of them suffices
-@pytest.mark.parametrize("wide, order", [(False, "claim"), (True, "claim"), (False, "claim-zero")])
-def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_holds_it(wide, order):
-    """landmark_order="claim": a newcomer nearer a held target does not take it over (the
+@pytest.mark.parametrize("wide", [False, True])
+def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_holds_it(wide):
+    """landmark_order="claim-zero": a newcomer nearer a held target does not take it over (the
     incumbent keeps it while within the threshold), the incumbent reads its landmark free (the
-    newcomer's distance, floored at the threshold) and the newcomer reads it held at the
-    incumbent's distance, and "free" pays the newcomer for crossing to the free target. Once the
-    incumbent leaves, the newcomer holds it. Under "nearest" order the nearer takes it over (the
-    test above). "claim-zero" is the same but for the newcomer's reading, 0."""
+    newcomer's distance, floored at the threshold) and the newcomer reads it held (0), and
+    "free" pays the newcomer for crossing to the free target. Once the incumbent leaves, the
+    newcomer holds it. Under "nearest" order the nearer takes it over (the test above)."""
     M, B, KL, sense = 200, 2, 4, 1.0
     env = _make(
         M, B, assignment="free", max_steps=50, agent_parallel=wide, landmark_neighbours=KL, sense_radius=sense,
-        landmark_occupancy=True, landmark_order=order,
+        landmark_occupancy=True, landmark_order="claim-zero",
     )  # fmt: skip
     env.reset()
     lat = np.broadcast_to(_lattice(M), (B, M, 2)).copy()
@@ -356,9 +354,8 @@ def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_hol
         # c reads it free: a's distance, under the threshold, floored at it
         assert len(mine) == 1 and ent[c, mine[0], 2] == pytest.approx(env.params["success_threshold"])
         theirs = np.flatnonzero(mask[a] & (np.abs(ent[a, :, :2] - (lat[b, c] - pos[b, a])).sum(-1) < 1e-5))
-        # a reads it held at c's distance (0 under claim-zero), listed after every free landmark in range
-        held = 0.06 if order == "claim" else 0.0
-        assert len(theirs) == 1 and ent[a, theirs[0], 2] == pytest.approx(held, abs=1e-5)
+        # a reads it held (0), listed after every free landmark in range
+        assert len(theirs) == 1 and ent[a, theirs[0], 2] == pytest.approx(0.0, abs=1e-5)
         assert (ent[a, : theirs[0], 2] >= env.params["success_threshold"]).all()
     env.step(np.zeros((B, M), dtype=np.int64))
     s = env.get_state()
@@ -373,9 +370,9 @@ def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_hol
         assert env.assignment[b, a] == c and env.assignment[b, c] == -1
 
 
-@pytest.mark.parametrize("order", ["claim", "claim-zero"])
+@pytest.mark.parametrize("order", ["claim-zero", "auction"])
 def test_claim_needs_the_threshold_matching(order):
-    with pytest.raises(ValueError, match=f"landmark_order='{order}' needs assignment 'nearest' or 'free'"):
+    with pytest.raises(ValueError, match=f"landmark_order='{order}' needs assignment"):
         _make(20, assignment="exact", landmark_neighbours=4, sense_radius=1.0, landmark_occupancy=True,
               landmark_order=order)  # fmt: skip
 
@@ -393,12 +390,12 @@ def test_claim_readings_name_each_listed_landmarks_own_holder_in_every_task(task
     """kernels.claimed reads landmark l's holder as target l's in the matching, so every list task
     keeps landmark k at target k (line once stored its first row's end second, and every claim
     reading on its rows named another target's holder: none read held). With the agents parked
-    near their targets, each listed landmark that the matching gives another agent reads that
-    agent's distance, and every other one reads at least the threshold."""
+    near their targets, each listed landmark that the matching gives another agent reads 0, and
+    every other one reads at least the threshold."""
     M, B, thr_tol = 60, 2, 1e-5
     env = taichi_swarm.make(
         task, B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=3, array="numpy",
-        scale="density", landmark_neighbours=8, sense_radius=1.5, landmark_occupancy=True, landmark_order="claim",
+        scale="density", landmark_neighbours=8, sense_radius=1.5, landmark_occupancy=True, landmark_order="claim-zero",
     )  # fmt: skip
     env.reset()
     lmk = env.get_state()["landmarks"]
@@ -406,7 +403,7 @@ def test_claim_readings_name_each_listed_landmarks_own_holder_in_every_task(task
     rng = np.random.default_rng(5)
     pos = env.targets + rng.uniform(-0.03, 0.03, size=(B, M, 2))
     obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
-    thr, sense = env.params["success_threshold"], 1.5
+    thr = env.params["success_threshold"]
     held_seen = 0
     for b in range(B):
         holder = np.full(M, -1)
@@ -420,8 +417,7 @@ def test_claim_readings_name_each_listed_landmarks_own_holder_in_every_task(task
                 h = holder[t]
                 if h >= 0 and h != i:
                     held_seen += 1
-                    want = min(np.linalg.norm(q - pos[b, h]), sense)
-                    assert ent[i, k, 2] == pytest.approx(want, abs=thr_tol), (b, i, k, t, h)
+                    assert ent[i, k, 2] == 0.0, (b, i, k, t, h)
                 else:
                     assert ent[i, k, 2] >= thr - thr_tol, (b, i, k, t)
     assert held_seen > B * M  # most listed landmarks are some teammate's

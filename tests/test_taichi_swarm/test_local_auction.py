@@ -16,11 +16,11 @@ from taichi_swarm import auction
 KL, SENSE = 8, 1.5
 
 
-def _make(M, B=2, task="line", wide=False, order="auction", rounds=None, eps=None):
+def _make(M, B=2, task="line", wide=False, order="auction", rounds=None):
     return taichi_swarm.make(
         task, B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=7, array="numpy",
         scale="density", landmark_neighbours=KL, sense_radius=SENSE, landmark_occupancy=True,
-        landmark_order=order, agent_parallel=wide, auction_rounds=rounds, auction_eps=eps,
+        landmark_order=order, agent_parallel=wide, auction_rounds=rounds,
     )  # fmt: skip
 
 
@@ -96,8 +96,8 @@ def test_a_budget_of_rounds_carries_the_auction_over_to_the_same_optimum():
     done at the first step, goes on from where it stopped until a round places no bid, and ends
     within its increment per agent of the optimum; the budget's state stays consistent (one holder
     per landmark, the holder's landmark among what it senses, a landmark nobody holds at price 0)."""
-    M, B, eps = 60, 2, 0.1
-    env = _make(M, B, rounds=2, eps=eps)
+    M, B, eps = 60, 2, auction.ROUND_EPS
+    env = _make(M, B, rounds=2)
     pos, lmk = _scrambled(env, B, M)
     prices = []
     for step in range(150):
@@ -125,8 +125,8 @@ def test_a_budget_of_rounds_under_motion_stays_within_its_slack_in_both_step_ker
     winners bit for bit, and a budget large enough to finish each step's bidding keeps the
     matching within HOLD_SLACK increments per agent of the optimum (a holder keeps its landmark
     until another option is better by that much)."""
-    M, B, eps = 40, 2, 0.1
-    envs = [_make(M, B, wide=wide, rounds=rounds, eps=eps) for rounds in (10_000, 2) for wide in (False, True)]
+    M, B, eps = 40, 2, auction.ROUND_EPS
+    envs = [_make(M, B, wide=wide, rounds=rounds) for rounds in (10_000, 2) for wide in (False, True)]
     for env in envs:
         env.reset()
     rng = np.random.default_rng(1)
@@ -170,10 +170,6 @@ def test_auction_rounds_needs_the_auction_order_and_a_positive_budget():
         _make(20, order="claim-zero", rounds=4)
     with pytest.raises(ValueError, match="auction_rounds must be >= 1, got 0"):
         _make(20, rounds=0)
-    with pytest.raises(ValueError, match="auction_eps is the bid increment of the budgeted auction: it needs"):
-        _make(20, eps=0.5)
-    with pytest.raises(ValueError, match="auction_eps must be >= 0.0001, got 0.0"):
-        _make(20, rounds=4, eps=0.0)
 
 
 def test_an_agent_priced_out_of_a_crowd_wins_nothing_and_reads_claim_zero_lists():

@@ -282,76 +282,12 @@ def test_landmark_occupancy_is_the_nearest_other_agents_distance(M, comm):
     assert (third < sense).any() and (third == np.float32(sense)).any()  # both held and free landmarks seen
 
 
-def _free_first_reference(pos, lmk, KL, sense, thr, open_=False):
-    """Each agent's listed landmark indices [M, KL] (-1 where none) by brute force in float32 as
-    the kernel computes: the landmarks within sense, those with another agent within thr (held)
-    after the free ones, each kind nearest first, ties by index. ``open_``: held only where that
-    other agent is nearer the landmark than the observer."""
-    M = len(pos)
-    out = np.full((M, KL), -1)
-    d_lm = np.sqrt(((pos[None, :, :] - lmk[:, None, :]) ** 2).sum(-1, dtype=np.float32))  # [L, M]
-    for i in range(M):
-        off = (lmk - pos[i]).astype(np.float32)
-        d2 = off[:, 0] * off[:, 0] + off[:, 1] * off[:, 1]
-        others = np.delete(d_lm, i, axis=1).min(axis=1)
-        occ = np.minimum(others, np.float32(sense))
-        held = (occ < thr) & (occ * occ < d2) if open_ else occ < thr
-        near = np.flatnonzero(d2 <= np.float32(sense) ** 2)
-        order = near[np.lexsort((near, d2[near], held[near]))][:KL]
-        out[i, : len(order)] = order
-    return out
-
-
-@pytest.mark.parametrize("order", ["free", "open", "nearest"])
-def test_free_first_lists_put_the_unheld_landmarks_first(order):
-    """landmark_order='free': every landmark in range that no other agent holds within the success
-    threshold is listed before any held one (checked against a brute force, with half the agents
-    parked on landmarks, two on each of some, so that held ones lie nearest); 'open': held only
-    by an agent nearer it, so of two agents on one landmark the nearer lists it first and the
-    farther does not; 'nearest' is the plain KL nearest."""
-    B, M, KL, sense = 2, 120, 6, 1.2
-    kw = dict(comm="rc", neighbours=6, landmark_neighbours=KL, sense_radius=sense, landmark_occupancy=True)
-    env = taichi_swarm.make("coverage", B, M, scale="density", seed=3, array="numpy", landmark_order=order, **kw)
-    env.reset()
-    s = env.get_state()
-    rng = np.random.default_rng(2)
-    pos = s["pos"].copy()
-    # agents 0..M/4-1 and M/4..M/2-1 on landmarks 0..M/4-1: pairs on one landmark, the first nearer
-    on = np.arange(M // 2) % (M // 4)
-    radius = np.where(np.arange(M // 2) < M // 4, 0.02, 0.04)[None, :, None]
-    angle = rng.uniform(0, 2 * np.pi, size=(B, M // 2, 1))
-    pos[:, : M // 2] = s["landmarks"][:, on] + radius * np.concatenate([np.cos(angle), np.sin(angle)], -1)
-    obs = env.set_state(pos=pos.astype(np.float32), vel=np.zeros((B, M, 2), np.float32))
-    thr = env.params["success_threshold"]
-    differs = 0
-    for b in range(B):
-        lmk = s["landmarks"][b]
-        ref = _free_first_reference(
-            pos[b].astype(np.float32), lmk, KL, sense, -1.0 if order == "nearest" else thr, open_=order == "open"
-        )
-        np.testing.assert_array_equal(obs["entity_mask"][b], ref >= 0)
-        want = np.where((ref >= 0)[..., None], lmk[np.maximum(ref, 0)] - pos[b][:, None, :], 0.0)
-        np.testing.assert_allclose(obs["entities"][b, ..., :2], want, atol=1e-5)
-        nearest = _free_first_reference(pos[b].astype(np.float32), lmk, KL, sense, -1.0)
-        differs += int((nearest != ref).any(axis=1).sum())
-        if order == "open":  # the pair's nearer agent lists their landmark first, the farther one not
-            np.testing.assert_array_equal(ref[: M // 4, 0], np.arange(M // 4))
-            assert not (ref[M // 4 : M // 2, 0] == np.arange(M // 4)).any()
-        if order == "free":  # neither does under "free" (both see the other within the threshold)
-            assert not (ref[: M // 2, 0] == on).any()
-    assert (differs > 0) == (order != "nearest")  # parked agents' held landmarks lie nearest: the orders differ
-
-
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
         (
-            {"landmark_order": "free", "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5},
-            "landmark_order='free' needs landmark_occupancy=True",
-        ),
-        (
-            {"landmark_order": "open", "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5},
-            "landmark_order='open' needs landmark_occupancy=True",
+            {"landmark_order": "claim-zero", "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5},
+            "needs landmark_occupancy=True",
         ),
         ({"landmark_order": "held"}, "landmark_order must be one of"),
         ({"landmark_occupancy": True}, "landmark_occupancy needs neighbours=K and landmark_neighbours"),

@@ -71,25 +71,3 @@ def test_a_run_on_agent_rewards_resumes(tmp_path):
     assert json.load(open(os.path.join(cfg.run_dir, "config.json")))["reward"] == "agent"
     with pytest.raises(ValueError, match="reward"):
         TrainConfig(reward="own").validate()
-
-
-def test_hold_reward_reaches_the_simulator_and_needs_agent_rewards():
-    from trainer.train import build_state
-
-    cfg = TrainConfig(
-        task="formation",
-        agents=3,
-        reward="agent",
-        hold_reward=0.25,
-        model=ModelConfig(hidden=16, rounds=1),
-        ppo=dataclasses.replace(PRESETS["fast"], num_envs=2, num_steps=4),
-        compile=False,
-    )
-    cfg.validate()
-    state = build_state(cfg, None, "cpu")
-    assert state.groups[0].env.params["hold_reward"] == 0.25
-    assert TrainConfig().task_params() == {}  # unset: the simulator's default, the paper's reward
-    with pytest.raises(ValueError, match="set reward='agent' with it"):
-        TrainConfig(hold_reward=0.25).validate()
-    with pytest.raises(ValueError, match="hold_reward must be a finite number >= 0"):
-        TrainConfig(reward="agent", hold_reward=-1.0).validate()

@@ -133,6 +133,11 @@ def digest_of(path: str) -> str:
         ("scaler envs", lambda p: p["reward_scalers"][0].__setitem__("ret", torch.zeros(7).double()), "ret"),
         ("rng", lambda p: p.__setitem__("torch_rng", torch.zeros(4, dtype=torch.uint8)), "torch_rng"),
         ("counters", lambda p: p["counters"].__setitem__("update", -1), "counters.update"),
+        ("counters 10^12", lambda p: p["counters"].update(update=10**12, env_steps=10**12 * 32), "counters.update"),
+        ("env_steps", lambda p: p["counters"].__setitem__("env_steps", p["counters"]["env_steps"] + 1), "env_steps"),
+        ("float update", lambda p: p["counters"].__setitem__("update", 1.0), "counters.update"),
+        ("hidden float", lambda p: p["model_config"].__setitem__("hidden", 16.0), "hidden"),
+        ("int64 weights", lambda p: p.__setitem__("model", {k: v.long() for k, v in p["model"].items()}), "float32"),
     ],
     ids=lambda x: x if isinstance(x, str) else "",
 )
@@ -142,6 +147,23 @@ def test_restored_pieces_are_checked_before_use(run_dir, tmp_path, what, edit, m
     with pytest.raises(checkpoint.CheckpointError, match=message):
         train(resume=copy, updates=3)
     assert {n: digest_of(os.path.join(copy, n)) for n in before} == before  # nothing written
+
+
+def test_a_refused_resume_leaves_no_lock_file_behind(run_dir, tmp_path):
+    from swarm_cli.main import main as swarm
+
+    copy = resigned(run_dir, tmp_path, lambda p: p["counters"].__setitem__("update", 10**12))
+    lock = os.path.join(copy, ".lock")
+    if os.path.exists(lock):
+        os.remove(lock)
+    before = sorted(os.listdir(copy))
+    assert swarm(["train", "--resume", copy, "--updates", "3"]) == 2
+    assert sorted(os.listdir(copy)) == before and not os.path.exists(lock)
+    with open(lock, "w") as f:  # a lock file that was there stays: another process may be about to take it
+        f.write("{}")
+    with pytest.raises(checkpoint.CheckpointError, match="counters.update"):
+        train(resume=copy, updates=3)
+    assert os.path.exists(lock)
 
 
 def test_nan_in_adam_moments_never_reaches_the_written_weights(run_dir, tmp_path):

@@ -39,7 +39,7 @@ def test_polish_trains_each_stage_on_and_the_next_stage_starts_from_it(tmp_path,
     assert [s["polish"]["updates"] for s in stages] == [4, 4]  # the polish has no target: evaluations at 2 and 4
     polish = read_config(os.path.join(run_dir, "stage-m2-polish"))
     assert polish["ppo"]["lr"] == 1e-5 and polish["ppo"]["lr_end"] is None
-    assert polish["init_carry"] == "weights" and polish["target_success"] == 0.0
+    assert polish["target_success"] == 0.0
     assert polish["init_from"] == os.path.join(run_dir, "stage-m2", "checkpoint.pt")
     assert read_config(os.path.join(run_dir, "stage-m3"))["init_from"] == os.path.join(
         run_dir, "stage-m2-polish", "checkpoint.pt"

@@ -55,56 +55,13 @@ def test_the_rollout_stores_the_graph_the_agents_heard():
     assert heard[0.0] == 1.0  # UC: everyone hears everyone
     # rates drawn from [0, 0.8]: on average 40% of the 12 of 16 entries that are messages
     assert 0.45 < heard[0.8] < 0.9
-    buf = Rollout.for_env(8, env)  # in bursts: on average the same share lost
-    collect_rollout(
-        policy, env, obs, buf, RewardScaler(16, p.gamma, p.reward_clip), p, "cpu", message_drop=0.8, message_burst=4
-    )
-    assert 0.45 < buf.adj.float().mean().item() < 0.9
-    assert buf.adj.diagonal(dim1=-2, dim2=-1).all()
+    assert buf.adj.diagonal(dim1=-2, dim2=-1).all()  # an agent always keeps its own state
 
 
 def test_message_drop_is_checked():
     with pytest.raises(ValueError, match="message_drop must be in"):
         TrainConfig(message_drop=1.0).validate()
     TrainConfig(message_drop=0.5).validate()
-    for burst in (0.5, float("nan"), float("inf")):
-        with pytest.raises(ValueError, match="message_burst must be"):
-            TrainConfig(message_drop=0.3, message_burst=burst).validate()
-    with pytest.raises(ValueError, match="with message_drop > 0"):
-        TrainConfig(message_burst=4.0).validate()
-    TrainConfig(message_drop=0.3, message_burst=4.0).validate()
-
-
-def test_bursts_have_the_rate_and_the_length():
-    """The chain's stationary loss is the env's rate and a burst lasts burst_len steps on average."""
-    from trainer.ppo import burst_start, burst_step
-
-    torch.manual_seed(2)
-    rate = torch.full((200,), 0.3)
-    bad = burst_start(rate, 10)
-    steps = [bad]
-    for _ in range(400):
-        bad = burst_step(bad, rate, 4.0)
-        steps.append(bad)
-    run = torch.stack(steps)  # [T, E, M]
-    assert abs(run.float().mean().item() - 0.3) < 0.02
-    ends = (run[:-1] & ~run[1:]).sum().item()  # a burst ends where bad turns good
-    assert abs(run[:-1].sum().item() / ends - 4.0) < 0.2  # bad steps per burst
-
-
-def test_a_sender_in_a_burst_reaches_nobody():
-    from trainer.ppo import drop_senders
-
-    E, M, K = 2, 4, 3
-    bad = torch.tensor([[False, True, False, False], [False, False, False, False]])
-    adj = torch.ones(E, M, M, dtype=torch.bool)
-    drop_senders({"adj": adj}, bad)
-    assert not adj[0, [0, 2, 3], 1].any() and adj[0, 1, 1]  # nobody hears 1; 1 keeps itself
-    assert adj[0][:, [0, 2, 3]].all() and adj[1].all()
-    nbr = torch.tensor([[[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]] * E, dtype=torch.int32)
-    mask = torch.ones(E, M, K, dtype=torch.bool)
-    drop_senders({"nbr": nbr, "nbr_mask": mask}, bad)
-    assert (mask[0] == (nbr[0] != 1)).all() and mask[1].all()
 
 
 def test_drops_per_round_store_a_graph_per_round():
@@ -125,10 +82,8 @@ def test_drops_per_round_store_a_graph_per_round():
     assert buf.adj.diagonal(dim1=-2, dim2=-1).all()
     assert 0.45 < buf.adj.float().mean().item() < 0.9
     assert (buf.adj[:, :, 0] != buf.adj[:, :, 1]).any()  # the rounds lost different messages
-    with pytest.raises(ValueError, match="drop_per_round draws independent losses"):
+    with pytest.raises(ValueError, match="drop_per_round"):
         TrainConfig(drop_per_round=True).validate()
-    with pytest.raises(ValueError, match="drop_per_round draws independent losses"):
-        TrainConfig(drop_per_round=True, message_drop=0.3, message_burst=4.0).validate()
     TrainConfig(drop_per_round=True, message_drop=0.3).validate()
 
 
