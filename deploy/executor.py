@@ -417,7 +417,7 @@ class ExecuteSettings:
     episodes: int = 10
     drop: float = 0.0
     delay: int = 0
-    seed: int = 12345
+    seed: int = 777
     burst_loss: float = 0.0
     """Gilbert-Elliott loss on every link: the mean loss (MessageBus)"""
     burst_len: float = 4.0

@@ -7,9 +7,15 @@ imports torch and ``swarm --help`` is instant.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import sys
 import threading
+
+# Taichi prints a version banner when imported and its arch when initialised; a command's
+# output is the command's own (warnings and errors still show)
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+os.environ.setdefault("TI_LOG_LEVEL", "warn")
 
 # name -> (module:function, one-line help)
 COMMANDS = {

@@ -18,6 +18,7 @@ policies), each addressable by name wherever a checkpoint is taken
 examples:
   swarm models                          every entry: S% on 500 fresh episodes beside the paper's
   swarm models --task line --comm rc    a selection
+  swarm models --task line --agents 50  the entry to use for a team of 50 (the nearest trained size)
   swarm models coverage-rc-m10          one entry's card
   swarm models --check                  re-evaluate every entry at another seed, print the drift
   swarm models --render                 write models/README.md and models/cards/ from the index
@@ -36,7 +37,7 @@ class ModelsOptions:
     comm: Literal["uc", "rc"] | None = None
     """list only this communication mode"""
     agents: int | None = None
-    """list only this team size"""
+    """the entry to use for a team of this size, per task and comm: the one trained at the nearest size"""
     check: bool = False
     """re-evaluate the entries listed (500 greedy episodes at --seed) and print each drift from its card"""
     episodes: int = 500
@@ -91,6 +92,8 @@ def card(e, card_dir: str) -> str:
     net = {"emp": "entity message passing (EMP)", "concat": "landmark offset concatenated (the authors' formation net)"}
     lines = [
         f"# `{e.name}`",
+        "",
+        f"**{e.when()}**",
         "",
         e.summary,
         "",
@@ -154,7 +157,7 @@ def readme(entries) -> str:
             "Generated from `models/index.toml` by `swarm models --render` (the index by",
             "`python tools/make_zoo.py` from the spec results). `swarm models --check` re-evaluates",
             "every entry at another seed and prints its drift from the card: at seed 4242 (500 episodes",
-            "each) 29 of the 31 entries read within 3 points of their cards; `coverage-rc-m7` read 92.4",
+            "each) 29 of the 31 paper-scale entries read within 3 points of their cards; `coverage-rc-m7` read 92.4",
             "(card 89.0, z = 1.9) and `line-uc-m7` 92.6 (card 87.4, z = 2.8), both above.",
             "",
             _linked_table(entries),
@@ -239,7 +242,8 @@ def models_main(argv: list[str]) -> int:
         if opts.check:
             return check(selected, opts.episodes, opts.seed)
         print(list_table(selected))
-        print(f"\n{len(selected)} of {len(entries)} entries; `swarm models NAME` shows one's card")
+        which = f" (the one to use at M = {opts.agents} per task and comm)" if opts.agents else ""
+        print(f"\n{len(selected)} of {len(entries)} entries{which}; `swarm models NAME` shows one's card")
     except (zoo.ZooError, CheckpointError, ValueError) as exc:
         return fail("swarm models", exc)
     return 0

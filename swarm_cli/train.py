@@ -224,7 +224,7 @@ def eval_main(argv: list[str]) -> int:
         try:
             result = evaluate(
                 policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
-                recorder=recorder, actions=opts.actions, swarm=swarm_setting(opts, payload),
+                recorder=recorder, actions=opts.actions, swarm=swarm_setting(opts, payload), progress=True,
             )  # fmt: skip
         except BaseException:  # (Ctrl-C too): no recording or video written, none replaced
             if recorder is not None:
@@ -260,7 +260,8 @@ def zero_shot_main(argv: list[str]) -> int:
         rows = []
         for M in sizes:
             rows.append(evaluate(policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed,
-                                 arch=opts.arch, actions=opts.actions, swarm=swarm_setting(opts, payload)))  # fmt: skip
+                                 arch=opts.arch, actions=opts.actions, swarm=swarm_setting(opts, payload),
+                                 progress=True))  # fmt: skip
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return fail("swarm zero-shot", exc)

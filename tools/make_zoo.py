@@ -43,6 +43,12 @@ SINGLES = (
 )  # fmt: skip
 
 
+USES = {
+    "coverage-rc-m5-robust": "Use it for coverage RC at M = 5 where messages are lost: trained on through independent "
+    "losses of up to 30% per round.",
+}
+
+
 def _rel(path: str) -> str:
     return os.path.relpath(path, ROOT)
 
@@ -147,6 +153,7 @@ def build() -> list[dict]:
         cell, seed, cell.run.agents, row, policy_path(BEYOND_ROOT, cell, seed), zero_shot, cell.run.config.team_sizes
     )
     entry["summary"] = "coverage UC, trained on M = 3 and 4 together: the M = 3 policy that carries furthest to M = 5"
+    entry["use"] = "Use it to run one small coverage UC policy at M = 3 to 5 with no fine-tuning (zero-shot)."
     entries.append({"name": "coverage-uc-m3-transfer", **entry})
     for name, spec_name, root, cell_id, stage, summary in SINGLES:
         cell = load_spec(spec_name).cell(cell_id)
@@ -158,7 +165,7 @@ def build() -> list[dict]:
         trained_on = [m for m in cell.run.sizes if m <= agents] if stage else [agents]
         weights = _rel(os.path.join(ROOT, policy_path(root, cell, 0, stage)))
         entry = _entry(cell, 0, agents, rows[agents], weights, {}, trained_on)
-        entries.append({"name": name, **entry, "summary": summary})
+        entries.append({"name": name, **entry, "summary": summary, "use": USES[name]})
     with open(LARGE_TEAMS, "rb") as f:  # as they are: their spec and its options left main
         entries += tomllib.load(f)["model"]
     return entries

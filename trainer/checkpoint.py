@@ -369,12 +369,15 @@ def load_policy(
     path: str, device="cpu", *, trust_unsigned: bool = False, expected_sha256: str | None = None
 ) -> tuple[SwarmPolicy, dict]:
     """(policy in eval mode, payload) from a checkpoint file, run directory or zoo name
-    (``load``'s checks); ``device`` one this machine has."""
+    (``load``'s checks); ``device`` one this machine has. The policy carries the simulator
+    setting it was trained on (``policy.trained_swarm``, the payload's "swarm"), which
+    ``evaluate`` uses unless told otherwise."""
     _check_arguments(path, trust_unsigned, expected_sha256)
     check_device(device)  # before the file is read: a wrong device is no reason to read 100 MB
     payload = load(path, trust_unsigned=trust_unsigned, expected_sha256=expected_sha256)
     policy = policy_from_payload(payload, device)
     policy.eval()
+    policy.trained_swarm = dict(payload.get("swarm") or {})
     return policy, payload
 
 

@@ -87,12 +87,13 @@ def evaluate(
     comm: str = "uc",
     comm_radius: float = 1.0,
     episodes: int = 100,
-    seed: int = 12345,
+    seed: int = 777,
     arch: str = "cpu",
     device="cpu",
     recorder=None,
     actions: str = "greedy",
     swarm: dict | None = None,
+    progress: bool = False,
 ) -> dict:
     """Run ``episodes`` episodes in parallel, one per environment, with argmax actions
     (``actions="sampled"``: drawn from the policy's distribution instead, from a generator
@@ -105,23 +106,33 @@ def evaluate(
     simulator reports it) and per-episode arrays.
 
     ``swarm``: ``swarm_options(...)``, the simulator's neighbour lists and density
-    scaling (unset: the dense layout); the policy then runs on the lists.
+    scaling; None: the setting the policy was trained on (``load_policy`` records it), else
+    the dense layout; {}: the dense layout. ``progress``: a progress bar of the steps on stderr
+    (the first use of a setting also compiles the simulator's kernels, which can take minutes).
     """
     if actions not in ACTION_MODES:
         raise ValueError(f"actions must be one of {ACTION_MODES}, got {actions!r}")
+    if swarm is None:
+        swarm = getattr(policy, "trained_swarm", None)
     swarm = swarm_options(**(swarm or {}))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small batched forwards: more threads stall on a busy 2-core machine
     try:
         return _evaluate(
-            policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm
+            policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm, progress
         )
     finally:
         torch.set_num_threads(threads)
 
 
-def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm) -> dict:
+def _evaluate(
+    policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm, progress
+) -> dict:
+    from tqdm import tqdm
+
     env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed, **swarm)
+    desc = f"{task} M={agents} {comm}, {episodes} episodes (compiling on first use)"
+    bar = tqdm(total=env.params["max_steps"], desc=desc, unit="step", leave=False, disable=not progress)
     fused = policy.fused_weights()  # computed once: the weights do not change here
     generator = torch.Generator(device).manual_seed(seed) if actions == "sampled" else None
 
@@ -143,9 +154,13 @@ def _evaluate(policy, task, agents, comm, comm_radius, episodes, seed, arch, dev
                 D = getattr(recorder, "drawn", attention.shape[0])
                 slots, mask = neighbour_slots(inputs["nbr"][:D], inputs["nbr_mask"][:D])
                 attention = lists_to_dense(attention[:D], slots, mask)
+        bar.update(1)
         return act(logits).to(env.device), attention
 
-    tally = run_first_episodes(env, decide, recorder)
+    try:
+        tally = run_first_episodes(env, decide, recorder)
+    finally:
+        bar.close()
     header = result_header(task, agents, comm, comm_radius, episodes, seed)
     return {**header, **swarm, "actions": actions, **tally.summary(task)}
 

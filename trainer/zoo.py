@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import hashlib
+import math
 import os
 from dataclasses import dataclass, field
 
@@ -73,10 +74,19 @@ class ZooEntry:
     """Path of its learning curves (curves.png), relative to the repository root."""
     summary: str = ""
     """One line on what it is."""
+    use: str = ""
+    """One line on when to pick it (the card's first line; unset: the paper's table cell)."""
 
     @property
     def path(self) -> str:
         return os.path.join(ROOT, self.weights)
+
+    def when(self) -> str:
+        """When to pick it: ``use``, else the paper's table cell it reproduces."""
+        if self.use:
+            return self.use
+        paper = "" if self.paper_success is None else f" (the paper: {100 * self.paper_success:.0f})"
+        return f"Use it for {self.task} {self.comm.upper()} at M = {self.agents}: S% {100 * self.success:.1f}{paper}."
 
     def command(self) -> str:
         seed = f" --first-seed {self.seed}" if self.seed else ""
@@ -152,7 +162,16 @@ def verify(entry: ZooEntry) -> None:
 
 
 def select(entries: list[ZooEntry], task: str | None = None, comm: str | None = None, agents: int | None = None):
-    def keep(e: ZooEntry) -> bool:
-        return (task in (None, e.task)) and (comm in (None, e.comm)) and (agents in (None, e.agents))
-
-    return [e for e in entries if keep(e)]
+    """The entries of ``task`` and ``comm`` (None: any); with ``agents``, the one to use for a team
+    of that size per (task, comm): the entry trained at the nearest team size (by ratio, since a
+    policy's reach grows with its size), the higher S% on a tie."""
+    chosen = [e for e in entries if task in (None, e.task) and comm in (None, e.comm)]
+    if agents is None:
+        return chosen
+    best: dict[tuple[str, str], ZooEntry] = {}
+    for e in chosen:
+        key = (e.task, e.comm)
+        gap = abs(math.log(e.agents / agents))
+        if key not in best or (gap, -e.success) < (abs(math.log(best[key].agents / agents)), -best[key].success):
+            best[key] = e
+    return [e for e in chosen if best.get((e.task, e.comm)) is e]

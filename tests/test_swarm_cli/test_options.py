@@ -48,7 +48,7 @@ def test_values_parse_into_typed_fields():
     assert opts.drop == (0.0, 0.25) and opts.comm == "rc" and opts.comm_radius == 0.0  # radius 0: nobody heard
     assert opts.directory == "d" and opts.agents is None and opts.record_envs == 4
     opts = options.parse(options.EvalOptions, ["c.pt", "--gif", "a.gif"], "x")
-    assert opts.video == "a.gif" and opts.checkpoint == "c.pt" and opts.seed == 12345
+    assert opts.video == "a.gif" and opts.checkpoint == "c.pt" and opts.seed == 777
     assert options.parse(options.ReproduceOptions, ["--tables", "2", "3"], "x").tables == (2, 3)
 
 

@@ -66,3 +66,34 @@ def test_a_malformed_index_is_refused(tmp_path):
     bad.write_text("[[model]\n")
     with pytest.raises(zoo.ZooError, match="not valid TOML"):
         zoo.load_index(str(bad))
+
+
+def test_models_names_the_entry_to_use_for_a_team_size(capsys):
+    """`swarm models --task line --agents 50`: one entry per comm, the one trained nearest 50; every
+    card opens with when to use it."""
+    from swarm_cli.models import models_main
+
+    entries = zoo.load_index()
+    picked = {(e.task, e.comm): e.name for e in zoo.select(entries, "line", None, 50)}
+    assert picked == {("line", "uc"): "line-uc-m10", ("line", "rc"): "line-rc-m100-auction"}
+    assert [e.name for e in zoo.select(entries, "coverage", "uc", 4)] == ["coverage-uc-m5"]  # 5/4 is nearer than 4/3
+    assert models_main(["--task", "line", "--agents", "50"]) == 0
+    out = capsys.readouterr().out
+    assert "line-rc-m100-auction" in out and "line-rc-m10`" not in out
+    for e in entries:
+        assert e.when().startswith("Use it")
+        if e.spec == zoo.FROZEN_SPEC:  # the large-team cards say how each agent's landmark is chosen
+            assert "senses" in e.when() or "rounds a step" in e.when()
+
+
+def test_a_large_team_policy_evaluates_in_its_own_setting_as_loaded():
+    """README's Python use: load_policy(NAME) then evaluate(...) runs a large-team policy on the
+    lists it was trained on, with no setting passed; {} asks for the dense layout it cannot take."""
+    from trainer.evaluate import evaluate
+
+    policy, payload = load_policy("coverage-rc-m100-auction-r4")
+    assert policy.trained_swarm == payload["swarm"] and payload["swarm"]["auction_rounds"] == 4
+    out = evaluate(policy, "coverage", 12, "rc", 1.0, episodes=2, seed=777)
+    assert 0 <= out["success_rate"] <= 1
+    with pytest.raises(ValueError, match="entities"):
+        evaluate(policy, "coverage", 12, "rc", 1.0, episodes=2, seed=777, swarm={})
