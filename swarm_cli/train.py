@@ -77,9 +77,14 @@ def _options(cls, values) -> dict:
     return out
 
 
-def _schema(config_type):
+# groups `--help` leaves to `--help-all`: what a first run never changes (the network, PPO, compute)
+ADVANCED = ("compute", "model", "ppo")
+
+
+def _schema(config_type, brief: bool = False):
     """What tyro parses ``swarm train`` / ``swarm curriculum`` into: a dict of the options given,
-    the groups of GROUPS nested in it (and model, ppo)."""
+    the groups of GROUPS nested in it (and model, ppo). ``brief``: without ADVANCED, for
+    ``--help`` (those options are then neither listed nor parsed)."""
     from trainer.config import PRESETS, PPOConfig
     from trainer.model import ModelConfig
 
@@ -92,11 +97,13 @@ def _schema(config_type):
         group = {name: fields.pop(name) for name in names.split() if name in fields and name not in ("model", "ppo")}
         if not title:
             top = group
-        elif group:
+        elif group and not (brief and title in ADVANCED):
             top[title] = Annotated[
                 TypedDict(title, group, total=False), tyro.conf.OmitArgPrefixes, tyro.conf.arg(help=about)
             ]
     for name, cls in (("model", ModelConfig), ("ppo", PPOConfig)):
+        if brief:
+            continue
         nested = _options(cls, lambda n, name=name: {p: getattr(getattr(c, name), n) for p, c in configs.items()})
         help_ = fields.pop(name).__metadata__[0].help
         top[name] = Annotated[TypedDict(name, nested, total=False), tyro.conf.arg(help=help_)]
@@ -113,8 +120,13 @@ def given_options(argv: list[str], prog: str, config_type) -> dict:
         f"{prog}: --updates and the --ppo options not given take the preset's values (shown: --preset "
         f"{DEFAULT_PRESET}'s, then {others} where they differ); an option given wins over the preset."
     )
+    # --help shows the options a run is changed by first; --help-all every one (network, PPO, compute)
+    brief = any(a in ("-h", "--help") for a in argv) and "--help-all" not in argv
+    if brief:
+        description += " --help-all lists the network (--model.*), PPO (--ppo.*) and compute options too."
+    argv = ["--help" if a == "--help-all" else a for a in argv]
     given = {}
-    for key, value in cli(_schema(config_type), argv, prog, description=description).items():
+    for key, value in cli(_schema(config_type, brief), argv, prog, description=description).items():
         if key in GROUPS or key == "other":
             given.update(value)
         else:

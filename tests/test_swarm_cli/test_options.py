@@ -1,5 +1,7 @@
 """The typed options of the commands (swarm_cli/options.py), at parse time only."""
 
+import re
+
 import pytest
 
 from swarm_cli import options
@@ -95,7 +97,13 @@ def test_train_help_groups_every_option(capsys):
     for flag in ("--task", "--agents", "--comm", "--preset", "--updates", "--seed", "--run-dir", "--device"):
         assert f"{flag} " in top, flag
     assert "other options" not in text
-    for flag in ("--neighbours", "--scale", "--message-drop", "--model.self-position", "--ppo.lr", "--resume"):
+    for flag in ("--neighbours", "--scale", "--message-drop", "--resume"):
+        assert f"{flag} " in text, flag
+    flags = set(re.findall(r"^\W*(--[a-z][\w.-]*)", text, flags=re.M))  # each option's line
+    assert "--ppo.lr" not in flags and "--help-all" in text and len(flags) <= 35, sorted(flags)  # a first screen
+    assert swarm(["train", "--help-all"]) == 0  # every option: the network's, PPO's and the compute ones too
+    text = capsys.readouterr().out
+    for flag in ("--model.self-position", "--ppo.lr", "--torch-threads"):
         assert f"{flag} " in text, flag
     assert "(default: 0.0007; --preset paper: 0.0001)" in " ".join(text.split())
     assert swarm(["curriculum", "--help"]) == 0
