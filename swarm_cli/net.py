@@ -8,6 +8,8 @@ Neither imports torch.
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 from dataclasses import dataclass
 from typing import Annotated
@@ -15,6 +17,7 @@ from typing import Annotated
 import tyro
 
 from deploy.net.faults import FaultSpec
+from deploy.net.limits import check_agent_id, check_seconds, check_team
 from swarm_cli.options import (
     Default,
     OptionError,
@@ -64,11 +67,14 @@ class AgentOptions(FaultOptions):
     """no line on stderr for dropped packets (they are still counted)"""
 
     def __post_init__(self):
-        at_least(self.id, 0, "id")
+        check_agent_id(self.id)
         at_least(self.threads, 1, "threads")
+        cores = os.cpu_count() or 1
+        if self.threads > cores:  # (before onnxruntime allocates them; more than the cores only wait on each other)
+            raise OptionError(f"--threads must be <= {cores}, this machine's cores, got {self.threads}")
         at_least(self.hold, 0, "hold")
-        if not self.round_deadline > 0:
-            raise OptionError(f"--round-deadline must be > 0 seconds, got {self.round_deadline}")
+        check_seconds(self.round_deadline, "--round-deadline")
+        check_seconds(self.slow_ms, "--slow-ms", zero_ok=True, scale=1e3, unit="ms")
         if self.idle_timeout is not None and not self.idle_timeout > 0:
             raise OptionError(f"--idle-timeout must be > 0 seconds, got {self.idle_timeout}")
 
@@ -117,8 +123,16 @@ class WorldOptions(SettingOptions, OutputOptions, FaultOptions):
     def __post_init__(self):
         SettingOptions.__post_init__(self)
         OutputOptions.__post_init__(self)
-        at_least(self.episodes, 1, "episodes")
+        check_team(self.agents, self.episodes)  # (again once the manifest gives an unset --agents)
+        at_least(self.seed, 0, "seed")
         at_least(self.hold, 0, "hold")
+        check_seconds(self.period, "--period", zero_ok=True)
+        check_seconds(self.round_deadline, "--round-deadline")
+        if self.action_deadline is not None:
+            check_seconds(self.action_deadline, "--action-deadline")
+        check_seconds(self.start_timeout, "--start-timeout")
+        for i in self.absent or ():
+            check_agent_id(i, "--absent")
         if not self.spawn_agents and (self.absent or self.kill or self.slow or self.agent_logs or self.hold):
             raise OptionError("--absent, --kill, --slow, --agent-logs and --hold need --spawn-agents")
         self.kill_plan = [_kill(k) for k in self.kill or ()]
@@ -134,6 +148,9 @@ def _kill(text: str) -> tuple[int, int, float | None]:
         raise OptionError(f"--kill {text!r}: expected I@STEP or I@STEP+SECONDS (e.g. 2@10+1.5)") from None
     if out[0] < 0 or out[1] < 0 or (out[2] is not None and not out[2] >= 0):
         raise OptionError(f"--kill {text!r}: agent, step and seconds must be >= 0")
+    check_agent_id(out[0], f"--kill {text!r}: the agent")
+    if out[2] is not None:
+        check_seconds(out[2], f"--kill {text!r}: the restart delay", zero_ok=True)
     return out
 
 
@@ -145,6 +162,8 @@ def _slow(text: str) -> tuple[int, float]:
         raise OptionError(f"--slow {text!r}: expected I:MS (e.g. 3:50)") from None
     if out[0] < 0 or not out[1] >= 0:
         raise OptionError(f"--slow {text!r}: agent and milliseconds must be >= 0")
+    check_agent_id(out[0], f"--slow {text!r}: the agent")
+    check_seconds(out[1], f"--slow {text!r}: the delay", zero_ok=True, scale=1e3, unit="ms")
     return out
 
 
@@ -152,13 +171,14 @@ def _slow(text: str) -> tuple[int, float]:
 def agent_main(argv: list[str]) -> int:
     args = parse(AgentOptions, argv, "swarm agent")
     from deploy.executor import DeployError, ExportedModel
-    from deploy.net.agent import NetAgent, check_wire
+    from deploy.net.agent import NetAgent, check_faults, check_wire
     from deploy.net.transport import Endpoint, TransportError, open_session
 
     try:
         spec = args.faults
         model = ExportedModel(args.directory)
         check_wire(model)
+        check_faults(spec, model)
         session = open_session("peer", [args.listen], [args.connect])
         endpoint = Endpoint(session, args.ns)
     except (DeployError, TransportError, ValueError) as exc:
@@ -172,11 +192,14 @@ def agent_main(argv: list[str]) -> int:
         return fail("swarm agent", exc)
     finally:
         endpoint.close()
+    if agent.refused is not None:  # (the world takes another instance as this id, or runs another export)
+        return fail("swarm agent", agent.refused)
     if not args.quiet:
-        s = agent.stats
+        s = agent.counters()
         print(
             f"swarm agent {args.id}: {how} after {agent.steps} steps; dropped late {int(s['late'])}, "
-            f"malformed {int(s['malformed'])}, foreign {int(s['foreign'])}, version {int(s['version'])}; "
+            f"malformed {int(s['malformed'])}, foreign {int(s['foreign'])}, version {int(s['version'])}, "
+            f"overflow {int(s['overflow'])}; "
             f"missed {int(s['missed'])} neighbour messages"
         )
     return 0
@@ -188,9 +211,10 @@ def world_main(argv: list[str]) -> int:
 
     args = parse(WorldOptions, argv, "swarm world")
     from deploy.executor import DeployError, ExportedModel, resolve_settings
-    from deploy.net.agent import check_wire
+    from deploy.net.agent import check_faults, check_wire
     from deploy.net.transport import Endpoint, TransportError, check_endpoint, check_namespace, open_session
-    from deploy.net.world import AgentProcesses, NetSettings, World, format_net
+    from deploy.net.world import AgentProcesses, NetSettings, SpawnError, World, format_net, make_env
+    from taichi_swarm.tasks.base import COMMON_PARAMS
 
     try:
         args.check_outputs()
@@ -202,12 +226,22 @@ def world_main(argv: list[str]) -> int:
         s = resolve_settings(
             model, args.task, args.agents, args.comm, args.comm_radius, episodes=args.episodes, seed=args.seed
         )
+        check_team(s.agents, s.episodes)  # (--agents unset: the manifest's)
         net = NetSettings(args.period, args.round_deadline, args.action_deadline, args.start_timeout)
         for i in [*(args.absent or ()), *(k[0] for k in args.kill_plan), *args.slow_plan]:
             if i >= s.agents:
                 raise OptionError(f"agent {i} named by --absent/--kill/--slow is not in a team of {s.agents}")
+        steps = COMMON_PARAMS["max_steps"]  # (the world runs the tasks' own episode length)
+        for who, at, _ in args.kill_plan:
+            if at >= steps:
+                raise OptionError(
+                    f"--kill {who}@{at}: the episodes end at step {steps - 1}, the kill would never happen"
+                )
         if spec.any and not args.spawn_agents:
             raise OptionError("fault options go to the agents: give them to each `swarm agent`, or use --spawn-agents")
+        if args.spawn_agents:
+            check_faults(spec, model)  # (each agent would refuse it at start)
+        env = make_env(model, s)  # (what the simulator refuses, before any agent starts)
         recorder = open_recorders(args, s.task, s.episodes, s.agents, s.comm, s.comm_radius)
         session = open_session("router", [args.listen], [])
     except (DeployError, TransportError, ValueError, OSError) as exc:
@@ -215,6 +249,7 @@ def world_main(argv: list[str]) -> int:
     endpoint = Endpoint(session, args.ns)
     world = World(model, s, net, endpoint)
     procs = None
+    failed = None
     try:
         present = set(range(s.agents)) - set(args.absent or ())
         if args.spawn_agents:
@@ -228,12 +263,19 @@ def world_main(argv: list[str]) -> int:
                 args.slow_plan,
                 args.agent_logs,
                 hold=args.hold,
+                # no observation before the start barrier, the first step's kernels and a period: not idle yet
+                idle_timeout=60 + net.start_timeout + 2 * (net.period + net.deadline(model.rounds)),
             )
             for i in sorted(present):
                 procs.start(i)
-            world.step_hook = _kill_hook(procs, args.kill_plan)
+            world.step_hook = _kill_hook(procs, args.kill_plan, world)
+            world.watch = procs.check  # an agent that leaves by itself ends the run, naming why
         world.wait_for_agents(present)
-        row = world.run_episodes(recorder)
+        row = world.run_episodes(recorder, env)
+    except SpawnError as exc:
+        failed = exc
+        if recorder is not None:
+            recorder.close(ok=False)
     except BaseException:
         if recorder is not None:
             recorder.close(ok=False)
@@ -243,6 +285,9 @@ def world_main(argv: list[str]) -> int:
         if procs is not None:
             procs.stop()
         endpoint.close()
+    if failed is not None:
+        print(f"swarm world: error: {failed}", file=sys.stderr)
+        return 1  # (the command line was sound: the run failed)
     if recorder is not None:
         recorder.close()
         recorder.report()
@@ -254,7 +299,7 @@ def world_main(argv: list[str]) -> int:
     return 0
 
 
-def _kill_hook(procs, plan):
+def _kill_hook(procs, plan, world):
     """The step hook that kills (and restarts) agents as ``--kill`` says."""
     restarts: list[tuple[float, int]] = []
 
@@ -262,6 +307,7 @@ def _kill_hook(procs, plan):
         for who, at, restart in plan:
             if step == at:
                 procs.kill(who)
+                world.release(who)  # (its restart is another instance, to be bound at its hello)
                 if restart is not None:
                     restarts.append((time.monotonic() + restart, who))
         for due in [r for r in restarts if r[0] <= time.monotonic()]:

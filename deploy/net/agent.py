@@ -21,12 +21,24 @@ counted (late, foreign); a packet that does not decode is dropped and counted (m
 version), with one line on stderr the first time, and never stops the agent. A newer OBS
 that arrives mid-step (this agent fell behind) abandons the step: the world has moved on.
 The heard messages are stacked in sender order, as the in-process executor does, so at zero
-faults the actions are the executor's bit for bit.
+faults the actions are the executor's bit for bit. What is kept for later is bounded, the rest
+dropped and counted (overflow): messages of at most STEPS_AHEAD steps ahead, EARLY_KEPT
+messages (EARLY_BYTES) before the run's observation, PENDING_KEPT delayed by injected faults.
+
+Identity: the process draws a random nonce at start and sends it in every packet; the world
+binds this id to it at the first hello of the right export and addresses its observations to
+it. An observation for another instance of this id is not acted on; the world's REFUSE for
+this instance (another holds the id, or the world runs another export) ends the agent with
+one line. The hello repeats every HELLO_EVERY_S until the first observation and every
+ALIVE_EVERY_S after it, so a world started again after a crash hears the team at once.
 """
 
 from __future__ import annotations
 
 import heapq
+import math
+import os
+import secrets
 import sys
 import time
 from collections import deque
@@ -36,10 +48,36 @@ import numpy as np
 from deploy.executor import DeployError, ExportedModel, Pieces
 from deploy.net import protocol as P
 from deploy.net.faults import FaultSpec, LinkFaults
+from deploy.net.limits import check_agent_id, check_seconds
 from deploy.net.transport import Endpoint
 
 HELLO_EVERY_S = 0.25
+ALIVE_EVERY_S = 1.0  # the hello's period once the agent is in a run (the world's liveness of a binding)
 EARLY_KEPT = 4096  # messages of a run not yet observed, kept at most (the oldest go first)
+EARLY_BYTES = 64 << 20  # and their bytes at most
+STEPS_AHEAD = 2  # a teammate that got its observation first is one step ahead: more is not the team's
+PENDING_KEPT = 65536  # messages held back by injected latency or reordering, at most
+
+
+def check_faults(spec: FaultSpec, model: ExportedModel) -> None:
+    """What a fault spec can only be checked against: the policy's K rounds."""
+    if spec.late_round is not None and spec.late_round >= max(model.rounds, 1):
+        raise DeployError(
+            f"--late-round {spec.late_round} is not a round of this policy (K = {model.rounds}: rounds 0.."
+            f"{max(model.rounds - 1, 0)})"
+        )
+
+
+def check_agent(agent_id: int, round_deadline: float, slow_ms: float, hold: int, threads: int) -> None:
+    """The agent's own options, each naming itself (``swarm agent`` checks them at parse too)."""
+    check_agent_id(agent_id)
+    if hold < 0:
+        raise DeployError(f"--hold must be >= 0 steps, got {hold}")
+    check_seconds(round_deadline, "--round-deadline")
+    check_seconds(slow_ms, "--slow-ms", zero_ok=True, scale=1e3, unit="ms")
+    cores = os.cpu_count() or 1
+    if not 1 <= threads <= cores:  # (more onnxruntime threads than cores only wait on each other)
+        raise DeployError(f"--threads must be in 1..{cores}, this machine's cores, got {threads}")
 
 
 def check_wire(model: ExportedModel) -> None:
@@ -64,16 +102,12 @@ class NetAgent:
         quiet: bool = False,
         hold: int = 0,
     ):
-        if agent_id < 0:
-            raise DeployError(f"--id must be >= 0, got {agent_id}")
-        if hold < 0:
-            raise DeployError(f"--hold must be >= 0 steps, got {hold}")
-        if not round_deadline > 0:
-            raise DeployError(f"--round-deadline must be > 0 seconds, got {round_deadline}")
-        if slow_ms < 0:
-            raise DeployError(f"--slow-ms must be >= 0, got {slow_ms}")
+        check_agent(agent_id, round_deadline, slow_ms, hold, threads)
         check_wire(model)
+        check_faults(faults or FaultSpec(), model)
         self.id = agent_id
+        self.nonce = secrets.randbits(64) or 1  # this instance (0 is the world's "none bound")
+        self.refused: str | None = None  # why the world does not take this instance
         self.model = model
         self.pieces = Pieces(model, threads)
         self.H, self.K = model.hidden, model.rounds
@@ -88,7 +122,8 @@ class NetAgent:
         self.run: int | None = None
         # messages of a run this agent has no observation of yet: a teammate that got its OBS
         # first already sent round 0 (the world's OBS packets leave together, arrive apart)
-        self._early: deque = deque(maxlen=EARLY_KEPT)
+        self._early: deque = deque()
+        self._early_bytes = 0
         self.step = -1
         self.round = 0  # the round being collected; messages of earlier rounds of this step are late
         self.B = self.M = None
@@ -109,6 +144,7 @@ class NetAgent:
         # (the world starts once every agent has heard every other, protocol.py HELLO)
         endpoint.subscribe("hello", "*")
         endpoint.subscribe("stop")
+        endpoint.subscribe("refuse", agent_id)
         self.peers: set[int] = set()  # the agents whose hellos this one has heard
 
     # ------------------------------------------------------------------ receiving
@@ -133,6 +169,14 @@ class NetAgent:
                 h = P.decode_hello(data)[0]
                 if h.sender != self.id:
                     self.peers.add(h.sender)
+            elif topic == "refuse":
+                h, reason, sha = P.decode_refuse(data)
+                if h.sender == self.id and h.nonce == self.nonce:
+                    self.refused = (
+                        f"--id {self.id} is taken: the world has another agent {self.id} (two agents with one --id?)"
+                        if reason == P.REFUSED_ID
+                        else f"the world runs another export (manifest {sha[:12]}, this agent's is {self.sha[:12]})"
+                    )
         except P.VersionError as exc:
             self._drop("version", str(exc))
         except P.PacketError as exc:
@@ -142,6 +186,11 @@ class NetAgent:
         h = obs[0]
         if h.sender != self.id:
             return self._drop("foreign", f"an observation addressed to agent {h.sender}")
+        if h.nonce == 0:
+            return None  # the world has not bound this id yet: it will at this agent's next hello
+        if h.nonce != self.nonce:  # another process holds this id: counted, no line (the world's REFUSE says why)
+            self.stats["foreign"] += 1
+            return None
         if h.run == self.run and h.step <= self.step:
             return self._drop("late", f"observation of step {h.step}, this agent is at step {self.step}")
         if self.next_obs is not None:
@@ -155,9 +204,11 @@ class NetAgent:
         if h.sender == self.id:
             return  # our own publication, delivered back by the session
         if h.run != self.run:
-            return self._early.append((h, message, t))  # used, or dropped as foreign, at the next OBS
+            return self._keep_early(h, message, t)  # used, or dropped as foreign, at the next OBS
         if (self.M is not None and h.sender >= self.M) or (self.B is not None and h.envs != self.B):
             return self._drop("foreign", f"a message from agent {h.sender} for {h.envs} worlds")
+        if h.step > self.step + STEPS_AHEAD:
+            return self._drop("overflow", f"a message of step {h.step}, this agent is at step {self.step}")
         if h.round >= max(self.K, 1):
             return self._drop("malformed", f"a message of round {h.round}; the policy has {self.K} rounds")
         if self._late(h.step, h.round):
@@ -172,6 +223,9 @@ class NetAgent:
             delay, held = fate
             self._seq += 1
             item = (self._seq, h.run, h.step, h.round, b, h.sender, message[b])
+            if (held or delay > 0) and len(self._pending) >= PENDING_KEPT:
+                self._drop("overflow", f"more than {PENDING_KEPT} messages held back by the injected faults")
+                continue
             if held:  # delivered behind the next message on its link, or when its hold time is up
                 self._held.setdefault((b, h.sender), []).append(item)
                 heapq.heappush(self._pending, (t + max(delay, self.faults.spec.reorder_hold_ms / 1e3), item))
@@ -179,6 +233,14 @@ class NetAgent:
                 heapq.heappush(self._pending, (t + delay, item))
             else:
                 self._deliver(item)
+
+    def _keep_early(self, h: P.Header, message: np.ndarray, t: float) -> None:
+        """Keep a message of a run not yet observed, the oldest going first past the bounds."""
+        self._early.append((h, message, t))
+        self._early_bytes += message.nbytes
+        while len(self._early) > EARLY_KEPT or self._early_bytes > EARLY_BYTES:
+            self._early_bytes -= self._early.popleft()[1].nbytes
+            self._drop("overflow", f"more than {EARLY_KEPT} messages ({EARLY_BYTES >> 20} MiB) before an observation")
 
     def _deliver(self, item) -> None:
         seq, run, step, round_, b, sender, vec = item
@@ -203,12 +265,12 @@ class NetAgent:
         now = time.perf_counter()
         while self._pending and self._pending[0][0] <= now:
             self._deliver(heapq.heappop(self._pending)[1])
-        if not self._pending and len(self._delivered) > 100_000:
-            self._delivered.clear()
+        if len(self._delivered) > 100_000:  # only what is still queued can come again
+            self._delivered &= {item[0] for _, item in self._pending}
 
     def pump(self, until: float, done) -> bool:
         """Handle packets and due messages until ``done()`` or the time ``until``; True if done."""
-        while not self.stopped:
+        while not self.stopped and self.refused is None:
             self._release_due()
             if done():
                 return True
@@ -234,6 +296,7 @@ class NetAgent:
         self.B, self.M = B, M
         while self._early:
             eh, message, t = self._early.popleft()
+            self._early_bytes -= message.nbytes
             if eh.run != h.run:
                 self._drop("foreign", f"a message of run {eh.run:08x}, this agent is in run {h.run:08x}")
             elif eh.step >= h.step:  # (a restarted agent's messages of earlier steps are no loss)
@@ -263,14 +326,14 @@ class NetAgent:
                 attention[b, self.id] = 1.0
         for r in range(self.K):
             self.round = r
-            self.ep.publish(P.msg_packet(h.run, h.step, r, self.id, messages), "msg", self.id)
+            self.ep.publish(P.msg_packet(h.run, h.step, r, self.id, messages, self.nonce), "msg", self.id)
             box = self.box.setdefault((h.step, r), {})
 
             def complete(box=box):
                 return all(need[b] <= box.get(b, {}).keys() for b in range(B))
 
             self.pump(time.perf_counter() + self.round_deadline, lambda c=complete: c() or self.next_obs is not None)
-            if self.stopped or self.next_obs is not None:
+            if self.stopped or self.refused is not None or self.next_obs is not None:
                 self.stats["late"] += 1  # the world moved on: this step's action would be late
                 return
             self.round = r + 1  # round r is closed
@@ -299,8 +362,8 @@ class NetAgent:
         self.stats["cpu_s"] = time.process_time()
         self.stats["msgs_sent"] = self.ep.sent + 1
         self.stats["bytes_sent"] = self.ep.sent_bytes
-        stats = [self.stats[k] for k in P.STATS]
-        self.ep.publish(P.act_packet(h.run, h.step, self.id, actions, attention, stats), "act", self.id)
+        stats = [self.counters()[k] for k in P.STATS]
+        self.ep.publish(P.act_packet(h.run, h.step, self.id, actions, attention, stats, self.nonce), "act", self.id)
         self.steps += 1
 
     def _hold(self, b: int, r: int, step: int, need: set[int], fresh: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -315,23 +378,31 @@ class NetAgent:
                 out[j] = kept[1]
         return out
 
+    def counters(self) -> dict:
+        """``stats`` with the packets the inbox had no room for (transport.py) in overflow."""
+        return {**self.stats, "overflow": self.stats["overflow"] + getattr(self.ep, "overflow", 0)}
+
+    def hello(self) -> None:
+        self.ep.publish(P.hello_packet(self.run or 0, self.id, self.sha, self.peers, self.nonce), "hello", self.id)
+
     def serve(self, idle_timeout: float | None = None) -> str:
-        """Run until the world says stop (-> "stopped") or nothing arrives for ``idle_timeout`` s (-> "idle")."""
+        """Run until the world says stop (-> "stopped"), refuses this instance (-> "refused", the
+        reason in ``refused``) or sends no observation for ``idle_timeout`` s (-> "idle")."""
         last_seen = time.perf_counter()
-        last_hello = 0.0
-        while not self.stopped:
+        last_hello = -math.inf
+        while not self.stopped and self.refused is None:
+            now = time.perf_counter()
+            # (also while stepping: the world's binding of this id stays live, a restarted world hears it)
+            every = HELLO_EVERY_S if self.run is None else ALIVE_EVERY_S
+            if now - last_hello >= every:
+                self.hello()
+                last_hello = now
             if self.next_obs is not None:
                 obs, self.next_obs = self.next_obs, None
-                if obs[0].run != self.run:
-                    last_hello = float("inf")  # seen by a world: no more hellos needed
                 self._decide(obs)
                 last_seen = time.perf_counter()
                 continue
-            now = time.perf_counter()
-            if self.run is None and now - last_hello >= HELLO_EVERY_S:
-                self.ep.publish(P.hello_packet(0, self.id, self.sha, self.peers), "hello", self.id)
-                last_hello = now
             if idle_timeout is not None and now - last_seen > idle_timeout:
                 return "idle"
-            self.pump(now + HELLO_EVERY_S, lambda: self.next_obs is not None)
-        return "stopped"
+            self.pump(last_hello + every, lambda: self.next_obs is not None)
+        return "stopped" if self.refused is None else "refused"

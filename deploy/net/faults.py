@@ -25,6 +25,8 @@ from typing import Annotated
 import numpy as np
 import tyro
 
+from deploy.net.limits import MAX_SECONDS
+
 
 class FaultError(ValueError):
     """A fault parameter out of range."""
@@ -62,13 +64,16 @@ class FaultSpec:
                 )
         if not 0.0 <= self.burst_loss < 1.0:
             raise FaultError(f"--burst-loss must be in [0, 1), got {self.burst_loss}")
-        if not self.burst_len >= 1.0:
-            raise FaultError(f"--burst-len must be >= 1 message, got {self.burst_len}")
-        for name in ("latency_ms", "jitter_ms", "reorder_hold_ms"):
-            if not (getattr(self, name) >= 0.0 and np.isfinite(getattr(self, name))):
-                raise FaultError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}")
-        if self.late_round is not None and self.late_round < 0:
+        if not (self.burst_len >= 1.0 and np.isfinite(self.burst_len)):
+            raise FaultError(f"--burst-len must be >= 1 message and finite, got {self.burst_len}")
+        for name in ("latency_ms", "jitter_ms", "reorder_hold_ms"):  # (an hour at most, as every wait: limits.py)
+            if not 0.0 <= getattr(self, name) <= MAX_SECONDS * 1e3:
+                option, value = f"--{name.replace('_', '-')}", getattr(self, name)
+                raise FaultError(f"{option} must be >= 0 and <= {MAX_SECONDS * 1e3:g} ms, got {value}")
+        if self.late_round is not None and self.late_round < 0:  # (its upper bound, K - 1: agent.check_faults)
             raise FaultError(f"--late-round must be >= 0, got {self.late_round}")
+        if self.seed < 0:
+            raise FaultError(f"--fault-seed must be >= 0, got {self.seed}")
 
     @property
     def any(self) -> bool:

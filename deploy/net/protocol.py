@@ -1,13 +1,20 @@
-"""The wire format between the world and the agent processes (schema version 2).
+"""The wire format between the world and the agent processes (schema version 3).
 
 Every packet is one little-endian header followed by a kind-specific body:
 
-    header (20 bytes): magic b"TSWM", schema u8, kind u8, run u32, step u32, envs u16, round u8, pad u8, sender u16
+    header (28 bytes): magic b"TSWM", schema u8, kind u8, run u32, step u32, envs u16, round u8, pad u8,
+                       sender u16, nonce u64
         run     a random id the world draws at start; packets of another run are foreign
+                (HELLO: the run the agent is in, 0 before its first observation)
         step    the control step the packet belongs to (the world's counter, from 0)
         envs    B, the number of parallel worlds the packet covers (1 on a real robot)
         round   the communication round (MSG only)
-        sender  the agent id (OBS: the agent it is addressed to)
+        sender  the agent id (OBS, REFUSE: the agent it is addressed to); ids are 0..65535
+        nonce   the agent instance: a random non-zero u64 each agent process draws at start and
+                puts in every packet it sends (HELLO, MSG, ACT). The world binds id -> nonce at
+                the first HELLO of the right export and takes that id's actions from that
+                nonce only; its OBS and REFUSE carry the nonce of the instance they are for
+                (OBS: 0 while the id is unbound, and no agent acts on it). STOP: 0.
 
     OBS   world -> agent i    M u16, L u16, self_obs f32 [B, 4], entities f32 [B, L, 2], hears u8 [B, M]
                               (hears[b, j] = 1: agent i hears j in world b this step; row i of the graph only)
@@ -15,8 +22,14 @@ Every packet is one little-endian header followed by a kind-specific body:
     ACT   agent -> world      M u16, actions u8 [B], attention f32 [B, M], then the agent's stats f32 [len(STATS)]
     HELLO agent -> all        export manifest sha256 (64 ascii hex): an agent of another export is refused;
                               then n u16 and the n agent ids whose hellos it has heard (its routes from
-                              them exist: the world starts once every agent hears every other)
+                              them exist: the world starts once every agent hears every other).
+                              Sent every 0.25 s before the agent's first observation and every 1 s
+                              after it (so a restarted world hears its team at once, and a live
+                              agent's binding is never taken by another instance)
     STOP  world -> agents     empty: the run is over
+    REFUSE world -> agent i   reason u8 (REFUSED_ID: another instance holds id i; REFUSED_EXPORT: the
+                              agent runs another export), the world's manifest sha256 (64 ascii):
+                              the instance named by the header's nonce is not in this team
 
 ``decode`` raises ``PacketError`` (one line naming what is wrong) on anything else; receivers
 drop such a packet, count it and go on.
@@ -29,12 +42,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SCHEMA_VERSION = 2  # 2: HELLO carries the agents heard
+SCHEMA_VERSION = 3  # 2: HELLO carries the agents heard; 3: the agent instance's nonce, REFUSE
 MAGIC = b"TSWM"
-OBS, MSG, ACT, HELLO, STOP = 1, 2, 3, 4, 5
-KINDS = {OBS: "obs", MSG: "msg", ACT: "act", HELLO: "hello", STOP: "stop"}
-_HEADER = struct.Struct("<4sBBIIHBBH")
+OBS, MSG, ACT, HELLO, STOP, REFUSE = 1, 2, 3, 4, 5, 6
+KINDS = {OBS: "obs", MSG: "msg", ACT: "act", HELLO: "hello", STOP: "stop", REFUSE: "refuse"}
+REFUSED_ID, REFUSED_EXPORT = 1, 2
+_HEADER = struct.Struct("<4sBBIIHBBHQ")
 HEADER_BYTES = _HEADER.size
+_REASON = struct.Struct("<B")
 _MEL = struct.Struct("<HH")
 _N = struct.Struct("<H")
 # what an agent reports with every action (cumulative since it started, except latency)
@@ -49,6 +64,7 @@ STATS = (
     "foreign",  # another run, another team size or hidden width, a sender out of range
     "version",  # another schema version
     "missed",  # expected neighbour messages not there by the round deadline (per world)
+    "overflow",  # dropped by a bound on what is kept: the inbox full, a message too many steps ahead
 )
 
 
@@ -68,23 +84,25 @@ class Header:
     envs: int
     round: int
     sender: int
+    nonce: int = 0
 
 
-def header_bytes(kind: int, run: int, step: int, envs: int, round_: int, sender: int) -> bytes:
-    return _HEADER.pack(MAGIC, SCHEMA_VERSION, kind, run, step, envs, round_, 0, sender)
+def header_bytes(kind: int, run: int, step: int, envs: int, round_: int, sender: int, nonce: int = 0) -> bytes:
+    return _HEADER.pack(MAGIC, SCHEMA_VERSION, kind, run, step, envs, round_, 0, sender, nonce)
 
 
 def read_header(data: bytes) -> Header:
+    # the version first: another schema's header has another size (version 2's: 20 bytes)
+    if len(data) > 4 and data[:4] == MAGIC and data[4] != SCHEMA_VERSION:
+        raise VersionError(f"packet of schema version {data[4]}; this side speaks {SCHEMA_VERSION}")
     if len(data) < HEADER_BYTES:
         raise PacketError(f"packet of {len(data)} bytes is shorter than the {HEADER_BYTES}-byte header")
-    magic, version, kind, run, step, envs, round_, _, sender = _HEADER.unpack_from(data)
+    magic, version, kind, run, step, envs, round_, _, sender, nonce = _HEADER.unpack_from(data)
     if magic != MAGIC:
         raise PacketError(f"packet does not start with {MAGIC!r} (got {magic!r})")
-    if version != SCHEMA_VERSION:
-        raise VersionError(f"packet of schema version {version}; this side speaks {SCHEMA_VERSION}")
     if kind not in KINDS:
         raise PacketError(f"unknown packet kind {kind}")
-    return Header(kind, run, step, envs, round_, sender)
+    return Header(kind, run, step, envs, round_, sender, nonce)
 
 
 def _array(data: bytes, offset: int, dtype, shape: tuple[int, ...]) -> tuple[np.ndarray, int]:
@@ -100,12 +118,15 @@ def _exact(data: bytes, end: int, what: str) -> None:
 
 
 # ----------------------------------------------------------------------------- encoders
-def obs_packet(run: int, step: int, agent: int, self_obs: np.ndarray, entities: np.ndarray, hears: np.ndarray) -> bytes:
-    """self_obs [B, 4], entities [B, L, 2], hears [B, M] bool (row ``agent`` of each world's graph)."""
+def obs_packet(
+    run: int, step: int, agent: int, self_obs: np.ndarray, entities: np.ndarray, hears: np.ndarray, nonce: int = 0
+) -> bytes:
+    """self_obs [B, 4], entities [B, L, 2], hears [B, M] bool (row ``agent`` of each world's graph);
+    ``nonce``: the instance of ``agent`` the world has bound (0: none yet)."""
     B, L = entities.shape[0], entities.shape[1]
     return b"".join(
         (
-            header_bytes(OBS, run, step, B, 0, agent),
+            header_bytes(OBS, run, step, B, 0, agent, nonce),
             _MEL.pack(hears.shape[1], L),
             np.ascontiguousarray(self_obs, np.float32).tobytes(),
             np.ascontiguousarray(entities, np.float32).tobytes(),
@@ -114,20 +135,22 @@ def obs_packet(run: int, step: int, agent: int, self_obs: np.ndarray, entities: 
     )
 
 
-def msg_packet(run: int, step: int, round_: int, sender: int, message: np.ndarray) -> bytes:
+def msg_packet(run: int, step: int, round_: int, sender: int, message: np.ndarray, nonce: int = 0) -> bytes:
     """message [B, 2, H]."""
     return (
-        header_bytes(MSG, run, step, message.shape[0], round_, sender)
+        header_bytes(MSG, run, step, message.shape[0], round_, sender, nonce)
         + np.ascontiguousarray(message, np.float32).tobytes()
     )
 
 
-def act_packet(run: int, step: int, sender: int, actions: np.ndarray, attention: np.ndarray, stats) -> bytes:
+def act_packet(
+    run: int, step: int, sender: int, actions: np.ndarray, attention: np.ndarray, stats, nonce: int = 0
+) -> bytes:
     """actions [B] ints in 0..4, attention [B, M], stats: the values of STATS in order."""
     B, M = attention.shape
     return b"".join(
         (
-            header_bytes(ACT, run, step, B, 0, sender),
+            header_bytes(ACT, run, step, B, 0, sender, nonce),
             _MEL.pack(M, len(STATS)),
             np.asarray(actions, np.uint8).tobytes(),
             np.ascontiguousarray(attention, np.float32).tobytes(),
@@ -136,11 +159,12 @@ def act_packet(run: int, step: int, sender: int, actions: np.ndarray, attention:
     )
 
 
-def hello_packet(run: int, sender: int, manifest_sha256: str, heard=()) -> bytes:
+def hello_packet(run: int, sender: int, manifest_sha256: str, heard=(), nonce: int = 0) -> bytes:
+    """``run``: the run the agent is in (0: none yet)."""
     heard = np.asarray(sorted(heard), "<u2")
     return b"".join(
         (
-            header_bytes(HELLO, run, 0, 0, 0, sender),
+            header_bytes(HELLO, run, 0, 0, 0, sender, nonce),
             manifest_sha256.encode("ascii"),
             _N.pack(len(heard)),
             heard.tobytes(),
@@ -150,6 +174,11 @@ def hello_packet(run: int, sender: int, manifest_sha256: str, heard=()) -> bytes
 
 def stop_packet(run: int) -> bytes:
     return header_bytes(STOP, run, 0, 0, 0, 0)
+
+
+def refuse_packet(run: int, agent: int, nonce: int, reason: int, manifest_sha256: str) -> bytes:
+    """The world to the instance ``nonce`` of agent ``agent``: it is not in this team (``reason``)."""
+    return header_bytes(REFUSE, run, 0, 0, 0, agent, nonce) + _REASON.pack(reason) + manifest_sha256.encode("ascii")
 
 
 # ----------------------------------------------------------------------------- decoders
@@ -220,3 +249,18 @@ def decode_hello(data: bytes):
     heard, off = _array(data, HEADER_BYTES + 64 + _N.size, np.dtype("<u2"), (n,))
     _exact(data, off, "hello")
     return h, sha, frozenset(heard.tolist())
+
+
+def decode_refuse(data: bytes):
+    """-> (header, reason, the world's manifest sha256)."""
+    h = read_header(data)
+    if h.kind != REFUSE or len(data) != HEADER_BYTES + _REASON.size + 64:
+        raise PacketError("refuse packet must carry a reason and a 64-character manifest sha256")
+    (reason,) = _REASON.unpack_from(data, HEADER_BYTES)
+    if reason not in (REFUSED_ID, REFUSED_EXPORT):
+        raise PacketError(f"refuse packet of unknown reason {reason}")
+    try:
+        sha = data[HEADER_BYTES + _REASON.size :].decode("ascii")
+    except UnicodeDecodeError:
+        raise PacketError("refuse packet's manifest sha256 is not ascii") from None
+    return h, reason, sha

@@ -9,7 +9,8 @@ one the transport makes up) and is "express" (sent at once, not batched).
 
 Keys, under a namespace ``ns`` (default "swarm"): ``ns/obs/I`` (world -> agent I),
 ``ns/msg/I`` (agent I -> whoever listens), ``ns/act/I`` (agent I -> world),
-``ns/hello/I`` (agent I announces itself), ``ns/stop`` (world -> all).
+``ns/hello/I`` (agent I announces itself), ``ns/refuse/I`` (world -> an instance of agent I it
+does not take), ``ns/stop`` (world -> all).
 """
 
 from __future__ import annotations
@@ -17,11 +18,16 @@ from __future__ import annotations
 import json
 import queue
 import re
+import threading
 import time
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 _ENDPOINT = re.compile(r"^(tcp|udp|quic|tls)/[^\s/]+:\d{1,5}$")
 _NAMESPACE = re.compile(r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")
+# what the inbox holds unread at most: past either bound a packet is dropped on arrival and
+# counted (``Endpoint.overflow``), so a flood costs packets, never unbounded memory
+INBOX_PACKETS = 65536
+INBOX_BYTES = 64 << 20
 
 
 class TransportError(ValueError):
@@ -69,7 +75,8 @@ def open_session(mode: str, listen: list[str], connect: list[str]):
 
 
 class Endpoint:
-    """A session, its publishers by key, and one inbox queue of (key, bytes, arrival time) for all subscriptions."""
+    """A session, its publishers by key, and one inbox queue of (key, bytes, arrival time) for all
+    subscriptions, bounded (INBOX_PACKETS, INBOX_BYTES; what does not fit is counted in ``overflow``)."""
 
     def __init__(self, session, ns: str):
         self.session = session
@@ -77,15 +84,27 @@ class Endpoint:
         self.inbox: queue.Queue = queue.Queue()
         self._pubs: dict[str, object] = {}
         self._subs: list = []
+        self._lock = threading.Lock()  # (Zenoh's callback thread adds, the reader takes)
+        self._queued_bytes = 0
+        self.overflow = 0
         self.sent = 0
         self.sent_bytes = 0
 
     def key(self, *parts) -> str:
         return "/".join([self.ns, *map(str, parts)])
 
+    def _arrive(self, key: str, data: bytes) -> None:
+        t = time.perf_counter()
+        with self._lock:
+            if self.inbox.qsize() >= INBOX_PACKETS or self._queued_bytes + len(data) > INBOX_BYTES:
+                self.overflow += 1  # dropped, never blocking Zenoh's thread
+                return
+            self._queued_bytes += len(data)
+        self.inbox.put((key, data, t))
+
     def subscribe(self, *parts) -> None:
-        def on_sample(sample, inbox=self.inbox):
-            inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.perf_counter()))
+        def on_sample(sample, ep=self):
+            ep._arrive(str(sample.key_expr), sample.payload.to_bytes())
 
         self._subs.append(self.session.declare_subscriber(self.key(*parts), on_sample))
 
@@ -103,9 +122,12 @@ class Endpoint:
     def get(self, timeout: float):
         """The next (key, data, t_arrival), or None after ``timeout`` seconds."""
         try:
-            return self.inbox.get(timeout=max(timeout, 0.0))
+            item = self.inbox.get(timeout=max(timeout, 0.0))
         except queue.Empty:
             return None
+        with self._lock:
+            self._queued_bytes -= len(item[1])
+        return item
 
     def close(self) -> None:
         for s in self._subs:

@@ -7,14 +7,29 @@ actions until the action deadline (a missing one is a no-op, counted), step the 
 then sleep out the rest of the control period. Episodes run B at a time side by side, as
 ``swarm execute`` runs them (B parallel worlds; agent process i is agent i in each), with
 the same seed, so at zero faults the two give the same actions step for step.
+
+Who is agent i: the world binds id i to the instance (protocol.py: the nonce of the agent
+process) whose hello of this export it hears first, takes i's actions from that instance only
+and addresses i's observations to it. A hello of another export never displaces it: counted
+(refused), named in one line, and that instance is told (REFUSE) so it can leave. Nor does a
+second instance of a bound id: it is refused the same way once the bound one is heard after
+it appeared (both live), and bound in its place only once the bound one has been silent for
+``live_s`` (it died and was restarted); the launcher's own kills release the binding at once.
+Every agent repeats its hello, so a world started again after a crash binds the team within
+about a second.
+
+With --spawn-agents, the world watches its children (``AgentProcesses.check``): one that
+exits by itself ends the run with its first error line.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import secrets
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 
@@ -22,11 +37,18 @@ import numpy as np
 
 from deploy.executor import DeployError, ExecuteSettings, ExportedModel
 from deploy.net import protocol as P
+from deploy.net.agent import ALIVE_EVERY_S
 from deploy.net.faults import FaultSpec
+from deploy.net.limits import LimitError, check_seconds, check_team
 from deploy.net.transport import Endpoint
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 
 NOOP = 0  # ACTION_MEANINGS[0]
+REFUSE_EVERY_S = 0.1  # a refused instance is told at most this often (a flood of hellos is not answered in kind)
+
+
+class SpawnError(DeployError):
+    """An agent process the world started left by itself."""
 
 
 @dataclass
@@ -39,14 +61,19 @@ class NetSettings:
     def __post_init__(self):
         for name in ("period", "round_deadline", "action_deadline", "start_timeout"):
             v = getattr(self, name)
-            low_ok = v is None or (v >= 0 if name == "period" else v > 0)
-            if not low_ok or (v is not None and not np.isfinite(v)):
-                raise DeployError(
-                    f"--{name.replace('_', '-')} must be {'>= 0' if name == 'period' else '> 0'} s, got {v}"
-                )
+            if v is not None:
+                try:
+                    check_seconds(v, f"--{name.replace('_', '-')}", zero_ok=name == "period")
+                except LimitError as exc:
+                    raise DeployError(str(exc)) from None
 
     def deadline(self, rounds: int) -> float:
         return self.action_deadline if self.action_deadline is not None else rounds * self.round_deadline + 0.1
+
+    def live_s(self, rounds: int) -> float:
+        """How long a bound agent may go unheard and still hold its id: two of its hellos and a
+        step's decision."""
+        return 2 * ALIVE_EVERY_S + self.deadline(rounds) + 0.5
 
 
 @dataclass
@@ -76,7 +103,10 @@ class AgentReport:
                 msgs_per_s=(z["msgs_sent"] - a["msgs_sent"]) / span if z["msgs_sent"] >= a["msgs_sent"] else None,
                 bytes_per_s=(z["bytes_sent"] - a["bytes_sent"]) / span if z["bytes_sent"] >= a["bytes_sent"] else None,
                 cpu_frac=(z["cpu_s"] - a["cpu_s"]) / span if z["cpu_s"] >= a["cpu_s"] else None,
-                **{k: int(z[k]) for k in ("msgs_heard", "missed", "late", "malformed", "foreign", "version")},
+                **{
+                    k: int(z[k])
+                    for k in ("msgs_heard", "missed", "late", "malformed", "foreign", "version", "overflow")
+                },
             )
         return out
 
@@ -85,17 +115,26 @@ class World:
     """B parallel worlds of M agents whose decisions come over the network."""
 
     def __init__(self, model: ExportedModel, s: ExecuteSettings, net: NetSettings, endpoint: Endpoint, quiet=False):
+        check_team(s.agents, s.episodes)  # (before the [M] reports, the [B, M, M] arrays of each step)
         self.model, self.s, self.net, self.ep = model, s, net, endpoint
         self.M, self.B = s.agents, s.episodes
-        self.run = secrets.randbits(32)
+        self.run = secrets.randbits(32) or 1  # (0: an agent's hello before its first observation)
         self.sha = model.manifest["manifest_sha256"]
         self.quiet = quiet
         self.reports = [AgentReport() for _ in range(self.M)]
-        self.refused: set[int] = set()  # agents of another export
-        self.heard: set[int] = set()
+        self.bound: dict[int, int] = {}  # agent id -> the nonce of the instance taken as that agent
+        self.last_heard: dict[int, float] = {}  # agent id -> arrival time of its bound instance's last packet
+        self.live_s = net.live_s(model.rounds)
+        self.refused: set[int] = set()  # ids only heard from agents of another export
+        self.duplicates: set[int] = set()  # ids a second instance claimed while the first was live
+        self._named: dict[int, tuple[int, float]] = {}  # id -> (the claimant last named, when)
+        self._claims: dict[int, tuple[int, float]] = {}  # id -> (another instance claiming it, since when)
+        self._told: dict[int, float] = {}  # id -> when a refused instance of it was last told
+        self.heard: set[int] = set()  # the ids bound
         self.peers: dict[int, frozenset] = {}  # agent -> the agents whose hellos it has heard
-        self.dropped = dict.fromkeys(("malformed", "version", "foreign"), 0)
-        self._warned: set[str] = set()
+        self.dropped = dict.fromkeys(("malformed", "version", "foreign", "refused"), 0)
+        self._warned: set = set()
+        self.watch = None  # called while waiting (the launcher's check that its agents are alive)
         self.step = 0
         self.history: list[np.ndarray] = []  # actions [B, M] of every step
         self.overruns = 0  # steps that took longer than the period
@@ -120,26 +159,15 @@ class World:
         topic = key[len(self.ep.ns) + 1 :].split("/")[0]
         try:
             if topic == "hello":
-                h, sha, peers = P.decode_hello(data)
-                if h.sender >= self.M:
-                    return self._drop("foreign", f"agent {h.sender} announced itself in a team of {self.M}")
-                if sha != self.sha:
-                    if h.sender not in self.refused:
-                        self._say(
-                            f"agent {h.sender} runs another export (manifest {sha[:12]}, this world's is "
-                            f"{self.sha[:12]}): its actions are refused"
-                        )
-                    self.refused.add(h.sender)
-                    return
-                self.refused.discard(h.sender)
-                self.heard.add(h.sender)
-                self.peers[h.sender] = peers
+                self._on_hello(*P.decode_hello(data), t)
             elif topic == "act":
                 h, a, att, stats = P.decode_act(data)
                 if h.run != self.run or h.sender >= self.M or h.envs != self.B or att.shape[1] != self.M:
                     return self._drop("foreign", f"an action of run {h.run:08x} from agent {h.sender}")
-                if h.sender in self.refused:
+                if self.bound.get(h.sender) != h.nonce:
+                    self.dropped["refused"] += 1  # not the instance taken as this agent
                     return
+                self.last_heard[h.sender] = t
                 rep = self.reports[h.sender]
                 if h.step != self.step or got is None:
                     rep.late += 1
@@ -156,6 +184,71 @@ class World:
         except P.PacketError as exc:
             self._drop("malformed", f"{topic} on {key}: {exc}")
 
+    def _on_hello(self, h: P.Header, sha: str, peers: frozenset, t: float) -> None:
+        i = h.sender
+        if i >= self.M:
+            return self._drop("foreign", f"agent {i} announced itself in a team of {self.M}")
+        if h.nonce == 0:
+            return self._drop("malformed", f"a hello of agent {i} without its instance nonce")
+        if sha != self.sha:
+            self.dropped["refused"] += 1
+            if i not in self.bound:
+                self.refused.add(i)
+            if ("export", i) not in self._warned:
+                self._warned.add(("export", i))
+                self._say(
+                    f"agent {i} runs another export (manifest {sha[:12]}, this world's is {self.sha[:12]}): "
+                    "its actions are refused"
+                )
+            if h.nonce != self.bound.get(i):  # (never the instance taken as agent i: a stray packet)
+                self._tell(i, h.nonce, P.REFUSED_EXPORT)
+            return
+        bound = self.bound.get(i)
+        if bound == h.nonce:
+            self.last_heard[i] = t
+            self.peers[i] = peers
+            return
+        if bound is not None:
+            # Another instance claims a bound id. It waits: refused once the bound one is heard
+            # after the claim began (both live: two agents with one id, or a stray hello), bound in
+            # its place once the bound one has been silent for live_s (it died: a restart).
+            claim = self._claims.get(i)
+            if claim is None or claim[0] != h.nonce:
+                claim = self._claims[i] = (h.nonce, t)
+            if self.last_heard[i] > claim[1]:
+                self.dropped["refused"] += 1
+                self.duplicates.add(i)
+                named, when = self._named.get(i, (None, -np.inf))
+                if named != h.nonce and t - when >= 1.0:  # (each claimant once; a flood of them a line a second)
+                    self._named[i] = (h.nonce, t)
+                    self._say(f"a second agent claims --id {i}, which a live agent holds: the second is refused")
+                return self._tell(i, h.nonce, P.REFUSED_ID)
+            silent = t - self.last_heard[i]
+            if silent <= self.live_s:
+                return None
+            self._say(f"agent {i} is another instance now (the last one silent for {silent:.1f} s)")
+        self._claims.pop(i, None)  # (bound now)
+        self.bound[i] = h.nonce
+        self.last_heard[i] = t
+        self.refused.discard(i)
+        self.heard.add(i)
+        self.peers[i] = peers
+
+    def _tell(self, i: int, nonce: int, reason: int) -> None:
+        now = time.monotonic()
+        if now - self._told.get(i, -np.inf) >= REFUSE_EVERY_S:
+            self._told[i] = now
+            self.ep.publish(P.refuse_packet(self.run, i, nonce, reason, self.sha), "refuse", i)
+
+    def release(self, i: int) -> None:
+        """Agent i's instance is gone (the launcher killed it): the next to say hello is agent i."""
+        self.bound.pop(i, None)
+        self.heard.discard(i)
+
+    def _check(self) -> None:
+        if self.watch is not None:
+            self.watch()
+
     def wait_for_agents(self, expected) -> set[int]:
         """Wait up to start_timeout for the hello of every agent in ``expected``, each saying it has
         heard every other's: a first step sent before the agents' routes to each other exist would
@@ -168,7 +261,8 @@ class World:
 
         until = time.perf_counter() + self.net.start_timeout
         while not (expected <= self.heard and not deaf()) and time.perf_counter() < until:
-            item = self.ep.get(until - time.perf_counter())
+            self._check()
+            item = self.ep.get(min(until - time.perf_counter(), 0.25))
             if item is not None:
                 self._on_packet(*item)
         missing = sorted(expected - self.heard)
@@ -189,12 +283,14 @@ class World:
         entities = np.asarray(obs["entities"], np.float32)
         adj = np.asarray(obs["adj"], bool)
         for i in range(self.M):
-            self.ep.publish(P.obs_packet(self.run, self.step, i, self_obs[:, i], entities[:, i], adj[:, i]), "obs", i)
+            nonce = self.bound.get(i, 0)  # (0: nobody acts on it yet)
+            packet = P.obs_packet(self.run, self.step, i, self_obs[:, i], entities[:, i], adj[:, i], nonce)
+            self.ep.publish(packet, "obs", i)
         actions = np.full((self.B, self.M), NOOP, np.int64)
         attention = np.zeros((self.B, self.M, self.M), np.float32)
         got: set[int] = set()
         until = t0 + self.net.deadline(self.model.rounds)
-        wanted = set(range(self.M)) - self.refused
+        wanted = set(self.bound)
         while not wanted <= got:
             now = time.perf_counter()
             if now >= until:
@@ -202,6 +298,7 @@ class World:
             item = self.ep.get(until - now)
             if item is not None:
                 self._on_packet(*item, actions=actions, attention=attention, got=got)
+        self._check()
         for i in set(range(self.M)) - got:
             self.reports[i].missing += 1
         self.history.append(actions.copy())
@@ -218,19 +315,15 @@ class World:
         """Sleep out the control period while still reading (late actions, hellos)."""
         until = time.perf_counter() + seconds
         while (now := time.perf_counter()) < until:
-            item = self.ep.get(until - now)
+            self._check()
+            item = self.ep.get(min(until - now, 0.25))
             if item is not None:
                 self._on_packet(*item)
 
-    def run_episodes(self, recorder=None) -> dict:
-        import taichi_swarm
-
+    def run_episodes(self, recorder=None, env=None) -> dict:
+        """``env``: the simulator ``make_env`` built (None: built here)."""
         s = self.s
-        fine = self.model.manifest["num_actions"] == taichi_swarm.physics.NUM_FINE_ACTIONS
-        env = taichi_swarm.make(
-            s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed,
-            array="numpy", action_space="fine" if fine else "discrete",
-        )  # fmt: skip
+        env = env if env is not None else make_env(self.model, s)
         t0 = time.perf_counter()
         tally = run_first_episodes(env, self.decide, recorder)
         wall = time.perf_counter() - t0
@@ -244,7 +337,7 @@ class World:
             "action_deadline_s": self.net.deadline(self.model.rounds),
             "overruns": self.overruns,
             "missing_actions": sum(r.missing for r in self.reports),
-            "dropped_at_world": dict(self.dropped),
+            "dropped_at_world": {**self.dropped, "overflow": getattr(self.ep, "overflow", 0)},
             "agents_report": [r.summary() for r in self.reports],
         }
 
@@ -252,6 +345,18 @@ class World:
         for _ in range(3):  # a few times: a stop is one small packet, and nothing answers it
             self.ep.publish(P.stop_packet(self.run), "stop")
             time.sleep(0.02)
+
+
+def make_env(model: ExportedModel, s: ExecuteSettings):
+    """The B worlds the team acts in; ``swarm world`` builds them before any agent starts, so
+    what the simulator refuses is refused first."""
+    import taichi_swarm
+
+    fine = model.manifest["num_actions"] == taichi_swarm.physics.NUM_FINE_ACTIONS
+    return taichi_swarm.make(
+        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed,
+        array="numpy", action_space="fine" if fine else "discrete",
+    )  # fmt: skip
 
 
 def format_net(row: dict) -> str:
@@ -280,8 +385,20 @@ def format_net(row: dict) -> str:
     return "\n".join(lines)
 
 
+def error_line(text: str) -> str:
+    """The line of a process's output that says why it failed: its first ``error:`` line, else
+    the last line (a traceback's exception, a summary)."""
+    lines = [line.strip() for line in text.splitlines() if line.strip() and not line.startswith("[Taichi]")]
+    for line in lines:
+        if re.search(r"\berror:", line, re.IGNORECASE):
+            return line[:400]
+    return lines[-1][:400] if lines else "(it wrote nothing)"
+
+
 class AgentProcesses:
-    """The launcher: M ``swarm agent`` processes on this machine, each stopped by ``stop`` (or ``kill``)."""
+    """The launcher: M ``swarm agent`` processes on this machine, each stopped by ``stop`` (or
+    ``kill``). Each one's output goes to DIR/agent-I.log (``log_dir``) or a temporary file, so
+    ``check`` can say why one that left by itself did."""
 
     def __init__(
         self,
@@ -295,8 +412,10 @@ class AgentProcesses:
         log_dir: str | None = None,
         command: list[str] | None = None,
         hold: int = 0,
+        idle_timeout: float = 30.0,
     ):
         self.hold = hold
+        self.idle_timeout = idle_timeout
         self.export_dir, self.M, self.connect, self.ns = export_dir, agents, connect, ns
         self.round_deadline = round_deadline
         self.faults = faults or FaultSpec()
@@ -305,23 +424,39 @@ class AgentProcesses:
         self.command = command or [sys.executable, "-m", "swarm_cli", "agent"]
         self.procs: dict[int, subprocess.Popen] = {}
         self._logs: list = []
+        self._output: dict[int, tuple] = {}  # agent -> (its output file, where its present run's output starts)
 
     def start(self, i: int) -> None:
         argv = [
             *self.command, self.export_dir, "--id", str(i), "--connect", self.connect, "--ns", self.ns,
-            "--round-deadline", str(self.round_deadline), "--idle-timeout", "30", *self.faults.to_args(),
+            "--round-deadline", str(self.round_deadline), "--idle-timeout", f"{self.idle_timeout:g}",
+            *self.faults.to_args(),
         ]  # fmt: skip
         if self.slow.get(i):
             argv += ["--slow-ms", str(self.slow[i])]
         if self.hold:
             argv += ["--hold", str(self.hold)]
-        out = subprocess.DEVNULL
         if self.log_dir:
             os.makedirs(self.log_dir, exist_ok=True)
-            out = open(os.path.join(self.log_dir, f"agent-{i}.log"), "ab")  # noqa: SIM115 - closed in stop()
-            self._logs.append(out)
+            out = open(os.path.join(self.log_dir, f"agent-{i}.log"), "a+b")  # noqa: SIM115 - closed in stop()
+        else:
+            out = tempfile.TemporaryFile()  # noqa: SIM115 - closed (and so removed) in stop()
+        self._logs.append(out)
+        self._output[i] = (out, out.seek(0, os.SEEK_END))
         env = {**os.environ, "OMP_NUM_THREADS": "1"}
         self.procs[i] = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+
+    def output(self, i: int) -> str:
+        """What agent i's present (or last) process has written so far (its first 64 KiB)."""
+        out, start = self._output[i]
+        return os.pread(out.fileno(), 1 << 16, start).decode("utf-8", "replace")
+
+    def check(self) -> None:
+        """Raise ``SpawnError`` naming the first agent (by id) whose process has left by itself."""
+        for i, p in sorted(self.procs.items()):
+            status = p.poll()
+            if status is not None:
+                raise SpawnError(f"agent {i} exited with status {status}: {error_line(self.output(i))}")
 
     def kill(self, i: int) -> None:
         p = self.procs.pop(i, None)

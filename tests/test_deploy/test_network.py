@@ -271,13 +271,15 @@ def test_agent_drops_and_counts_what_it_cannot_use(emp_dir, capsys):
     agent = NetAgent(ExportedModel(emp_dir), 0, _FakeEndpoint(), round_deadline=0.01)
     agent.run, agent.step, agent.B, agent.M = 5, 3, 1, 3
     good = np.zeros((1, 2, 32), np.float32)
+    ones = np.ones((1, 3), bool)
     cases = [
         ("swarm/msg/1", b"\x00" * 3, "malformed"),
         ("swarm/msg/1", P.header_bytes(P.MSG, 5, 3, 1, 0, 1)[:4] + bytes([7]) + bytes(40), "version"),
         ("swarm/msg/1", P.msg_packet(5, 3, 0, 9, good), "foreign"),  # a sender outside the team
         ("swarm/msg/1", P.msg_packet(5, 2, 0, 1, good), "late"),  # an older step
         ("swarm/msg/1", P.msg_packet(5, 3, 0, 1, np.zeros((1, 2, 16), np.float32)), "malformed"),  # other H
-        ("swarm/obs/0", P.obs_packet(5, 2, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), np.ones((1, 3), bool)), "late"),
+        ("swarm/obs/0", P.obs_packet(5, 2, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), ones, agent.nonce), "late"),
+        ("swarm/obs/0", P.obs_packet(5, 4, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), ones, agent.nonce ^ 1), "foreign"),
     ]
     for key, data, counter in cases:
         before = agent.stats[counter]
@@ -287,6 +289,7 @@ def test_agent_drops_and_counts_what_it_cannot_use(emp_dir, capsys):
     assert 1 in agent.box[(3, 1)][0]
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 4 and all(line.startswith("swarm agent 0: dropped a packet") for line in lines)
+    assert agent.next_obs is None  # neither the stale observation nor another instance's is acted on
 
 
 def test_agent_uses_what_came_before_its_observation_and_drops_other_runs(emp_dir):
@@ -299,7 +302,7 @@ def test_agent_uses_what_came_before_its_observation_and_drops_other_runs(emp_di
     agent._on_packet("swarm/msg/2", P.msg_packet(6, 0, 0, 2, good), 0.0)  # of another run
     assert agent.stats["foreign"] == 0
     hears = np.array([[True, True, False]])  # agent 0 hears agent 1
-    obs = P.decode_obs(P.obs_packet(5, 0, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), hears))
+    obs = P.decode_obs(P.obs_packet(5, 0, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), hears, agent.nonce))
     agent._decide((*obs, 0.0))
     assert agent.stats["msgs_heard"] == 1 and agent.stats["missed"] == agent.K - 1  # round 0 heard
     assert agent.stats["foreign"] == 1
@@ -322,10 +325,15 @@ def test_agent_hold_attends_over_a_lost_neighbours_last_message(emp_dir):
 def test_world_refuses_an_agent_of_another_export(emp_dir):
     model = ExportedModel(emp_dir)
     s = resolve_settings(model, "coverage", 3, "rc", 0.8, episodes=1, seed=0)
-    world = World(model, s, NetSettings(), _FakeEndpoint(), quiet=True)
-    world._on_packet("swarm/hello/1", P.hello_packet(0, 1, "0" * 64), 0.0)
-    world._on_packet("swarm/hello/2", P.hello_packet(0, 2, model.manifest["manifest_sha256"]), 0.0)
-    assert world.refused == {1} and world.heard == {2}
+    ep = _FakeEndpoint()
+    world = World(model, s, NetSettings(), ep, quiet=True)
+    world._on_packet("swarm/hello/1", P.hello_packet(0, 1, "0" * 64, nonce=11), 0.0)
+    world._on_packet("swarm/hello/2", P.hello_packet(0, 2, model.manifest["manifest_sha256"], nonce=12), 0.0)
+    assert world.refused == {1} and world.heard == {2} and world.bound == {2: 12}
+    # the refused instance is told why (it leaves with one line: swarm agent)
+    ((key, data),) = ep.published
+    h, reason, _ = P.decode_refuse(data)
+    assert key == "refuse/1" and (h.sender, h.nonce, reason) == (1, 11, P.REFUSED_EXPORT)
 
 
 class _QueuedEndpoint(_FakeEndpoint):
@@ -346,13 +354,13 @@ def test_world_starts_once_every_agent_has_heard_every_other(emp_dir, capsys):
     s = resolve_settings(model, "coverage", 3, "rc", 0.8, episodes=1, seed=0)
     sha = model.manifest["manifest_sha256"]
     heard = [(0, ()), (1, (0,)), (2, (0, 1)), (0, (1,)), (1, (0, 2)), (0, (1, 2))]
-    packets = [(f"swarm/hello/{i}", P.hello_packet(0, i, sha, peers), 0.0) for i, peers in heard]
-    ep = _QueuedEndpoint(packets + [("swarm/hello/2", P.hello_packet(0, 2, sha, (0,)), 0.0)])
+    packets = [(f"swarm/hello/{i}", P.hello_packet(0, i, sha, peers, i + 1), 0.0) for i, peers in heard]
+    ep = _QueuedEndpoint(packets + [("swarm/hello/2", P.hello_packet(0, 2, sha, (0,), 3), 0.0)])
     world = World(model, s, NetSettings(start_timeout=5.0), ep, quiet=True)
     assert world.wait_for_agents({0, 1, 2}) == {0, 1, 2}
     assert len(ep.queue) == 1  # it returned at the sixth hello, the first at which all heard all
     # an agent that never hears agent 2: the world gives up at the timeout and says so
-    ep = _QueuedEndpoint([(f"swarm/hello/{i}", P.hello_packet(0, i, sha, p), 0.0) for i, p in heard[:3]])
+    ep = _QueuedEndpoint([(f"swarm/hello/{i}", P.hello_packet(0, i, sha, p, i + 1), 0.0) for i, p in heard[:3]])
     world = World(model, s, NetSettings(start_timeout=0.2), ep)
     assert world.wait_for_agents({0, 1, 2}) == {0, 1, 2}
     err = capsys.readouterr().err
@@ -392,7 +400,7 @@ def test_world_refuses_an_export_that_does_not_fit_its_task(tmp_path):
 @pytest.mark.parametrize(
     ("argv", "words"),
     [
-        (["agent", "{d}", "--id", "-1"], "--id must be >= 0"),
+        (["agent", "{d}", "--id", "-1"], "--id must be in 0..65535"),
         (["agent", "{d}", "--id", "0", "--connect", "127.0.0.1"], "not a Zenoh endpoint"),
         (["agent", "{d}", "--id", "0", "--drop", "2"], "--drop must be a probability"),
         (["agent", "{d}", "--id", "0", "--hold", "-1"], "--hold must be >= 0"),
