@@ -59,14 +59,11 @@ from dataclasses import dataclass
 import numpy as np
 import onnxruntime as ort
 
+from deploy.loss import GilbertElliott
+from deploy.loss import check as check_burst
 from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, edge_position, parse, validate
 from taichi_swarm.files import MAX_ONNX_BYTES, InputFileError, read_input
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
-
-# A mean loss burst (--burst-len, in messages) longer than this is a link that never recovers
-# within any episode (at most max_steps x 64 rounds of messages on a link); inf would make
-# the chain's return probability 0
-MAX_BURST_LEN = 1e6
 
 
 class DeployError(ValueError):
@@ -203,19 +200,13 @@ class MessageBus:
             raise DeployError(f"drop probability must be in [0, 1], got {drop}")
         if delay < 0:
             raise DeployError(f"delay must be >= 0 steps, got {delay}")
-        if not 0.0 <= burst_loss < 1.0 or not 1.0 <= burst_len <= MAX_BURST_LEN:
-            raise DeployError(
-                f"burst loss must be in [0, 1) and burst length in [1, {MAX_BURST_LEN:g}], "
-                f"got {burst_loss}, {burst_len}"
-            )
         if hold < 0 or (hold and delay):
             raise DeployError(f"hold must be >= 0 steps and acts on lost messages only (no delay), got {hold}")
         self.drop, self.delay, self.hold = float(drop), int(delay), int(hold)
         self._rng = np.random.default_rng(seed)
-        # Gilbert-Elliott loss, the networked agents' --burst-loss (deploy/net/faults.py): one
-        # chain per link (receiver i, sender j) stepping once per message, bursts of burst_len
-        # messages on average, stationary loss burst_loss; drawn from that law at the first send
-        self.burst_loss, self._to_good = float(burst_loss), 1.0 / burst_len
+        # bursty loss (deploy/loss.py): one chain per link (receiver i, sender j), one step per message
+        self.burst_loss = float(burst_loss)
+        self._burst = GilbertElliott(burst_loss, burst_len, DeployError)
         self._bad: np.ndarray | None = None  # [B, M, M]
         self._offdiag = ~np.eye(num_agents, dtype=bool)  # [M, M]; own messages never go through the bus
         # per round: queue of (messages [B, M, 2, H], edges [B, M, M]) in flight
@@ -261,11 +252,7 @@ class MessageBus:
             edges = edges & (self._rng.random(edges.shape) >= self.drop)
         if self.burst_loss > 0.0:
             u = self._rng.random(edges.shape[:2] + edges.shape[1:2])  # [B, M, M]
-            if self._bad is None:
-                self._bad = u < self.burst_loss
-            else:
-                to_bad = self.burst_loss * self._to_good / (1.0 - self.burst_loss)
-                self._bad = np.where(self._bad, u >= self._to_good, u < to_bad)
+            self._bad = self._burst.start(u) if self._bad is None else self._burst.step(self._bad, u)
             bad = self._bad if senders is None else np.take_along_axis(self._bad, np.clip(senders, 0, None), axis=2)
             edges = edges & ~bad
         if self.hold:
@@ -437,10 +424,7 @@ class ExecuteSettings:
                 raise DeployError(f"--{name} must be >= {low}, got {getattr(self, name)}")
         if not 0.0 <= self.drop <= 1.0:
             raise DeployError(f"--drop values must be probabilities in [0, 1], got {self.drop}")
-        if not 0.0 <= self.burst_loss < 1.0:
-            raise DeployError(f"--burst-loss must be in [0, 1), got {self.burst_loss}")
-        if not 1.0 <= self.burst_len <= MAX_BURST_LEN:  # (inf and NaN too)
-            raise DeployError(f"--burst-len must be in [1, {MAX_BURST_LEN:g}] messages, got {self.burst_len}")
+        check_burst(self.burst_loss, self.burst_len, DeployError)
         if self.hold and self.delay:
             raise DeployError("--hold replaces lost messages; with --delay every message is late already: not both")
         steps = episode_length(self.task)

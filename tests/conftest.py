@@ -19,6 +19,24 @@ def taichi_cpu():
     yield
 
 
+@pytest.fixture(scope="session")
+def tiny_policy_file(tmp_path_factory) -> str:
+    """A signed checkpoint of a random-init policy (hidden 8, one round; seed 0) for coverage,
+    M = 2, uc: for tests of commands that take a policy file, not of what it learned. Shared by
+    the files a worker runs: read it, never write it."""
+    import torch
+
+    from trainer.checkpoint import save
+    from trainer.model import ModelConfig, SwarmPolicy
+
+    torch.manual_seed(0)
+    net = SwarmPolicy(ModelConfig(hidden=8, rounds=1))
+    path = str(tmp_path_factory.mktemp("tiny-policy") / "p.pt")
+    task = {"task": "coverage", "agents": 2, "comm": "uc", "comm_radius": 1.0}
+    save(path, {"model_config": net.config.to_dict(), "model": net.state_dict(), "task": task})
+    return path
+
+
 @pytest.fixture
 def lock_held_elsewhere():
     """``with lock_held_elsewhere(directory, name) as pid``: another process holds

@@ -2,9 +2,8 @@
 # The training that is slow on two CPU cores, prepared for a GPU lent for a few minutes:
 # Table 2's coverage curricula without and with EMP (UC and RC, all from scratch) and
 # formation's curricula with the landmark offset concatenated (the authors' network), the
-# first 6 jobs of --list by default; Table 1's M = 6 cells, the other RC curricula and the
-# swarm's stages (coverage at M = 100, formation's lattice and line's rows at M = 50 and 100)
-# on request. Each a
+# first 6 jobs of --list by default; Table 1's M = 6 cells and the other curricula on request.
+# Each a
 # `swarm` command with the `gpu` preset on CUDA, several at a time on the one GPU.
 #
 #   tools/gpu_campaign.sh --list                      # the jobs and their commands
@@ -24,19 +23,6 @@ set -uo pipefail
 
 usage() { sed -n '2,/^set -uo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; }
 common="--preset gpu --no-compile --no-progress --eval-every 10 --eval-episodes 500"
-# docs/SWARM.md's M = 50 occupancy policy on at M = 100 (evaluated at 200 too)
-swarm="--neighbours 4 --landmark-neighbours 5 --sense-radius 1.0 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
-# formation's lattice points and line's row targets as sensed landmarks (SWARM.md), fine-tuned
-# from the swarm spec's M = 50 policies; coverage on the 16 landmarks within 2 at M = 100.
-# 512 environments x 16 steps: at M = 100 that is 0.8 M agent-samples per update
-lattice="--neighbours 4 --landmark-neighbours 12 --sense-radius 1.5 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
-# the fine M = 100 policy on the 24 nearest points, on which it reads 20.8% at M = 100 (12: 14.4%)
-lattice24="${lattice/--landmark-neighbours 12/--landmark-neighbours 24}"
-wider="--neighbours 4 --landmark-neighbours 16 --sense-radius 2.0 --landmark-occupancy --scale density --reward agent --model.self-position none --model.edge-position relative"
-form50=results/reproduce-swarm/s-formation-rc-lattice-m50/s0/stage-m50/policy.pt
-fine100=results/reproduce-swarm/s-formation-rc-lattice-m100-fine/s0/stage-m100/policy.pt
-wider50=results/reproduce-swarm/s-coverage-rc-rel-m50-occupancy-wider/s0/stage-m50/policy.pt
-tune="--ppo.num-envs 512 --ppo.lr 1.5e-4 --ppo.lr-end 3e-5 --updates 150"
 curr="--max-updates-per-stage 200 --fresh-eval-episodes 500 --fresh-eval-seed 777 --transfer-offsets"
 declare -A JOBS=(
     [table1-cov6-uc]="train --task coverage --agents 6 --comm uc --updates 400 --transfer-offsets -1 1"
@@ -52,15 +38,8 @@ declare -A JOBS=(
     [curr-form-rc-concat]="curriculum --task formation --comm rc --model.entity-mode concat $curr"
     [curr-cov-uc-noemp]="curriculum --task coverage --comm uc --model.entity-mode padded $curr"
     [curr-cov-rc-noemp]="curriculum --task coverage --comm rc --model.entity-mode padded $curr"
-    [swarm-cov-m100-occ]="train --task coverage --agents 100 --comm rc $swarm --init-from coverage-rc-m50-occupancy --ppo.lr 1e-4 --updates 200 --transfer-offsets 100"
-    [swarm-form-m50]="train --task formation --agents 50 --comm rc $lattice --init-from $form50 $tune --transfer-offsets 50"
-    [swarm-form-m100]="train --task formation --agents 100 --comm rc $lattice --init-from $form50 $tune --transfer-offsets -50"
-    [swarm-form-m100-fine]="train --task formation --agents 100 --comm rc $lattice24 --action-space fine --init-from $fine100 $tune --transfer-offsets -50"
-    [swarm-line-m50]="train --task line --agents 50 --comm rc $lattice --init-from coverage-rc-m50-wide $tune --transfer-offsets 50"
-    [swarm-line-m100]="train --task line --agents 100 --comm rc $lattice --init-from coverage-rc-m50-wide $tune --transfer-offsets -50"
-    [swarm-cov-m100-wider]="train --task coverage --agents 100 --comm rc $wider --init-from $wider50 $tune --transfer-offsets -50 100"
 )
-ORDER="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat table1-cov6-uc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc swarm-cov-m100-occ swarm-form-m50 swarm-form-m100-fine swarm-form-m100 swarm-line-m50 swarm-line-m100 swarm-cov-m100-wider"
+ORDER="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat table1-cov6-uc curr-line-rc curr-form-rc table1-cov6-rc table1-line6-rc curr-form-uc table1-cov3-rc"
 DEFAULT="curr-cov-uc-noemp curr-cov-rc-noemp curr-cov-uc curr-cov-rc curr-form-uc-concat curr-form-rc-concat"
 
 dry_run=0

@@ -3,6 +3,7 @@ before use so a wrong file gives a clear error instead of a torch traceback."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import io
 import math
@@ -11,6 +12,7 @@ import zipfile
 
 import torch
 
+import taichi_swarm
 from taichi_swarm.files import (  # noqa: F401
     MAX_CHECKPOINT_BYTES,
     InputFileError,
@@ -20,13 +22,13 @@ from taichi_swarm.files import (  # noqa: F401
     clean_leftovers,
     ensure_writable,
 )
-from trainer import zoo
-from trainer.model import ModelConfig, SwarmPolicy
+from trainer import rundir, zoo
+from trainer.config import to_dict, train_config_from_dict
+from trainer.model import MAX_HIDDEN, MAX_ROUNDS, ModelConfig, SwarmPolicy
+from trainer.ppo import NonFiniteTraining, all_finite
 from trainer.rundir import CHECKPOINT, POLICY
 from trainer.zoo import file_sha256
 
-MAX_ROUNDS = 64  # message rounds (the export manifest's schema has the same bound)
-MAX_HIDDEN = 4096  # hidden width: 4096 is ~170 M weights, 0.7 GB
 MAX_LANDMARKS = 1024  # of a "concat" network
 MAX_UPDATES = 10**9  # PPO updates of one run: at one update a second, 30 years
 
@@ -460,3 +462,136 @@ def check_counters(where: str, counters, steps_per_update: int | None = None) ->
 def check_rng_state(where: str, state) -> torch.Tensor:
     """torch's CPU generator state: a uint8 vector of the size this torch uses."""
     return check_tensor(where, state, shape=torch.get_rng_state().shape, dtype=torch.uint8)
+
+
+# ----------------------------------------------------------------------------- a run's checkpoints
+
+
+def open_run(cfg, resume: str | None, overrides: dict | None = None):
+    """The run directory of a new run, or of one to resume (its checkpoint checked, its
+    config read back, leftovers of a killed write repaired; ``overrides``: the config fields a
+    resume changes, e.g. updates, progress). Returns (run, cfg, payload: None for a new run)."""
+
+    if resume is None:
+        if cfg is None:
+            raise ValueError("train() needs a config or a run directory to resume")
+        run = rundir.RunDir(cfg.default_run_dir())
+        if os.path.exists(run.checkpoint):
+            raise FileExistsError(
+                f"{run.path} already holds a run; continue it with --resume {run.path} or pick another --run-dir"
+            )
+        os.makedirs(run.path, exist_ok=True)
+        cfg.validate()
+        run.truncate_metrics(0)  # lines a run killed before its first checkpoint left behind
+        run.write_config(cfg)
+        return run, cfg, None
+    run = rundir.RunDir(resume)
+    clean_leftovers(run.path)  # a kill during a write leaves a .tmp-* file
+    payload = load(run.checkpoint)
+    if "train_config" not in payload:
+        raise CheckpointError(f"{run.checkpoint} is not a training checkpoint (no train_config)")
+    lacking = [k for k in rundir.RESUME_KEYS if k not in payload]
+    if lacking:
+        raise CheckpointError(f"{run.checkpoint} cannot resume a run: it lacks {lacking}")
+    check_counters(run.checkpoint, payload["counters"])  # (before policy.pt is repaired from them)
+    try:
+        cfg = train_config_from_dict(payload["train_config"])
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(
+            f"{run.checkpoint} holds a training config this version cannot read: {exc}"
+        ) from None
+    check_counters(run.checkpoint, payload["counters"], cfg.ppo.num_steps * cfg.ppo.num_envs)
+    model_config_from_payload(payload, run.checkpoint)  # (policy.pt is written from it)
+    if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
+        if load(run.policy)["counters"] != payload["counters"]:
+            save_policy_only(payload, run.policy)
+    cfg = dataclasses.replace(cfg, **(overrides or {}))
+    run.truncate_metrics(payload["counters"]["update"])
+    cfg.validate()
+    run.write_config(cfg)
+    return run, cfg, payload
+
+
+# ----------------------------------------------------------------------------- checkpoints
+
+
+def env_state(env) -> dict:
+    """``env.snapshot()`` as torch tensors (checkpoints load with weights_only=True)."""
+    snap = env.snapshot()
+    return {"shape": list(snap["shape"]), "buffers": {k: torch.from_numpy(v) for k, v in snap["buffers"].items()}}
+
+
+def save_checkpoint(run: rundir.RunDir, state, cfg) -> None:
+    """pt (everything to resume bit-identically), then policy.pt (weights only).
+    A state holding NaN/inf is never written: the last good checkpoint stays."""
+
+    moments = [t for entry in state.optimizer.state.values() for t in entry.values() if isinstance(t, torch.Tensor)]
+    if not all_finite(list(state.policy.parameters()) + moments):
+        raise NonFiniteTraining(
+            f"the weights or Adam's moments hold NaN/inf: not written (last good checkpoint: {run.checkpoint})"
+        )
+    payload = {
+        "model_config": state.policy.config.to_dict(),
+        "model": state.policy.state_dict(),
+        "task": taichi_swarm.TaskSetting(cfg.task, cfg.agents, cfg.comm, cfg.comm_radius).to_dict(),
+        "swarm": cfg.swarm_options(),  # the neighbour lists / density scaling it trained on ({}: dense)
+        "counters": dict(state.counters),
+        "evals": list(state.evals),
+        "optimizer": state.optimizer.state_dict(),
+        "env_states": [env_state(g.env) for g in state.groups],
+        "reward_scalers": [g.scaler.state_dict() for g in state.groups],
+        "torch_rng": torch.get_rng_state(),
+        # on a GPU, sampling and minibatch shuffles draw from CUDA's generators
+        "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else [],
+        "train_config": to_dict(cfg),
+    }
+    save(run.checkpoint, payload)
+    save_policy_only(payload, run.policy)
+
+
+def restore_env(env, saved, where: str) -> dict:
+    """``env.restore`` from a checkpoint's entry (its buffers checked by ``restore``)."""
+
+    if not isinstance(saved, dict) or not isinstance(saved.get("buffers"), dict):
+        raise CheckpointError(f"checkpoint {where} is not an environment state")
+    buffers = {}
+    for name, t in saved["buffers"].items():
+        buffers[name] = check_tensor(f"{where}.buffers.{name}", t, finite=False).numpy()
+    try:
+        return env.restore({"shape": tuple(saved.get("shape", ())), "buffers": buffers})
+    except ValueError as exc:
+        raise CheckpointError(f"checkpoint {where}: {exc}") from None
+
+
+def restore(state, payload: dict, device: str) -> None:
+    """Put a training state (trainer.ppo.TrainingState, freshly built for the run's config)
+    back as the checkpoint ``payload`` holds it: weights, Adam, reward normalisers, RNG
+    states, counters, evaluations and every environment's buffers. Every piece is checked
+    (shape, dtype, finite) before it is used."""
+    import torch
+
+
+    groups = state.groups
+    sizes = [g.agents for g in groups]
+    load_weights(state.policy, payload["model"])
+    check_optimizer_state("checkpoint", payload["optimizer"], state.policy)
+    state.optimizer.load_state_dict(payload["optimizer"])
+    scaler_states = payload["reward_scalers"]
+    if not isinstance(scaler_states, list) or len(scaler_states) != len(groups):
+        raise CheckpointError(f"the checkpoint does not hold one reward scaler per team size {sizes}")
+    for g, scaler_state in zip(groups, scaler_states, strict=True):
+        check_scaler_state("checkpoint", scaler_state, g.scaler.ret.shape[0])
+        g.scaler.load_state_dict(scaler_state)
+    torch.set_rng_state(check_rng_state("checkpoint torch_rng", payload["torch_rng"]))
+    cuda_rng = payload["cuda_rng"]
+    for i, t in enumerate(cuda_rng):
+        check_tensor(f"checkpoint cuda_rng[{i}]", t, dtype=torch.uint8)
+    if device.startswith("cuda") and len(cuda_rng) == torch.cuda.device_count():  # (not: another machine)
+        torch.cuda.set_rng_state_all(cuda_rng)
+    state.counters = dict(check_counters("checkpoint", payload["counters"]))
+    state.evals = list(payload["evals"])
+    env_states = payload["env_states"]
+    if not isinstance(env_states, list) or len(env_states) != len(groups):
+        raise CheckpointError(f"the checkpoint's env_states do not hold one state per team size {sizes}")
+    for k, g in enumerate(groups):  # resume bit-identically: the environments' buffers as they were
+        g.obs = restore_env(g.env, env_states[k], f"env_states[{k}]")

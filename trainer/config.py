@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from taichi_swarm import COMMS, NUM_ACTIONS, TASK_SPECS, TASKS, num_actions
-from trainer.checkpoint import MAX_HIDDEN, MAX_ROUNDS
-from trainer.model import ENTITY_MODES, ModelConfig
+from trainer.evaluate import swarm_options
+from trainer.model import ENTITY_MODES, MAX_HIDDEN, MAX_ROUNDS, ModelConfig
 
 # Options of experiments that lost, with the value that meant "off": a stored run that set one
 # needs the release that still had it (the git tag swarm-chains; docs/FINDINGS.md)
@@ -374,8 +374,6 @@ class TrainConfig:
 
     def swarm_options(self) -> dict:
         """The simulator's neighbour-list, density and action-set options that are set (``make()`` keywords)."""
-        from trainer.evaluate import swarm_options
-
         return swarm_options(
             self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
             self.landmark_occupancy, self.action_space, self.landmark_order, self.auction_rounds,

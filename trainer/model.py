@@ -35,6 +35,8 @@ from torch import nn
 from taichi_swarm.layout import EDGE_POSITIONS, ENTITY_MODES, SELF_DIM
 from taichi_swarm.physics import NUM_ACTIONS, NUM_FINE_ACTIONS
 
+MAX_ROUNDS = 64  # message rounds (the export manifest's schema has the same bound)
+MAX_HIDDEN = 4096  # hidden width: 4096 is ~170 M weights, 0.7 GB
 PADDED_SLOTS = 10  # the paper's "without EMP" baseline: 10 landmarks x 2 = 20 inputs
 MASK_FILL = -1e9  # finite: an all-masked row must not turn into NaN (and exports cleanly)
 SELF_POSITIONS = ("absolute", "none")

@@ -19,7 +19,7 @@ import time
 import torch
 
 import taichi_swarm
-from trainer import checkpoint, rundir
+from trainer import checkpoint
 from trainer.config import TrainConfig
 from trainer.evaluate import evaluate
 from trainer.model import ModelConfig, SwarmPolicy
@@ -185,7 +185,7 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
         groups.append(TeamGroup(size, env, {}, Rollout.for_env(p.num_steps, env, device, rounds), scaler))
     state = TrainingState(policy, optimizer, groups, fresh_counters(), [])
     if payload is not None:
-        rundir.restore(state, payload, device)
+        checkpoint.restore(state, payload, device)
     else:
         for k, g in enumerate(groups):
             g.obs = g.env.reset(seed=train_seed(cfg.seed, k))
@@ -299,7 +299,7 @@ def train_or_resume(cfg: TrainConfig) -> dict:
 
 
 def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
-    run, cfg, payload = rundir.open_run(cfg, resume, overrides)
+    run, cfg, payload = checkpoint.open_run(cfg, resume, overrides)
     check_arch(cfg.arch)
     device = resolve_device(cfg.device)
     state = build_state(cfg, payload, device)
@@ -328,7 +328,7 @@ def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
                 counters["wall_time"] = record["wall_time"] = time.perf_counter() - start_wall
                 reporter.report(record, last_eval)
                 if counters["update"] % cfg.checkpoint_every == 0 or done or stop.pending is not None:
-                    rundir.save_checkpoint(run, state, cfg)
+                    checkpoint.save_checkpoint(run, state, cfg)
                     saved = counters["update"]
                 if done:
                     break
@@ -336,7 +336,7 @@ def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
         except KeyboardInterrupt:
             if stop.pending is None:  # raised in code, not by a signal (a callback, a test): as Ctrl-C was
                 counters["wall_time"] = time.perf_counter() - start_wall
-                rundir.save_checkpoint(run, state, cfg)
+                checkpoint.save_checkpoint(run, state, cfg)
                 saved = counters["update"]
             reporter.close()
             if saved == counters["update"]:
@@ -347,7 +347,7 @@ def _train_locked(cfg, resume, on_update, overrides: dict) -> dict:
                 print(f"\ninterrupted: resume from update {saved} with: swarm train --resume {run.path}")
             raise
         reporter.close()
-        rundir.save_checkpoint(run, state, cfg)
+        checkpoint.save_checkpoint(run, state, cfg)
         summary = {
             "run_dir": run.path,
             **counters,

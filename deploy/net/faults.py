@@ -3,9 +3,8 @@ anything): every message of one world's link j -> i (j != i) goes through ``Link
 
     drop p                independent loss of each message with probability p
     burst_loss q, burst_len n
-                          Gilbert-Elliott loss: a two-state chain per link, good (delivers) and
-                          bad (loses); stationary loss q, mean length of a loss burst n messages
-                          (P(bad -> good) = 1/n, P(good -> bad) = q / (n (1 - q)))
+                          Gilbert-Elliott loss (deploy/loss.py): a two-state chain per link,
+                          stationary loss q, mean length of a loss burst n messages
     latency_ms, jitter_ms each message arrives latency + U(-jitter, +jitter) ms late (at least 0)
     reorder p             a message is held back with probability p and delivered after the next
                           message on its link (or after reorder_hold_ms if none comes)
@@ -25,6 +24,8 @@ from typing import Annotated
 import numpy as np
 import tyro
 
+from deploy.loss import GilbertElliott
+from deploy.loss import check as check_burst
 from deploy.net.limits import MAX_SECONDS
 
 
@@ -62,10 +63,7 @@ class FaultSpec:
                 raise FaultError(
                     f"--{name.replace('_', '-')} must be a probability in [0, 1], got {getattr(self, name)}"
                 )
-        if not 0.0 <= self.burst_loss < 1.0:
-            raise FaultError(f"--burst-loss must be in [0, 1), got {self.burst_loss}")
-        if not (self.burst_len >= 1.0 and np.isfinite(self.burst_len)):
-            raise FaultError(f"--burst-len must be >= 1 message and finite, got {self.burst_len}")
+        check_burst(self.burst_loss, self.burst_len, FaultError)
         for name in ("latency_ms", "jitter_ms", "reorder_hold_ms"):  # (an hour at most, as every wait: limits.py)
             if not 0.0 <= getattr(self, name) <= MAX_SECONDS * 1e3:
                 option, value = f"--{name.replace('_', '-')}", getattr(self, name)
@@ -102,9 +100,7 @@ class LinkFaults:
         self.round_deadline = round_deadline
         self._rng = np.random.default_rng([spec.seed, receiver, 0x5EED])
         self._bad: dict[tuple[int, int], bool] = {}  # Gilbert-Elliott state per (world, sender)
-        if spec.burst_loss > 0:
-            self._to_good = 1.0 / spec.burst_len
-            self._to_bad = spec.burst_loss * self._to_good / (1.0 - spec.burst_loss)
+        self._burst = GilbertElliott(spec.burst_loss, spec.burst_len, FaultError)
         self.injected_losses = 0
 
     def fate(self, world: int, sender: int, round_: int):
@@ -113,10 +109,8 @@ class LinkFaults:
         if s.burst_loss > 0:
             link = (world, sender)
             bad = self._bad.get(link)
-            if bad is None:  # start in the stationary distribution
-                bad = rng.random() < s.burst_loss
-            else:
-                bad = (rng.random() >= self._to_good) if bad else (rng.random() < self._to_bad)
+            u = rng.random()
+            bad = bool(self._burst.start(u) if bad is None else self._burst.step(bad, u))
             self._bad[link] = bad
             lost = lost or bad
         if lost:

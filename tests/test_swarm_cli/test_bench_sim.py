@@ -197,15 +197,13 @@ def test_gpu_campaign_script_arguments(tmp_path):
     r = subprocess.run([script, "--list"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     jobs = dict(line.split(": swarm ", 1) for line in r.stdout.splitlines())
-    assert len(jobs) == 20 and {"table1-cov6-uc", "curr-cov-rc", "curr-cov-uc-noemp", "swarm-cov-m100-occ"} <= set(jobs)
+    assert len(jobs) == 13 and {"table1-cov6-uc", "curr-cov-rc", "curr-cov-uc-noemp"} <= set(jobs)
     for name, command in jobs.items():
         argv = shlex.split(command)
         config_type = TrainConfig if argv[0] == "train" else CurriculumConfig
         cfg = config_from_argv(argv[1:], f"swarm {argv[0]}", config_type)
         assert cfg.preset == "gpu" and cfg.device == "cuda" and cfg.arch == "cuda", name
-        # the swarm stages at M = 50 / 100 take 512 environments (0.8 M agent-samples per update)
-        want_envs = 512 if name.startswith("swarm-") and name != "swarm-cov-m100-occ" else 4096
-        assert cfg.ppo.num_envs == want_envs and cfg.ppo.minibatches == 16, name
+        assert cfg.ppo.num_envs == 4096 and cfg.ppo.minibatches == 16, name
         if cfg.init_from.startswith("results/"):  # a policy the tree holds, not a zoo name
             assert os.path.exists(os.path.join(os.path.dirname(script), "..", cfg.init_from)), name
         want_mode = "concat" if name.endswith("-concat") else "padded" if name.endswith("-noemp") else "emp"

@@ -95,19 +95,9 @@ def test_api_fuzz():
 
 
 @pytest.fixture(scope="module")
-def tiny_policy(tmp_path_factory):
-    import torch
-
-    from trainer.checkpoint import save
-    from trainer.model import ModelConfig, SwarmPolicy
-
-    torch.manual_seed(0)
-    policy = SwarmPolicy(ModelConfig(hidden=8, rounds=1))
-    d = tmp_path_factory.mktemp("fuzz")
-    path = str(d / "p.pt")
-    task = {"task": "coverage", "agents": 2, "comm": "uc", "comm_radius": 1.0}
-    save(path, {"model_config": policy.config.to_dict(), "model": policy.state_dict(), "task": task})
-    return path, d
+def tiny_policy(tiny_policy_file, tmp_path_factory):
+    """(conftest's tiny policy file, a folder of this module's own for outputs)"""
+    return tiny_policy_file, tmp_path_factory.mktemp("fuzz")
 
 
 def test_cli_fuzz(tiny_policy):

@@ -28,18 +28,8 @@ def disk_full(*args, **kwargs):
 
 
 @pytest.fixture(scope="module")
-def policy(tmp_path_factory):
-    import torch
-
-    from trainer.checkpoint import save
-    from trainer.model import ModelConfig, SwarmPolicy
-
-    torch.manual_seed(0)
-    net = SwarmPolicy(ModelConfig(hidden=8, rounds=1))
-    path = str(tmp_path_factory.mktemp("policy") / "p.pt")
-    task = {"task": "coverage", "agents": 2, "comm": "uc", "comm_radius": 1.0}
-    save(path, {"model_config": net.config.to_dict(), "model": net.state_dict(), "task": task})
-    return path
+def policy(tiny_policy_file):
+    return tiny_policy_file
 
 
 def test_a_video_that_fails_to_write_leaves_nothing(policy, tmp_path, monkeypatch):

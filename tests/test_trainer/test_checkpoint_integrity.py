@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from trainer import checkpoint
+from trainer.checkpoint import save_checkpoint
 from trainer.config import PPOConfig, TrainConfig
 from trainer.model import ModelConfig, SwarmPolicy
 from trainer.ppo import NonFiniteTraining, ppo_update
-from trainer.rundir import save_checkpoint
 from trainer.train import build_state, train
 
 

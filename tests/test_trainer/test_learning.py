@@ -1,6 +1,7 @@
 """One real learning check: a tiny configuration must improve within a bounded
 number of updates (it fails if PPO, GAE, the network or the env are broken)."""
 
+import pytest
 import torch
 
 from trainer.config import PPOConfig, TrainConfig
@@ -8,6 +9,7 @@ from trainer.model import ModelConfig
 from trainer.train import train
 
 
+@pytest.mark.slow  # 40 PPO updates and 200 evaluation episodes: a learning test
 def test_single_agent_coverage_learns(tmp_path):
     cfg = TrainConfig(
         task="coverage",
