@@ -317,6 +317,13 @@ class TrainConfig:
                 f"ppo.minibatches ({self.ppo.minibatches}) must be >= the number of team_sizes "
                 f"({len(self.team_sizes)}): every minibatch holds one size"
             )
+        if self.model.num_landmarks:  # the trainer sets it from the task; another value would be dropped silently
+            L = TASK_SPECS[self.task].num_landmarks(self.agents)
+            if self.model.entity_mode != "concat" or self.model.num_landmarks != L:
+                raise ValueError(
+                    f"model.num_landmarks follows the task (concat: {self.task} at M = {self.agents} has {L}): "
+                    "leave it unset"
+                )
         if self.team_sizes and self.model.entity_mode == "concat" and self.task == "coverage":
             raise ValueError("entity_mode='concat' has a fixed number of landmarks: coverage's L changes with M")
         if self.torch_threads < 1:
