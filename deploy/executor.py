@@ -51,142 +51,15 @@ acts on losses only, so it is refused with a delay, where every message is late 
 
 from __future__ import annotations
 
-import hashlib
-import os
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-import onnxruntime as ort
 
 from deploy.loss import GilbertElliott
 from deploy.loss import check as check_burst
-from deploy.manifest import FORMAT, MANIFEST, ManifestError, check_onnx, edge_position, parse, validate
-from taichi_swarm.files import MAX_ONNX_BYTES, InputFileError, read_input
+from deploy.policy import DeployError, ExportedModel, Pieces
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
-
-
-class DeployError(ValueError):
-    """An export directory, its manifest or the requested setting does not fit."""
-
-
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-class ExportedModel:
-    """An export directory, read once and verified: manifest plus the bytes of every .onnx file."""
-
-    def __init__(self, directory: str):
-        if not os.path.exists(directory):
-            raise DeployError(f"export directory {directory} does not exist (run `swarm export CKPT --out DIR`)")
-        if not os.path.isdir(directory):
-            raise DeployError(f"{directory} is not a directory (pass the folder `swarm export` wrote)")
-        path = os.path.join(directory, MANIFEST)
-        if not os.path.exists(path):
-            raise DeployError(f"{directory} has no {MANIFEST}: not a `swarm export` directory")
-        try:  # a regular file of bounded size: a FIFO would block, /dev/zero fill the memory
-            manifest = parse(read_input(path, "manifest"), path)  # (at most MAX_DEPTH deep)
-        except (InputFileError, ManifestError) as exc:
-            raise DeployError(str(exc)) from None
-        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-            raise DeployError(f"{path} is not a taichi-swarm ONNX manifest")
-        try:
-            validate(manifest, path)
-        except ManifestError as exc:
-            raise DeployError(str(exc)) from None
-        self.directory = directory
-        self.manifest = manifest
-        self.rounds: int = int(manifest["rounds"])
-        self.hidden: int = int(manifest["hidden"])
-        self.entity_mode: str = manifest["entity_mode"]
-        self.edge_position: str = edge_position(manifest)
-        self.task: dict = manifest["task"]
-        self.models: dict[str, bytes] = {}
-        files = {name: os.path.join(directory, entry["file"]) for name, entry in manifest["files"].items()}
-        missing = [f for f in files.values() if not os.path.exists(f)]
-        if missing:
-            raise DeployError(f"{', '.join(missing)} missing (listed in {MANIFEST}): export again")
-        for name, entry in manifest["files"].items():
-            file = files[name]
-            try:
-                data = read_input(file, "ONNX model", MAX_ONNX_BYTES)
-            except InputFileError as exc:
-                raise DeployError(str(exc)) from None
-            if _sha256(data) != entry["sha256"]:
-                raise DeployError(
-                    f"{file} does not match the sha256 in {MANIFEST}: the file is corrupted or "
-                    "was changed after export; export again"
-                )
-            try:
-                check_onnx(manifest, name, data, file)
-            except ManifestError as exc:
-                raise DeployError(str(exc)) from None
-            self.models[name] = data
-
-    def check_landmarks(self, task: str, num_landmarks: int) -> None:
-        """Raise DeployError if this network cannot take ``num_landmarks`` landmark offsets."""
-        if self.entity_mode == "concat" and num_landmarks != self.manifest["num_landmarks"]:
-            raise DeployError(
-                f"this model concatenates {self.manifest['num_landmarks']} landmark offsets (entity_mode 'concat', "
-                f"trained on {self.task.get('task')!r}); task {task!r} has {num_landmarks} landmarks"
-            )
-        if self.entity_mode == "padded" and num_landmarks > int(self.manifest["max_landmarks"]):
-            raise DeployError(
-                f"this model holds at most {self.manifest['max_landmarks']} landmarks "
-                f"(entity_mode 'padded'); task {task!r} has {num_landmarks}"
-            )
-
-
-def session_options(threads: int = 1) -> ort.SessionOptions:
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    opts.log_severity_level = 3
-    return opts
-
-
-class Pieces:
-    """The exported ONNX pieces, one onnxruntime session each. Sessions hold only weights, so
-    they are stateless functions of the arrays passed in: one ``Pieces`` serves every agent of
-    every environment (``Executor``), or the one agent of a process (``swarm agent``); an agent's
-    state (h, its message) lives in the caller's arrays, and what it computes from is its own."""
-
-    def __init__(self, model: ExportedModel, threads: int = 1):
-        self.rounds = model.rounds
-        self.relative = model.edge_position == "relative"
-        opts = session_options(threads)
-
-        def session(name):
-            return ort.InferenceSession(model.models[name], opts, providers=["CPUExecutionProvider"])
-
-        self._encode = session("encode")
-        self._round = session("round") if self.rounds > 1 else None
-        self._final = session("round_heads" if self.rounds >= 1 else "heads")
-        self._encode_out = ["h", "message"]
-        self._round_out = ["h_out", "message"]  # fetch only what is used: each output costs a copy
-
-    def encode(self, self_obs: np.ndarray, entities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """self_obs [4], entities [L, 2] -> (h [H], the first message [2, H])."""
-        return self._encode.run(self._encode_out, {"self_obs": self_obs, "entities": entities})
-
-    def _heard(self, h, heard, offsets) -> dict:
-        return {"h": h, "heard": heard, "offsets": offsets} if self.relative else {"h": h, "heard": heard}
-
-    def round(self, h: np.ndarray, heard: np.ndarray, offsets: np.ndarray | None = None):
-        """A round that is not the last: h [H], heard [n, 2, H] (from others; relative edges: their
-        senders' offsets [n, 2]) -> (h, next message [2, H])."""
-        return self._round.run(self._round_out, self._heard(h, heard, offsets))
-
-    def decide(self, h: np.ndarray, heard: np.ndarray | None, offsets: np.ndarray | None = None):
-        """The last round and the heads -> (logits [5], attention weights [n + 1], own first)."""
-        if self.rounds == 0:
-            logits, _ = self._final.run(None, {"h": h})
-            return logits, np.ones(1, np.float32)
-        logits, weights = self._final.run(["logits", "weights"], self._heard(h, heard, offsets))
-        return logits, weights
 
 
 class MessageBus:

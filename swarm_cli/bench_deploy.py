@@ -62,8 +62,8 @@ def run(
     import onnxruntime
     import torch
 
-    from deploy.executor import ExportedModel, Pieces
     from deploy.export import export, round_update
+    from deploy.policy import ExportedModel, Pieces
     from trainer import checkpoint as ckpt
     from trainer.model import ModelConfig, SwarmPolicy
 
@@ -150,7 +150,7 @@ class _PerAgentSessions:
     a step is agent k mod (B x M)'s and goes to that agent's sessions."""
 
     def __init__(self, model, agents: int):
-        from deploy.executor import Pieces
+        from deploy.policy import Pieces
 
         self.agents = [Pieces(model) for _ in range(agents)]
         self.k = 0

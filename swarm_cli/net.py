@@ -170,9 +170,9 @@ def _slow(text: str) -> tuple[int, float]:
 # ----------------------------------------------------------------------------- agent
 def agent_main(argv: list[str]) -> int:
     args = parse(AgentOptions, argv, "swarm agent")
-    from deploy.executor import DeployError, ExportedModel
     from deploy.net.agent import NetAgent, check_faults, check_wire
     from deploy.net.transport import Endpoint, TransportError, open_session
+    from deploy.policy import DeployError, ExportedModel
 
     try:
         spec = args.faults

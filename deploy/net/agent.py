@@ -45,11 +45,11 @@ from collections import deque
 
 import numpy as np
 
-from deploy.executor import DeployError, ExportedModel, Pieces
 from deploy.net import protocol as P
 from deploy.net.faults import FaultSpec, LinkFaults
 from deploy.net.limits import check_agent_id, check_seconds
 from deploy.net.transport import Endpoint
+from deploy.policy import DeployError, ExportedModel, Pieces
 
 HELLO_EVERY_S = 0.25
 ALIVE_EVERY_S = 1.0  # the hello's period once the agent is in a run (the world's liveness of a binding)
