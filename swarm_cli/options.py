@@ -155,15 +155,16 @@ class SwarmOptions:
     assignment: Annotated[Literal["exact", "auction", "nearest", "free"] | None, Default(OWN)] = None
     """targets to agents: exact (min-sum), auction, nearest (local, covered by max matching; needs
     --neighbours) or free (nearest, each agent paid by its matched or nearest free target)"""
-    landmark_order: Annotated[Literal["nearest", "claim-zero", "auction"] | None, Default(OWN)] = None
+    landmark_order: Annotated[Literal["nearest", "claim-zero", "auction", "radio"] | None, Default(OWN)] = None
     """landmark lists: the nearest, the landmarks the matching gives no other agent first, a
-    claimed one reading 0 (claim-zero), or only the landmark the agent wins in the auction
-    (auction; with --assignment free); needs the policy's occupancy input"""
+    claimed one reading 0 (claim-zero), or only the landmark the agent wins in the simulator's
+    shared-price auction (auction) or in the agents' own auction by messages to the teammates
+    they hear (radio; both with --assignment free); needs the policy's occupancy input"""
     auction_rounds: Annotated[int | None, Default(OWN, "R")] = None
     """with --landmark-order auction: a budget of R bid rounds a step, the auction carried over
     from step to step (an agent still bidding reads claim-zero lists); 0: the auction solved to
     the end each step, whatever budget the policy trained with (another --landmark-order drops
-    that budget too)"""
+    that budget too); with radio: R message rounds a step (unset: 4)"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")

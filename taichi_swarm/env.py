@@ -36,7 +36,7 @@ import sys
 
 import numpy as np
 
-from . import assignment, auction, kernels, neighbours, rng, runtime
+from . import assignment, auction, kernels, neighbours, radio, rng, runtime
 from .layout import (
     FLOAT_HEADER,
     H_COMM_RC,
@@ -67,8 +67,9 @@ ASSIGNMENTS = ("exact", "auction", "nearest", "free")
 LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
 # landmark lists: the KL nearest; the ones the threshold matching gives no other agent first
 # ("claim-zero"); or the landmark the agent wins in the agents' own auction ("auction": an agent
-# its auction leaves out reads claim-zero lists)
-LANDMARK_ORDERS = ("nearest", "claim-zero", "auction")
+# its auction leaves out reads claim-zero lists); or the one agents agree on by messages to the
+# teammates they hear alone ("radio": radio.py)
+LANDMARK_ORDERS = ("nearest", "claim-zero", "auction", "radio")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -156,6 +157,13 @@ class SwarmEnv:
     from step to step (prices and holders kept at the landmarks) and runs up to R rounds a step,
     each agent without a landmark bidding once a round at the increment auction.ROUND_EPS; an
     agent still bidding reads claim-zero lists (auction.py).
+    landmark_order "radio" (with assignment "nearest" or "free"): the same lists, from an auction
+    the agents run by messages alone (radio.py): each keeps its own table (landmark id, epoch,
+    price, holder) over the landmarks it senses and merges, each of auction_rounds R rounds a step
+    (None: radio.DEFAULT_ROUNDS = 4; at most radio.MAX_ROUNDS = 64), the tables of the teammates on
+    its neighbour list; no state is shared per landmark. An agent that holds nothing lists the ones
+    its own table says another holds last, reading 0. info["radio"]: "messages" and "bytes" [B]
+    float32, the tables (radio.ENTRY_BYTES per entry) each agent received in the step, env means.
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
@@ -232,6 +240,13 @@ class SwarmEnv:
         self._check_lists(spec, neighbours, landmark_neighbours, sense_radius, scale)
         if not isinstance(landmark_occupancy, bool):
             raise ValueError(f"landmark_occupancy must be True or False, got {landmark_occupancy!r}")
+        if landmark_order == "radio" and (
+            self.neighbours is None or self.landmark_neighbours is None or not landmark_occupancy
+        ):
+            raise ValueError(
+                "landmark_order='radio' needs neighbours=K, landmark_neighbours=KL and landmark_occupancy=True: agents "
+                "exchange their auction tables with the teammates on their neighbour lists"
+            )
         if landmark_occupancy and (self.neighbours is None or self.landmark_neighbours is None):
             raise ValueError(
                 "landmark_occupancy needs neighbours=K and landmark_neighbours=KL: it is read off the agents' "
@@ -257,16 +272,24 @@ class SwarmEnv:
                 "builds (assignment='auction' is the team's global assignment, another auction)"
             )
         if auction_rounds is not None:
-            if landmark_order != "auction":
+            if landmark_order not in ("auction", "radio"):
                 raise ValueError(
-                    f"auction_rounds is the budget of the agents' own auction: it needs landmark_order='auction', "
-                    f"got {landmark_order!r}"
+                    f"auction_rounds is the budget of the agents' own auction: it needs landmark_order='auction' or "
+                    f"'radio', got {landmark_order!r}"
                 )
-            auction_rounds = _check_int("auction_rounds", auction_rounds, 1, INT32_MAX)
+            top = radio.MAX_ROUNDS if landmark_order == "radio" else INT32_MAX
+            auction_rounds = _check_int("auction_rounds", auction_rounds, 1, top)
+        elif landmark_order == "radio":  # the radio always has a budget: message rounds per step
+            auction_rounds = radio.DEFAULT_ROUNDS
         self.auction_rounds = auction_rounds
         # the budget's bid increment, recorded so equal runs share a key (None: solved to the end)
         auction_eps = None if auction_rounds is None else auction.ROUND_EPS
         self.auction_eps = auction_eps
+        if landmark_order == "radio" and assignment not in LOCAL_ASSIGNMENTS:
+            raise ValueError(
+                f"landmark_order='radio' needs assignment 'nearest' or 'free', got {assignment!r}: its rewards and "
+                "success come from the threshold matching over the agents' grid"
+            )
         if landmark_order != "nearest" and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
                 f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "
@@ -292,8 +315,9 @@ class SwarmEnv:
             | (kernels.NEAREST if assignment in LOCAL_ASSIGNMENTS else 0)
             | (kernels.FREE_TARGET if assignment == "free" else 0)
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
-            | (kernels.CLAIM if landmark_order != "nearest" else 0)
+            | (kernels.CLAIM if landmark_order in ("claim-zero", "auction") else 0)
             | (kernels.WON if landmark_order == "auction" else 0)
+            | (kernels.RADIO if landmark_order == "radio" else 0)
         )
 
         self.arch = runtime.init(arch)
@@ -368,6 +392,8 @@ class SwarmEnv:
                 dims.update(EF=3, LO=L)
             if self.landmark_order == "auction":  # the agents' own auction (auction.local_solve)
                 dims.update(BM=M, BL=L)
+            if self.landmark_order == "radio":  # candidates and each agent's own table; no per-landmark state
+                dims.update(BM=M, RM=M)
         # a grid of the targets instead of the M x M costs
         if self.assignment_method in ("auction", *LOCAL_ASSIGNMENTS):
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
@@ -434,6 +460,10 @@ class SwarmEnv:
                 "in_range": v("in_range"),  # [B, M] how many agents each agent hears
                 "dropped": v("dropped"),  # [B] heard but not listed (more than K), summed over agents
             }
+        if self.landmark_order == "radio":
+            # [B] float32, of the step just taken: messages (tables heard, summed over the rounds) and
+            # their bytes (radio.ENTRY_BYTES per table entry) each agent received, the env's mean
+            self.info["radio"] = {"messages": v("radio_messages"), "bytes": v("radio_bytes")}
         # current state extras (targets for drawing, d*_i, who is matched to what)
         self.targets = v("targets")  # [B, M, 2]
         # assignment="nearest": matched_dist[b, t] = d_t, target t's distance to its nearest agent, and

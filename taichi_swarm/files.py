@@ -18,7 +18,7 @@ MIB = 1 << 20
 MAX_TEXT_BYTES = 64 * MIB
 # protobuf refuses a message over 2 GiB, so no ONNX file beyond it is loadable
 MAX_ONNX_BYTES = 2048 * MIB
-# trainer.checkpoint.MAX_HIDDEN's 0.7 GB of weights, with Adam's two moments beside them
+# trainer.model.MAX_HIDDEN's 0.7 GB of weights, with Adam's two moments beside them
 MAX_CHECKPOINT_BYTES = 4096 * MIB
 
 

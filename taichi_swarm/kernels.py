@@ -25,7 +25,7 @@ env.py).
 
 import taichi as ti
 
-from . import assignment, auction, nearest, neighbours, physics, tasks
+from . import assignment, auction, nearest, neighbours, physics, radio, tasks
 from .layout import (
     H_B,
     H_COMM_RC,
@@ -51,9 +51,11 @@ from .layout import (
 # the landmarks the threshold matching gives no other agent first, a claimed one reading 0 (CLAIM:
 # landmark_order="claim-zero"; needs NEAREST and OCCUPANCY; the holder keeps its landmark while it
 # stays within the threshold), and with CLAIM the landmark an agent wins in the agents' own auction
-# as its one listed landmark (WON: landmark_order="auction", auction.local_solve)
+# as its one listed landmark (WON: landmark_order="auction", auction.local_solve); or the radio
+# auction, agents coordinating through their neighbour lists' messages alone (RADIO:
+# landmark_order="radio", radio.py; needs AGENT_LISTS, LANDMARK_LISTS and OCCUPANCY, not CLAIM)
 AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_TARGET = 1, 2, 4, 8, 16, 64
-CLAIM, WON = 256, 1024
+CLAIM, WON, RADIO = 256, 1024, 2048
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -149,6 +151,11 @@ def write_team_obs(
         for i in range(M):
             auction.candidates(f, ib, b, i)
         auction.local_solve(f, ib, b, M, L)
+    if ti.static(lists & RADIO):  # after the lists: the radio's messages go to the agents listed
+        for i in range(M):
+            auction.candidates(f, ib, b, i)
+            radio.rebuild(f, ib, b, i)
+        radio.rounds(f, ib, u8, b, M, term)
     for i in range(M):
         if ti.static(lists & LANDMARK_LISTS):
             agent_landmarks(lists, f, ib, u8, b, i, term)
@@ -254,7 +261,10 @@ def agent_landmarks(
     nearest agents (``landmark_occupants``); with CLAIM, the distance of the agent the threshold
     matching gives it where that is another agent, else the nearest other agent's distance floored
     at the success threshold (``claimed``). With WON, an agent that won a landmark in the agents'
-    own auction lists it alone, its reading floored at the success threshold."""
+    own auction lists it alone, its reading floored at the success threshold. With RADIO, likewise
+    the landmark it believes it holds (radio_won); an agent holding none lists the landmarks its
+    own table says another agent holds last, reading 0 (radio.held_last), the others their
+    occupancy floored at the success threshold."""
     KL, G = ib[H_KL], ib[H_GL]
     EF = 3 if ti.static(lists & OCCUPANCY) else 2
     ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
@@ -267,11 +277,13 @@ def agent_landmarks(
     row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
     # the search's indices go in row i of ent_idx (one row per agent: agents may search at once)
     idx = blocks.ent_idx.row(ib, IDX, i)
-    rank = ti.static(claim_first if lists & CLAIM else neighbours.by_distance)
+    rank = ti.static(claim_first if lists & CLAIM else radio.held_last if lists & RADIO else neighbours.by_distance)
     ctx = ti.math.ivec2(b, i)
     won = -1
     if ti.static(lists & WON):
         won = ib[blocks.bid_won.env(ib, b) + i]
+    if ti.static(lists & RADIO):
+        won = ib[blocks.radio_won.env(ib, b) + i]
     found = ti.math.ivec2(1, 1)
     if won >= 0:  # WON: the landmark it won, alone
         ib[idx] = won
@@ -287,13 +299,12 @@ def agent_landmarks(
             d = blocks.landmarks.get2(f, ib, LM, ib[idx + k]) - p
         f[row + EF * k], f[row + EF * k + 1] = d[0], d[1]
         if ti.static(lists & OCCUPANCY):
-            claim = ti.static(lists & CLAIM)
             occ = 0.0
             if listed:
                 if won >= 0:  # WON: free to the agent that won it, whoever else is near
                     occ = ti.max(occupancy(f, ib, b, won, i), f[P_SUCCESS])
                 else:
-                    occ = reading(claim, f, ib, b, ib[idx + k], i)
+                    occ = reading(lists, f, ib, b, ib[idx + k], i)
             f[row + EF * k + 2] = occ
 
 
@@ -308,11 +319,16 @@ def claim_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i
 
 
 @ti.func
-def reading(claim: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
-    """Landmark l's occupancy reading for agent i: ``claimed`` under CLAIM, else ``occupancy``."""
+def reading(lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
+    """Landmark l's occupancy reading for agent i: ``claimed`` under CLAIM; under RADIO 0 where
+    its own table says another agent holds l, else ``occupancy`` floored at the success threshold
+    (as ``claimed``); else ``occupancy``."""
     out = 0.0
-    if ti.static(claim & CLAIM):
+    if ti.static(lists & CLAIM):
         out = claimed(f, ib, b, l, i)
+    elif ti.static(lists & RADIO):
+        if not radio.held_by_other(f, ib, b, i, l):
+            out = ti.max(occupancy(f, ib, b, l, i), f[P_SUCCESS])
     else:
         out = occupancy(f, ib, b, l, i)
     return out
@@ -723,6 +739,12 @@ def step_wide_kernel(
             auction.candidates(f, ib, b, i)
         for b in range(B):
             auction.local_solve(f, ib, b, M, L)
+    if ti.static(lists & RADIO):  # each agent's own table in parallel; the rounds per env, as local_solve
+        for b, i in ti.ndrange(B, M):
+            auction.candidates(f, ib, b, i)
+            radio.rebuild(f, ib, b, i)
+        for b in range(B):
+            radio.rounds(f, ib, u8, b, M, False)
     if ti.static(lists & LANDMARK_LISTS):
         for b, i in ti.ndrange(B, M):
             agent_landmarks(lists, f, ib, u8, b, i, False)

@@ -67,6 +67,7 @@ def dense_dims(M: int, L: int) -> dict:
         "LO": 0,
         "BM": 0,
         "BL": 0,
+        "RM": 0,
     }
 
 
@@ -102,6 +103,13 @@ BLOCKS = (
     # the agents' own auction (landmark_order="auction"): its candidates' d^2, each landmark's price
     BlockSpec("bid_d2", "f32", ("BM", "KL")),
     BlockSpec("bid_price", "f32", ("BL",)),
+    # the radio auction (landmark_order="radio", radio.py): each agent's own table of up to KL
+    # entries, keyed by landmark id, and the next round's (double buffer: every agent merges the
+    # tables of the round before); the messages and bytes each agent received per step (env means)
+    BlockSpec("radio_price", "f32", ("RM", "KL")),
+    BlockSpec("radio_next_price", "f32", ("RM", "KL")),
+    BlockSpec("radio_messages", "f32"),
+    BlockSpec("radio_bytes", "f32"),
     BlockSpec("step", "i32"),
     BlockSpec("rng", "i32"),
     BlockSpec("ep_length", "i32"),
@@ -124,6 +132,16 @@ BLOCKS = (
     BlockSpec("bid_holder", "i32", ("BL",)),
     BlockSpec("bid_won", "i32", ("BM",)),
     BlockSpec("bid_stack", "i32", ("BM",)),
+    # the radio auction's tables (landmark id ascending, epoch, holder -1: none), their lengths, and
+    # the landmark each agent believes it holds (-1: none)
+    BlockSpec("radio_lid", "i32", ("RM", "KL")),
+    BlockSpec("radio_epoch", "i32", ("RM", "KL")),
+    BlockSpec("radio_holder", "i32", ("RM", "KL")),
+    BlockSpec("radio_next_lid", "i32", ("RM", "KL")),
+    BlockSpec("radio_next_epoch", "i32", ("RM", "KL")),
+    BlockSpec("radio_next_holder", "i32", ("RM", "KL")),
+    BlockSpec("radio_count", "i32", ("RM",)),
+    BlockSpec("radio_won", "i32", ("RM",)),
     BlockSpec("in_range", "i32", ("N",)),  # how many agents each agent hears
     BlockSpec("dropped", "i32"),  # heard but cut from the lists (more than K), summed over agents
     BlockSpec("grid_start", "i32", ("G1",)),  # agents' cell grid: bucket g holds items[start[g]:start[g+1]]

@@ -174,18 +174,20 @@ class TrainConfig:
     """With neighbours and landmark_neighbours: each sensed landmark also carries its distance
     to the nearest other agent (capped at sense_radius), whether a teammate already holds it;
     the network takes it as a third landmark input (docs/SWARM.md)."""
-    landmark_order: Literal["nearest", "claim-zero", "auction"] = "nearest"
+    landmark_order: Literal["nearest", "claim-zero", "auction", "radio"] = "nearest"
     """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; claim-zero
     (with assignment free), the landmarks the threshold matching gives no other agent listed
     before the others, a claimed one reading 0, so that an agent on a held landmark senses the
     nearest free ones within sense_radius; auction (with assignment free), only the landmark the
     agent wins in an auction over the landmarks each senses (claim-zero lists for an agent that
     wins none): a planner picks the landmark, the network drives. The auction's prices live in
-    the simulator, and the claim readings come from a team-wide matching (docs/SWARM.md)."""
+    the simulator, and the claim readings come from a team-wide matching (docs/SWARM.md);
+    radio (with assignment free), the same lists from an auction the agents run by messages to
+    the teammates they hear alone: decentralised (taichi_swarm/radio.py)."""
     auction_rounds: int | None = None
     """With landmark_order auction: a budget of R bid rounds a step, the auction carried over
     from step to step, an agent still bidding reading claim-zero lists (None: the auction
-    solved to the end each step)."""
+    solved to the end each step). With radio: R message rounds a step (None: 4)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""

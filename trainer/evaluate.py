@@ -65,10 +65,10 @@ def swarm_options(
     if auction_rounds is not None:
         if isinstance(auction_rounds, bool) or not isinstance(auction_rounds, numbers.Integral) or auction_rounds < 1:
             raise ValueError(f"auction_rounds must be an integer >= 1, got {auction_rounds!r}")
-        if landmark_order != "auction":
+        if landmark_order not in ("auction", "radio"):
             raise ValueError(
-                f"auction_rounds is the budget of the agents' own auction: it needs landmark_order 'auction' "
-                f"(--landmark-order auction), got {landmark_order!r}"
+                f"auction_rounds is the budget of the agents' own auction: it needs landmark_order 'auction' or "
+                f"'radio' (--landmark-order), got {landmark_order!r}"
             )
     if landmark_order == "nearest":  # the default: recorded as unset
         given["landmark_order"] = None
