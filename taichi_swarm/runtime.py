@@ -47,6 +47,8 @@ def init(arch: str = "cpu") -> str:
     threads = int(os.environ.get("TAICHI_SWARM_THREADS", "0"))
     if threads > 0:  # default: Taichi uses every core
         extra["cpu_max_num_threads"] = threads
+    if "TI_LOG_LEVEL" not in os.environ:  # (set, it wins: Taichi warns when an argument overrides it)
+        extra["log_level"] = ti.WARN
     ti.init(
         arch=ti.cuda if want == "cuda" else ti.cpu,
         offline_cache=True,
@@ -54,7 +56,6 @@ def init(arch: str = "cpu") -> str:
         default_fp=ti.f32,
         default_ip=ti.i32,
         random_seed=0,
-        log_level=ti.WARN,
         **extra,
     )
     _state["arch"] = want
