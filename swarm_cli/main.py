@@ -12,10 +12,8 @@ import signal
 import sys
 import threading
 
-# Taichi prints a version banner when imported and its arch when initialised; a command's
-# output is the command's own (warnings and errors still show; Taichi reads both at import)
+# Taichi prints a version banner when imported; a command's output is the command's own
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
-os.environ.setdefault("TI_LOG_LEVEL", "warn")
 
 # name -> (module:function, one-line help)
 COMMANDS = {

@@ -7,6 +7,8 @@ rather than a silent re-initialisation that would invalidate live buffers.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 
 import taichi as ti
@@ -47,17 +49,19 @@ def init(arch: str = "cpu") -> str:
     threads = int(os.environ.get("TAICHI_SWARM_THREADS", "0"))
     if threads > 0:  # default: Taichi uses every core
         extra["cpu_max_num_threads"] = threads
-    if "TI_LOG_LEVEL" not in os.environ:  # (set, it wins: Taichi warns when an argument overrides it)
-        extra["log_level"] = ti.WARN
-    ti.init(
-        arch=ti.cuda if want == "cuda" else ti.cpu,
-        offline_cache=True,
-        offline_cache_file_path=cache_dir,
-        default_fp=ti.f32,
-        default_ip=ti.i32,
-        random_seed=0,
-        **extra,
-    )
+    # ti.init prints its arch unconditionally (a plain print, whatever the log level): a caller's
+    # output is the caller's own
+    with contextlib.redirect_stdout(io.StringIO()):
+        ti.init(
+            arch=ti.cuda if want == "cuda" else ti.cpu,
+            offline_cache=True,
+            offline_cache_file_path=cache_dir,
+            default_fp=ti.f32,
+            default_ip=ti.i32,
+            random_seed=0,
+            log_level=ti.WARN,
+            **extra,
+        )
     _state["arch"] = want
     return want
 
