@@ -497,9 +497,7 @@ def open_run(cfg, resume: str | None, overrides: dict | None = None):
     try:
         cfg = train_config_from_dict(payload["train_config"])
     except (TypeError, ValueError) as exc:
-        raise CheckpointError(
-            f"{run.checkpoint} holds a training config this version cannot read: {exc}"
-        ) from None
+        raise CheckpointError(f"{run.checkpoint} holds a training config this version cannot read: {exc}") from None
     check_counters(run.checkpoint, payload["counters"], cfg.ppo.num_steps * cfg.ppo.num_envs)
     model_config_from_payload(payload, run.checkpoint)  # (policy.pt is written from it)
     if os.path.exists(run.policy):  # a kill between the two writes leaves policy.pt one behind
@@ -569,7 +567,6 @@ def restore(state, payload: dict, device: str) -> None:
     states, counters, evaluations and every environment's buffers. Every piece is checked
     (shape, dtype, finite) before it is used."""
     import torch
-
 
     groups = state.groups
     sizes = [g.agents for g in groups]

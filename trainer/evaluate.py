@@ -132,7 +132,8 @@ def _evaluate(
 
     env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed, **swarm)
     desc = f"{task} M={agents} {comm}, {episodes} episodes (compiling on first use)"
-    bar = tqdm(total=env.params["max_steps"], desc=desc, unit="step", leave=False, disable=not progress)
+    # (disable=None: tqdm draws only on a terminal, so a log file gets no bar)
+    bar = tqdm(total=env.params["max_steps"], desc=desc, unit="step", leave=False, disable=None if progress else True)
     fused = policy.fused_weights()  # computed once: the weights do not change here
     generator = torch.Generator(device).manual_seed(seed) if actions == "sampled" else None
 
