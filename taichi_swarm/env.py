@@ -83,6 +83,7 @@ WIDE_CPU_AGENTS = 2048
 
 
 INT32_MAX = 2**31 - 1
+MAX_LIST = 1024  # the widest neighbour or landmark list (K, KL) make() takes
 LARGE_TEAM = 64  # from this team size, say that kernels are compiling (it takes a while)
 _ANNOUNCED_CAPACITIES: set[int] = set()
 
@@ -348,7 +349,8 @@ class SwarmEnv:
         self._seeded = False
 
     def _check_lists(self, spec, neighbours, landmark_neighbours, sense_radius, scale) -> None:
-        self.neighbours = None if neighbours is None else _check_int("neighbours", neighbours, 1)
+        # lists take B x M x K slots: bounded before anything is allocated (no policy lists more)
+        self.neighbours = None if neighbours is None else _check_int("neighbours", neighbours, 1, MAX_LIST)
         if landmark_neighbours is not None:
             if not spec.landmark_lists:
                 raise ValueError(
@@ -357,8 +359,10 @@ class SwarmEnv:
                 )
             if sense_radius is None:
                 raise ValueError("landmark_neighbours needs sense_radius (how far an agent senses landmarks)")
-            landmark_neighbours = _check_int("landmark_neighbours", landmark_neighbours, 1)
+            landmark_neighbours = _check_int("landmark_neighbours", landmark_neighbours, 1, MAX_LIST)
             sense_radius = _check_float("sense_radius", sense_radius, 0.0)
+            if sense_radius == 0.0:  # (as the CLI: a radius of 0 senses nothing)
+                raise ValueError("sense_radius must be > 0, got 0.0")
         elif sense_radius is not None:
             raise ValueError("sense_radius is only used with landmark_neighbours")
         self.landmark_neighbours, self.sense_radius = landmark_neighbours, sense_radius

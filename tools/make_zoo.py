@@ -32,6 +32,16 @@ COMMS = ("uc", "rc")
 SIZES = (3, 5, 6, 7, 10)
 RECIPE_ROOT = "results/reproduce-recipe"
 LARGE_TEAMS = os.path.join(ROOT, "models", "large-teams.toml")
+RADIO_ROOT = "results/radio"
+# the large-team policies on the agents' own auction by messages (landmark_order radio): each a
+# `swarm train` run (its command in docs/SWARM.md) from the shared-price auction entry, then
+# `swarm eval RUN/policy.pt --episodes 100 --seed 777 --json RUN/eval-777.json` (M >= 100: 100
+# episodes, with the fraction covered beside S%)
+RADIO = (
+    ("coverage-rc-m100-radio", "coverage-rc-m100-auction", 6.0),
+    ("line-rc-m100-radio", "line-rc-m100-auction", 3.0),
+    ("formation-rc-m100-radio", "formation-rc-m100-auction", 1.5),
+)
 BEYOND_ROOT = "results/reproduce-beyond"
 # the transfer policy: M = 3 and 4 trained together (beyond spec), the seed of four whose
 # M = 3 policy carried furthest to M = 5 on 500 fresh episodes (x-zs-coverage-uc-m34)
@@ -168,7 +178,57 @@ def build() -> list[dict]:
         entries.append({"name": name, **entry, "summary": summary, "use": USES[name]})
     with open(LARGE_TEAMS, "rb") as f:  # as they are: their spec and its options left main
         entries += tomllib.load(f)["model"]
+    for name, start, sense in RADIO:
+        entry = radio_entry(name, start, sense)
+        if entry is not None:
+            entries.append(entry)
     return entries
+
+
+def radio_entry(name: str, start: str, sense: float) -> dict | None:
+    run = os.path.join(RADIO_ROOT, name)
+    paths = {k: os.path.join(ROOT, run, f) for k, f in (("eval", "eval-777.json"), ("summary", "summary.json"))}
+    if not all(os.path.exists(p) for p in paths.values()):
+        print(f"no result for {name}", file=sys.stderr)
+        return None
+    with open(paths["eval"]) as f:
+        row = json.load(f)
+    with open(paths["summary"]) as f:
+        summary = json.load(f)
+    with open(os.path.join(ROOT, run, "config.json")) as f:
+        config = json.load(f)
+    weights = os.path.join(run, "policy.pt")
+    task = config["task"]
+    return {
+        "name": name,
+        "task": task,
+        "comm": config["comm"],
+        "agents": config["agents"],
+        "comm_radius": config["comm_radius"],
+        "entity_mode": config["model"]["entity_mode"],
+        "weights": weights,
+        "sha256": file_sha256(os.path.join(ROOT, weights)),
+        "spec": "radio",
+        "cell": name,
+        "seed": 0,
+        "trained_on": [config["agents"]],
+        "success": row["success_rate"],
+        "mean_length": round(row["mean_length"], 3),
+        "dist": None if row.get("dist") is None else round(row["dist"], 4),
+        "covered": None if row.get("covered") is None else round(row["covered"], 4),
+        "episodes": row["episodes"],
+        "eval_seed": row["seed"],
+        "updates": summary["update"],
+        "env_steps": summary["env_steps"],
+        "minutes": round(summary["wall_time"] / 60, 1),
+        "zero_shot": {},
+        "curves": os.path.join(run, "curves.png"),
+        "summary": f"{start} trained {summary['update']} more updates on the agents' own auction by messages "
+        f"(landmark_order radio, {config['auction_rounds']} rounds a step)",
+        "use": f"Use it for {task} RC teams of about {config['agents']} where coordination must travel by radio: "
+        f"each agent's landmark comes from an auction the agents run by messages to the teammates they hear "
+        f"(comm radius {config['comm_radius']:g}), sensing landmarks within {sense:g}.",
+    }
 
 
 def _toml_value(value) -> str:

@@ -92,6 +92,8 @@ class ZooEntry:
         seed = f" --first-seed {self.seed}" if self.seed else ""
         if self.spec == FROZEN_SPEC:  # the chain's spec and options live at the tag (models/large-teams.toml)
             return f"git checkout {FROZEN_SPEC} && swarm reproduce --spec swarm --cells {self.cell}{seed}"
+        if self.spec == "radio":  # a swarm train run from another entry (tools/make_zoo.py, RADIO)
+            return f"tools/radio_recipe.sh {self.task}"
         return f"swarm reproduce --spec {self.spec} --cells {self.cell}{seed}"
 
 

@@ -139,3 +139,16 @@ def test_reset_envs_rejects_bad_masks():
         env.reset_envs(np.ones(2, dtype=np.int64))
     with pytest.raises(ValueError, match="mask must have shape"):
         env.reset_envs(np.ones(3, dtype=bool))
+
+
+@pytest.mark.parametrize(
+    "kw, says",
+    [
+        (dict(neighbours=10**8), "neighbours must be <= 1024"),
+        (dict(neighbours=4, landmark_neighbours=10**8, sense_radius=1.0, scale="density"), "landmark_neighbours"),
+        (dict(neighbours=4, landmark_neighbours=4, sense_radius=0.0, scale="density"), "sense_radius must be > 0"),
+    ],
+)
+def test_list_sizes_and_a_zero_sense_radius_are_refused_before_allocation(kw, says):
+    with pytest.raises(ValueError, match=says):
+        taichi_swarm.make("coverage", 2, 5, array="numpy", **kw)
