@@ -248,6 +248,9 @@ def eval_main(argv: list[str]) -> int:
     except USER_ERRORS as exc:
         return fail("swarm eval", exc)
     print(format_table([result]))
+    if "messages_per_agent_step" in result:  # the agents' auction by radio
+        m, b = result["messages_per_agent_step"], result["bytes_per_agent_step"]
+        print(f"auction by radio: {m:.1f} messages ({b / 1e3:.2f} kB) received per agent-step")
     if opts.sampled:
         print(SAMPLED_NOTE)
     if opts.json:

@@ -143,7 +143,11 @@ def _evaluate(
         probs = torch.softmax(logits.float(), -1).reshape(-1, logits.shape[-1])
         return torch.multinomial(probs, 1, generator=generator).view(logits.shape[:-1])
 
+    radio = []  # the agents' auction by messages: (messages, bytes) per agent-step, env means, per step
+
     def decide(obs):
+        if "radio" in env.info:  # what the step before this decision cost on the air
+            radio.append([float(v.mean()) for v in (env.info["radio"]["messages"], env.info["radio"]["bytes"])])
         inputs = policy_inputs(obs, device)
         if recorder is None:
             logits, _ = policy(**inputs, fused=fused)
@@ -163,7 +167,11 @@ def _evaluate(
     finally:
         bar.close()
     header = result_header(task, agents, comm, comm_radius, episodes, seed)
-    return {**header, **swarm, "actions": actions, **tally.summary(task)}
+    on_air = {}
+    if radio:
+        messages, nbytes = (sum(x) / len(radio) for x in zip(*radio, strict=True))
+        on_air = {"messages_per_agent_step": messages, "bytes_per_agent_step": nbytes}
+    return {**header, **swarm, "actions": actions, **tally.summary(task), **on_air}
 
 
 def format_table(rows: list[dict]) -> str:
