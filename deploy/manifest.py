@@ -265,6 +265,15 @@ def metadata(manifest: dict) -> dict[str, str]:
     }
 
 
+# ModelConfig fields added after the first manifests, at the value the network had without them
+LATER_MODEL_FIELDS = {
+    "edge_position": "none",
+    "self_position": "absolute",
+    "landmark_occupancy": False,
+    "num_actions": 5,
+}
+
+
 def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:
     """The graph in ``data`` takes and gives what the manifest says, every static dimension the
     one the manifest implies, and (where it carries them) was exported with the manifest's
@@ -302,7 +311,8 @@ def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:
             recorded = json.loads(props[key])
         except (ValueError, RecursionError):
             recorded = None
-        claimed = manifest[field]
+        # a field a manifest older than it lacks reads as the value it had before the field existed
+        claimed = {**(LATER_MODEL_FIELDS if field == "model_config" else {}), **manifest[field]}
         if not isinstance(recorded, dict):
             raise ManifestError(f"{where}: its metadata {key} is not a JSON object")
         for name in sorted(set(recorded) | set(claimed)):

@@ -283,7 +283,7 @@ def test_a_cell_trains_on_several_team_sizes_at_once(tmp_path, capsys):
 
 
 def test_unknown_spec_name_lists_the_shipped_ones():
-    with pytest.raises(SpecError, match=r"\(beyond, paper, quick, recipe, smoke, swarm\)"):
+    with pytest.raises(SpecError, match=r"\(beyond, paper, quick, recipe, smoke\)"):
         load_spec("no-such-spec")
 
 

@@ -75,7 +75,8 @@ def test_resume_drops_metrics_written_after_the_checkpoint(tmp_path):
     cfg = tiny(tmp_path, updates=3, checkpoint_every=2)
     train(cfg)  # checkpoints at 2 and at the end (3)
     payload = checkpoint.load(cfg.run_dir)
-    payload["counters"]["update"] = 2  # pretend the run died right after update 3 was logged
+    counters = payload["counters"]  # pretend the run died right after update 3 was logged
+    counters["env_steps"], counters["update"] = counters["env_steps"] // counters["update"] * 2, 2
     checkpoint.save(os.path.join(cfg.run_dir, "checkpoint.pt"), payload)
     train(resume=cfg.run_dir)
     lines = [json.loads(x)["update"] for x in open(os.path.join(cfg.run_dir, "metrics.jsonl"))]
