@@ -53,18 +53,8 @@ def refused(argv: list[str], *words: str) -> str:
 
 
 @pytest.fixture(scope="module")
-def policy(tmp_path_factory):
-    import torch
-
-    from trainer.checkpoint import save
-    from trainer.model import ModelConfig, SwarmPolicy
-
-    torch.manual_seed(0)
-    net = SwarmPolicy(ModelConfig(hidden=8, rounds=1))
-    path = str(tmp_path_factory.mktemp("policy") / "p.pt")
-    task = {"task": "coverage", "agents": 2, "comm": "uc", "comm_radius": 1.0}
-    save(path, {"model_config": net.config.to_dict(), "model": net.state_dict(), "task": task})
-    return path
+def policy(tiny_policy_file):
+    return tiny_policy_file  # (conftest's: read, never written)
 
 
 @pytest.fixture(scope="module")
