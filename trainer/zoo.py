@@ -170,10 +170,7 @@ def select(entries: list[ZooEntry], task: str | None = None, comm: str | None = 
     chosen = [e for e in entries if task in (None, e.task) and comm in (None, e.comm)]
     if agents is None:
         return chosen
-    best: dict[tuple[str, str], ZooEntry] = {}
-    for e in chosen:
-        key = (e.task, e.comm)
-        gap = abs(math.log(e.agents / agents))
-        if key not in best or (gap, -e.success) < (abs(math.log(best[key].agents / agents)), -best[key].success):
-            best[key] = e
-    return [e for e in chosen if best.get((e.task, e.comm)) is e]
+    best = {}
+    for e in sorted(chosen, key=lambda e: (abs(math.log(e.agents / agents)), -e.success)):
+        best.setdefault((e.task, e.comm), e)  # the first of each setting is the nearest
+    return [e for e in chosen if best[(e.task, e.comm)] is e]

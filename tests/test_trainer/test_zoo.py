@@ -93,8 +93,8 @@ def test_a_large_team_policy_evaluates_in_its_own_setting_as_loaded():
     lists it was trained on, with no setting passed; {} asks for the dense layout it cannot take."""
     from trainer.evaluate import evaluate
 
-    policy, payload = load_policy("coverage-rc-m100-auction-r4")
-    assert policy.trained_swarm == payload["swarm"] and payload["swarm"]["auction_rounds"] == 4
+    policy, payload = load_policy("coverage-rc-m100-radio")
+    assert policy.trained_swarm == payload["swarm"] and payload["swarm"]["auction_rounds"] == 8
     out = evaluate(policy, "coverage", 12, "rc", 1.0, episodes=2, seed=777)
     assert 0 <= out["success_rate"] <= 1
     with pytest.raises(ValueError, match="entities"):
