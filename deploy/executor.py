@@ -332,7 +332,7 @@ def resolve_settings(
     team_size = setting.team_size("the manifest")
     # the lists / scaling the policy trained on (its manifest's contract), the command's over them
     swarm = {**(model.manifest.get("contract") or {}).get("swarm", {}), **(rest.get("swarm") or {})}
-    swarm = {k: v for k, v in swarm.items() if v is not None}  # None: cleared by the command (--auction-rounds 0)
+    swarm = {k: v for k, v in swarm.items() if v is not None}  # None: cleared by the command (another --landmark-order)
     rest["swarm"] = swarm
     if swarm.get("landmark_neighbours") and model.entity_mode == "concat":
         raise DeployError("this model concatenates every landmark (entity_mode 'concat'): no --landmark-neighbours")

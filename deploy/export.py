@@ -328,12 +328,10 @@ def swarm_contract(payload: dict) -> dict:
         "(within comm_radius under rc), never more; landmark_neighbours KL: entities holds the KL nearest "
         "landmarks within sense_radius, nearest first (unsensed slots left out of entities); "
         "landmark_occupancy: each landmark row adds its distance to the nearest other agent; "
-        "landmark_order claim-zero: the landmarks the threshold matching gives no other agent listed first, "
-        "a claimed landmark's occupancy 0; "
-        "auction: only the landmark the agent wins in the agents' auction over the landmarks each senses "
-        "(its occupancy floored at the success threshold), claim-zero lists where it wins none; "
-        "auction_rounds R: that auction with a budget of R bid rounds a step, carried over from step to step, "
-        "each bid raising a price by at least 0.5; "
+        "landmark_order radio: only the landmark the agent holds in the auction the agents run by messages to "
+        "the teammates they hear (its occupancy floored at the success threshold); holding none, the landmarks "
+        "its own table says another holds listed last, reading 0; "
+        "auction_rounds R: the radio's message rounds a step, each bid raising a price by at least 0.5; "
         "scale density: the arena's half side is sqrt(M / 10)",
     }
 

@@ -152,30 +152,25 @@ class SwarmOptions:
     """landmark sensing radius of --landmark-neighbours"""
     scale: Annotated[Literal["density"] | None, Default("the paper's geometry")] = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10"""
-    assignment: Annotated[Literal["exact", "auction", "nearest", "free"] | None, Default(OWN)] = None
-    """targets to agents: exact (min-sum), auction, nearest (local, covered by max matching; needs
-    --neighbours) or free (nearest, each agent paid by its matched or nearest free target)"""
-    landmark_order: Annotated[Literal["nearest", "claim-zero", "auction", "radio"] | None, Default(OWN)] = None
-    """landmark lists: the nearest, the landmarks the matching gives no other agent first, a
-    claimed one reading 0 (claim-zero), or only the landmark the agent wins in the simulator's
-    shared-price auction (auction) or in the agents' own auction by messages to the teammates
-    they hear (radio; both with --assignment free); needs the policy's occupancy input"""
+    assignment: Annotated[Literal["exact", "free"] | None, Default(OWN)] = None
+    """targets to agents: exact (min-sum) or free (local, covered by a max matching, each agent
+    paid by its matched or nearest free target; needs --neighbours)"""
+    landmark_order: Annotated[Literal["nearest", "radio"] | None, Default(OWN)] = None
+    """landmark lists: the nearest, or only the landmark the agent holds in the agents' own
+    auction by messages to the teammates they hear (radio; with --assignment free); needs the
+    policy's occupancy input"""
     auction_rounds: Annotated[int | None, Default(OWN, "R")] = None
-    """with --landmark-order auction: a budget of R bid rounds a step, the auction carried over
-    from step to step (an agent still bidding reads claim-zero lists); 0: the auction solved to
-    the end each step, whatever budget the policy trained with (another --landmark-order drops
-    that budget too); with radio: R message rounds a step (unset: 4)"""
+    """with --landmark-order radio: R message rounds a step (unset: 4)"""
 
     def __post_init__(self):
         at_least(self.neighbours, 1, "neighbours")
-        at_least(self.auction_rounds, 0, "auction-rounds")
+        at_least(self.auction_rounds, 1, "auction-rounds")
         at_least(self.landmark_neighbours, 1, "landmark-neighbours")
         positive(self.sense_radius, "sense-radius")
 
     def swarm_kwargs(self) -> dict:
-        """The options set, as make() keywords over the policy's own. --auction-rounds 0, or a
-        --landmark-order other than auction, sets the budget to None, which clears the one the
-        policy trained with."""
+        """The options set, as make() keywords over the policy's own. A --landmark-order other than
+        radio sets the rounds to None, which clears the ones the policy trained with."""
         kwargs = {
             k: v
             for k, v in (
@@ -189,9 +184,8 @@ class SwarmOptions:
             )
             if v is not None
         }
-        other_order = self.landmark_order not in (None, "auction") and self.auction_rounds is None
-        if self.auction_rounds == 0 or other_order:  # a trained budget belongs to the auction's lists
-            kwargs.update(auction_rounds=None)
+        if self.landmark_order not in (None, "radio") and self.auction_rounds is None:
+            kwargs.update(auction_rounds=None)  # the trained rounds belong to the radio's lists
         return kwargs
 
 

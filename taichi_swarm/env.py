@@ -16,14 +16,13 @@ Shapes: B environments, M agents, L landmarks.
     obs["entities"]  float32 [B, M, KL, 3] (dx, dy, occupancy): occupancy is the landmark's
                                            distance to its nearest agent other than the
                                            observer, capped at sense_radius
-  and with ``landmark_order="free"`` the free landmarks (no other agent within
-  success_threshold) in range listed before the held ones, each kind nearest first;
-  ``"open"`` the same with a landmark held only by an agent nearer it than the observer
+  and with ``landmark_order="radio"`` the one landmark the agent holds in the agents' own
+  auction by messages (radio.py), or, holding none, the held ones listed last, reading 0
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
     info["agent_reward"] float32 [B, M]    each agent's own reward terms (their mean: reward,
-                                           except with assignment="nearest" / "free")
+                                           except with assignment="free")
     done             bool    [B]           the episode ended at this step
 Every returned array is a zero-copy view of the env's preallocated buffers and
 is overwritten by the next ``step``/``reset``: copy what you keep.
@@ -36,7 +35,7 @@ import sys
 
 import numpy as np
 
-from . import assignment, auction, kernels, neighbours, radio, rng, runtime
+from . import assignment, kernels, nearest, neighbours, radio, rng, runtime
 from .layout import (
     FLOAT_HEADER,
     H_COMM_RC,
@@ -48,7 +47,6 @@ from .layout import (
     P_BID_EPS,
     P_CELL,
     P_COMM_RADIUS,
-    P_EPS,
     P_LCELL,
     P_SENSE,
     P_SUCCESS,
@@ -63,13 +61,11 @@ from .tasks import COMMON_PARAMS, TASK_SPECS
 COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
-ASSIGNMENTS = ("exact", "auction", "nearest", "free")
-LOCAL_ASSIGNMENTS = ("nearest", "free")  # nearest.py's: per-target d_t, the threshold matching, no M x M block
-# landmark lists: the KL nearest; the ones the threshold matching gives no other agent first
-# ("claim-zero"); or the landmark the agent wins in the agents' own auction ("auction": an agent
-# its auction leaves out reads claim-zero lists); or the one agents agree on by messages to the
+ASSIGNMENTS = ("exact", "free")
+LOCAL_ASSIGNMENTS = ("free",)  # nearest.py's: per-target d_t, the threshold matching, no M x M block
+# landmark lists: the KL nearest; or the one landmark the agents agree on by messages to the
 # teammates they hear alone ("radio": radio.py)
-LANDMARK_ORDERS = ("nearest", "claim-zero", "auction", "radio")
+LANDMARK_ORDERS = ("nearest", "radio")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -141,42 +137,24 @@ class SwarmEnv:
     the third feature each listed landmark's distance to its nearest agent other than the
     observer, capped at sense_radius: whether someone else already holds it.
     landmark_order (with landmark_occupancy): "nearest" (the default), the KL nearest landmarks
-    within sense_radius; or "claim-zero" (with assignment "free"), every landmark in range that the
-    threshold matching gives no other agent listed before any it gives another, each kind nearest
-    first, a claimed landmark's occupancy reading 0: a duplicate senses the nearest free ones,
-    however many held ones lie nearer, and the matching's incumbent keeps its landmark while it
-    stays within success_threshold, so jostling does not swap holders; or "auction", the landmark
-    the agent wins in the auction alone (one listed slot, its reading floored at
-    success_threshold: free to it), and claim-zero lists for an agent that wins none. Each agent
-    bids only for its KL nearest landmarks within sense_radius, and the auction is solved afresh
-    each step: the eps-optimal (0.01) min-sum matching of agents to the landmarks they sense
-    (auction.local_solve). The auction keeps one price and holder per landmark in the simulator
-    (landmarks as beacons that answer bids), and the claim-zero readings come from a team-wide
-    matching: neither is yet a message between agents within comm_radius (docs/SWARM.md).
-    auction_rounds (with landmark_order "auction"): None (the default), the auction solved to
-    the end each step; or R >= 1, a budget of R bid rounds a step: the auction carries over
-    from step to step (prices and holders kept at the landmarks) and runs up to R rounds a step,
-    each agent without a landmark bidding once a round at the increment auction.ROUND_EPS; an
-    agent still bidding reads claim-zero lists (auction.py).
-    landmark_order "radio" (with assignment "nearest" or "free"): the same lists, from an auction
-    the agents run by messages alone (radio.py): each keeps its own table (landmark id, epoch,
-    price, holder) over the landmarks it senses and merges, each of auction_rounds R rounds a step
-    (None: radio.DEFAULT_ROUNDS = 4; at most radio.MAX_ROUNDS = 64), the tables of the teammates on
-    its neighbour list; no state is shared per landmark. An agent that holds nothing lists the ones
-    its own table says another holds last, reading 0. info["radio"]: "messages" and "bytes" [B]
-    float32, the tables (radio.ENTRY_BYTES per entry) each agent received in the step, env means.
+    within sense_radius; or "radio" (with assignment "free"), the landmark the agent
+    holds in an auction the agents run by messages alone (radio.py), listed alone (its reading
+    floored at success_threshold: free to it). Each keeps its own table (landmark id, epoch,
+    price, holder) over its KL nearest landmarks within sense_radius and merges, each of
+    auction_rounds R rounds a step (None: radio.DEFAULT_ROUNDS = 4; at most radio.MAX_ROUNDS = 64),
+    the tables of the teammates on its neighbour list; no state is shared per landmark. An agent
+    that holds nothing lists the ones its own table says another holds last, reading 0.
+    info["radio"]: "messages" and "bytes" [B] float32, the tables (radio.ENTRY_BYTES per entry)
+    each agent received in the step, env means.
     scale: None (the paper's geometry) or "density" (coverage: the spawn square grows as
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
-    assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "auction"
-    (eps-optimal: the total matched distance within M * 1e-3 of the optimum; no M x M
-    block, which M = 10,000 needs: auction.py) or "nearest" (needs neighbours; every per-step
-    quantity local and exact: the team reward from each target's nearest-agent distance d_t, as
-    in MPE's simple_spread, in matched_dist [B, M] per target; success and covered from a maximum
-    matching within success_threshold, in assignment [B, M], -1 where unmatched; each agent's
-    reward from its nearest target: nearest.py, docs/SWARM.md) or "free" ("nearest", with each
-    agent's reward from the target the matching gives it or, where it has none, from the nearest
-    target the matching leaves free: a duplicate is paid for crossing to a free target, where its
-    nearest target pays it for staying).
+    assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "free" (needs
+    neighbours; no M x M block, which M = 10,000 needs; every per-step quantity local and exact:
+    the team reward from each target's nearest-agent distance d_t, as in MPE's simple_spread, in
+    matched_dist [B, M] per target; success and covered from a maximum matching within
+    success_threshold, in assignment [B, M], -1 where unmatched; each agent's reward from the
+    target the matching gives it or, where it has none, from the nearest target the matching
+    leaves free: a duplicate is paid for crossing to a free target. nearest.py, docs/SWARM.md).
     agent_parallel (with neighbours): step every agent of every environment in parallel
     (kernels.step_wide_kernel), not one environment per thread; the same results bit for bit.
     None (default): on CUDA, where one thread per environment leaves the GPU idle at small B,
@@ -266,35 +244,22 @@ class SwarmEnv:
             assignment = "exact"
         if assignment not in ASSIGNMENTS:
             raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
-        if landmark_order == "auction" and assignment not in LOCAL_ASSIGNMENTS:
-            raise ValueError(
-                f"landmark_order='auction' needs assignment 'nearest' or 'free', got {assignment!r}: an agent that "
-                "wins no landmark in the agents' own auction reads claim-zero lists, which the threshold matching "
-                "builds (assignment='auction' is the team's global assignment, another auction)"
-            )
         if auction_rounds is not None:
-            if landmark_order not in ("auction", "radio"):
+            if landmark_order != "radio":
                 raise ValueError(
-                    f"auction_rounds is the budget of the agents' own auction: it needs landmark_order='auction' or "
-                    f"'radio', got {landmark_order!r}"
+                    f"auction_rounds is the radio auction's message rounds a step: it needs landmark_order='radio', "
+                    f"got {landmark_order!r}"
                 )
-            top = radio.MAX_ROUNDS if landmark_order == "radio" else INT32_MAX
-            auction_rounds = _check_int("auction_rounds", auction_rounds, 1, top)
+            auction_rounds = _check_int("auction_rounds", auction_rounds, 1, radio.MAX_ROUNDS)
         elif landmark_order == "radio":  # the radio always has a budget: message rounds per step
             auction_rounds = radio.DEFAULT_ROUNDS
         self.auction_rounds = auction_rounds
-        # the budget's bid increment, recorded so equal runs share a key (None: solved to the end)
-        auction_eps = None if auction_rounds is None else auction.ROUND_EPS
-        self.auction_eps = auction_eps
+        # the bid increment, recorded so equal runs share a key (None: no auction)
+        self.auction_eps = None if auction_rounds is None else radio.ROUND_EPS
         if landmark_order == "radio" and assignment not in LOCAL_ASSIGNMENTS:
             raise ValueError(
-                f"landmark_order='radio' needs assignment 'nearest' or 'free', got {assignment!r}: its rewards and "
+                f"landmark_order='radio' needs assignment 'free', got {assignment!r}: its rewards and "
                 "success come from the threshold matching over the agents' grid"
-            )
-        if landmark_order != "nearest" and assignment not in LOCAL_ASSIGNMENTS:
-            raise ValueError(
-                f"landmark_order={landmark_order!r} needs assignment 'nearest' or 'free', got {assignment!r}: a "
-                "landmark is claimed by the agent the threshold matching gives it"
             )
         if assignment in LOCAL_ASSIGNMENTS and self.neighbours is None:
             raise ValueError(
@@ -302,22 +267,15 @@ class SwarmEnv:
                 "agents' cell grid the neighbour lists build"
             )
         self.assignment_method = assignment
-        # the auction's eps: the total matched distance is within num_agents * eps of the optimum
-        self.assignment_eps = auction.EPS if assignment == "auction" else 0.0
-        auctioned = assignment == "auction"
         # compile-time M for small teams, else 0; with lists the kernels are the same code for
         # every M (cap 0: no stack arrays sized by M; the dense physics is not compiled)
-        self._sm = static_team_size(self.num_agents) if self.neighbours is None and not auctioned else 0
+        self._sm = static_team_size(self.num_agents) if self.neighbours is None else 0
         self._cap = assignment_capacity(self.num_agents) if self.neighbours is None else 0
         self._lists = (
             (kernels.AGENT_LISTS if self.neighbours is not None else 0)
             | (kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0)
-            | (kernels.AUCTION if auctioned else 0)
-            | (kernels.NEAREST if assignment in LOCAL_ASSIGNMENTS else 0)
-            | (kernels.FREE_TARGET if assignment == "free" else 0)
+            | (kernels.FREE if assignment == "free" else 0)
             | (kernels.OCCUPANCY if landmark_occupancy else 0)
-            | (kernels.CLAIM if landmark_order in ("claim-zero", "auction") else 0)
-            | (kernels.WON if landmark_order == "auction" else 0)
             | (kernels.RADIO if landmark_order == "radio" else 0)
         )
 
@@ -394,12 +352,10 @@ class SwarmEnv:
             )
             if self.landmark_occupancy:
                 dims.update(EF=3, LO=L)
-            if self.landmark_order == "auction":  # the agents' own auction (auction.local_solve)
-                dims.update(BM=M, BL=L)
             if self.landmark_order == "radio":  # candidates and each agent's own table; no per-landmark state
                 dims.update(BM=M, RM=M)
         # a grid of the targets instead of the M x M costs
-        if self.assignment_method in ("auction", *LOCAL_ASSIGNMENTS):
+        if self.assignment_method in LOCAL_ASSIGNMENTS:
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
         return dims
 
@@ -449,7 +405,7 @@ class SwarmEnv:
                 "truncated": v("ep_truncated", bool),  # hit the time limit
                 "length": v("ep_length"),
                 "return": v("ep_return"),
-                "matched_dist": v("ep_matched_dist"),  # [B, M] final d*_i (assignment="nearest": d_t per target)
+                "matched_dist": v("ep_matched_dist"),  # [B, M] final d*_i (assignment="free": d_t per target)
                 "dist": v("ep_dist"),  # DIST: mean target -> closest agent distance
                 "covered": v("ep_covered"),  # fraction of targets matched within success_threshold
             },
@@ -470,7 +426,7 @@ class SwarmEnv:
             self.info["radio"] = {"messages": v("radio_messages"), "bytes": v("radio_bytes")}
         # current state extras (targets for drawing, d*_i, who is matched to what)
         self.targets = v("targets")  # [B, M, 2]
-        # assignment="nearest": matched_dist[b, t] = d_t, target t's distance to its nearest agent, and
+        # assignment="free": matched_dist[b, t] = d_t, target t's distance to its nearest agent, and
         # assignment[b, i] = agent i's target in the maximum matching within success_threshold, -1 if none
         self.matched_dist = v("matched_dist")  # [B, M]
         self.assignment = v("assignment")  # [B, M] target index of agent i
@@ -492,7 +448,7 @@ class SwarmEnv:
         header[H_COMM_RC] = 1 if self.comm == "rc" else 0
         header[H_DENSITY] = 1 if self.scale == "density" else 0
         header[H_MAX_STEPS] = self.params["max_steps"]
-        header[H_ROUNDS] = self.auction_rounds or 0  # 0: the auction solved to the end each step
+        header[H_ROUNDS] = self.auction_rounds or 0  # the radio's message rounds a step
         spec = TASK_SPECS[self.task]
         fparams = np.zeros(FLOAT_HEADER, dtype=np.float32)
         fparams[P_COMM_RADIUS] = self.comm_radius
@@ -506,8 +462,7 @@ class SwarmEnv:
         fparams[P_SENSE] = self.sense_radius or 0.0
         fparams[P_LCELL] = neighbours.cell_side(self.sense_radius or 1.0, neighbours.SPLIT)
         fparams[P_ARENA] = self.arena
-        fparams[P_TCELL] = auction.target_cell(self.num_agents, self.arena)
-        fparams[P_EPS] = self.assignment_eps
+        fparams[P_TCELL] = nearest.target_cell(self.num_agents, self.arena)
         fparams[P_BID_EPS] = self.auction_eps or 0.0
         self._put(self._i, 0, header)
         self._put(self._f, 0, fparams)
@@ -765,9 +720,9 @@ class SwarmEnv:
     def set_state(self, pos=None, vel=None, landmarks=None, step=None):
         """Overwrite parts of the state (all environments); returns the new ``obs``.
 
-        Targets, assignment and observations are recomputed from the new state. With
-        ``auction_rounds``, that includes another step's rounds of the agents' auction (its state
-        carries over, as in a step; ``step=0`` starts it afresh).
+        Targets, assignment and observations are recomputed from the new state. With the radio
+        auction, that includes another step's message rounds (the agents' tables carry over, as in
+        a step; ``step=0`` starts them afresh).
         """
         if not self._seeded:
             self.reset()

@@ -16,8 +16,8 @@ Compile-time arguments: ``task`` (the task id, tasks/), ``cap`` (size of the den
 physics' per-thread force array and of the small-M assignment's work arrays; 0 with
 neighbour lists: no per-M stack arrays), ``lists`` (AGENT_LISTS | LANDMARK_LISTS: neighbour
 and landmark lists through cell grids instead of the dense adjacency, neighbours.py; OCCUPANCY:
-each listed landmark's occupancy beside its offset; AUCTION or NEAREST: the assignment,
-auction.py or nearest.py),
+each listed landmark's occupancy beside its offset; FREE: the local assignment, nearest.py;
+RADIO: the agents' auction by messages, radio.py),
 ``sm`` (M itself for M <= layout.STATIC_M_MAX, so the loops over agents unroll; else 0
 and M is read from the header) and ``parallel`` (serial env loop for small batches, see
 env.py).
@@ -25,7 +25,7 @@ env.py).
 
 import taichi as ti
 
-from . import assignment, auction, nearest, neighbours, physics, radio, tasks
+from . import assignment, nearest, neighbours, physics, radio, tasks
 from .layout import (
     H_B,
     H_COMM_RC,
@@ -44,18 +44,13 @@ from .layout import (
     team_size,
 )
 
-# bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, auction assignment,
-# nearest-agent rewards with a threshold matching (nearest.py; needs AGENT_LISTS), landmark
-# occupancy (needs AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), each agent's own reward
-# from its matched or nearest free target (needs NEAREST: nearest.agent_free), landmark lists with
-# the landmarks the threshold matching gives no other agent first, a claimed one reading 0 (CLAIM:
-# landmark_order="claim-zero"; needs NEAREST and OCCUPANCY; the holder keeps its landmark while it
-# stays within the threshold), and with CLAIM the landmark an agent wins in the agents' own auction
-# as its one listed landmark (WON: landmark_order="auction", auction.local_solve); or the radio
-# auction, agents coordinating through their neighbour lists' messages alone (RADIO:
-# landmark_order="radio", radio.py; needs AGENT_LISTS, LANDMARK_LISTS and OCCUPANCY, not CLAIM)
-AGENT_LISTS, LANDMARK_LISTS, AUCTION, NEAREST, OCCUPANCY, FREE_TARGET = 1, 2, 4, 8, 16, 64
-CLAIM, WON, RADIO = 256, 1024, 2048
+# bits of the compile-time ``lists`` argument: neighbour lists, landmark lists, the local
+# assignment (assignment="free": nearest-agent team reward, a threshold matching, each agent paid by
+# its matched or nearest free target; nearest.py; needs AGENT_LISTS), landmark occupancy (needs
+# AGENT_LISTS and LANDMARK_LISTS: it reads the agents' grid), and the radio auction, agents
+# coordinating through their neighbour lists' messages alone (RADIO: landmark_order="radio",
+# radio.py; needs AGENT_LISTS, LANDMARK_LISTS and OCCUPANCY)
+AGENT_LISTS, LANDMARK_LISTS, FREE, OCCUPANCY, RADIO = 1, 2, 8, 16, 2048
 CONTACT_SLOTS = 8  # contacts an agent sums without a second pass (discs of radius r: at most 6 touch without overlap)
 
 F32 = ti.types.ndarray(dtype=ti.f32, ndim=1)
@@ -73,19 +68,16 @@ def match(
     ib: ti.template(),
     b: ti.i32,
 ):
-    """Targets, optimal (or, with AUCTION, eps-optimal) assignment and matched distances d*_i of env b;
-    with NEAREST, each target's nearest-agent distance d_t, each agent's nearest-target distance and
-    the maximum threshold matching (nearest.py), the agents' grid built here for them (and for the
+    """Targets, optimal assignment and matched distances d*_i of env b;
+    with FREE, each target's nearest-agent distance d_t, the maximum threshold matching and each
+    agent's matched or nearest free target's distance (nearest.py), the agents' grid built here for them (and for the
     observations and the next step's contacts: every caller writes the observations next)."""
-    if ti.static(lists & NEAREST):
+    if ti.static(lists & FREE):
         nearest_setup(task, sm, f, ib, b)
-        nearest.solve(f, ib, b, ti.static((lists & FREE_TARGET) != 0), ti.static((lists & CLAIM) != 0))
+        nearest.solve(f, ib, b)
     else:
         tasks.place_targets(task, sm, f, ib, b)
-        if ti.static(lists & AUCTION):
-            auction.solve(f, ib, b)
-        else:
-            assignment.solve(cap, sm, f, ib, b)
+        assignment.solve(cap, sm, f, ib, b)
 
 
 @ti.func
@@ -147,13 +139,9 @@ def write_team_obs(
     if ti.static(lists & OCCUPANCY):
         for l in range(L):
             landmark_occupants(f, ib, b, l)
-    if ti.static(lists & WON):  # the agents' own auction, which the lists read
-        for i in range(M):
-            auction.candidates(f, ib, b, i)
-        auction.local_solve(f, ib, b, M, L)
     if ti.static(lists & RADIO):  # after the lists: the radio's messages go to the agents listed
         for i in range(M):
-            auction.candidates(f, ib, b, i)
+            radio.candidates(f, ib, b, i)
             radio.rebuild(f, ib, b, i)
         radio.rounds(f, ib, u8, b, M, term)
     for i in range(M):
@@ -188,9 +176,9 @@ def obs_grids(
     task: ti.template(), sm: ti.template(), lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
 ):
     """The cell grids of env b the observation's queries read: the agents' (kept for the next
-    step's contacts; with NEAREST ``match`` has just built it) and, with landmark lists, the
+    step's contacts; with FREE ``match`` has just built it) and, with landmark lists, the
     landmarks'."""
-    if ti.static((lists & AGENT_LISTS) and not (lists & NEAREST)):
+    if ti.static((lists & AGENT_LISTS) and not (lists & FREE)):
         agents_grid(sm, f, ib, b)
     if ti.static(lists & LANDMARK_LISTS):
         GS, GI, GC = blocks.lgrid_start.env(ib, b), blocks.lgrid_items.env(ib, b), blocks.lgrid_cell.env(ib, b)
@@ -258,13 +246,10 @@ def agent_landmarks(
     and entity_mask [M, KL]. With OCCUPANCY, entities [M, KL, 3]: the third feature is the
     landmark's distance to its nearest agent other than this one, capped at sense_radius
     (sense_radius where none is nearer; 0 where none is listed), from each landmark's two
-    nearest agents (``landmark_occupants``); with CLAIM, the distance of the agent the threshold
-    matching gives it where that is another agent, else the nearest other agent's distance floored
-    at the success threshold (``claimed``). With WON, an agent that won a landmark in the agents'
-    own auction lists it alone, its reading floored at the success threshold. With RADIO, likewise
-    the landmark it believes it holds (radio_won); an agent holding none lists the landmarks its
-    own table says another agent holds last, reading 0 (radio.held_last), the others their
-    occupancy floored at the success threshold."""
+    nearest agents (``landmark_occupants``). With RADIO, an agent lists the landmark it believes
+    it holds (radio_won) alone, its reading floored at the success threshold; an agent holding
+    none lists the landmarks its own table says another agent holds last, reading 0
+    (radio.held_last), the others their occupancy floored at the success threshold."""
     KL, G = ib[H_KL], ib[H_GL]
     EF = 3 if ti.static(lists & OCCUPANCY) else 2
     ent = blocks.term_entities if ti.static(term) else blocks.obs_entities
@@ -277,15 +262,13 @@ def agent_landmarks(
     row_d2, row_mask, row = blocks.ent_d2.row(ib, D2, i), mask.row(ib, MK, i), ent.row(ib, E, i)
     # the search's indices go in row i of ent_idx (one row per agent: agents may search at once)
     idx = blocks.ent_idx.row(ib, IDX, i)
-    rank = ti.static(claim_first if lists & CLAIM else radio.held_last if lists & RADIO else neighbours.by_distance)
+    rank = ti.static(radio.held_last if lists & RADIO else neighbours.by_distance)
     ctx = ti.math.ivec2(b, i)
     won = -1
-    if ti.static(lists & WON):
-        won = ib[blocks.bid_won.env(ib, b) + i]
     if ti.static(lists & RADIO):
         won = ib[blocks.radio_won.env(ib, b) + i]
     found = ti.math.ivec2(1, 1)
-    if won >= 0:  # WON: the landmark it won, alone
+    if won >= 0:  # the landmark it holds, alone
         ib[idx] = won
     else:
         found = neighbours.nearest_in_grid(
@@ -301,7 +284,7 @@ def agent_landmarks(
         if ti.static(lists & OCCUPANCY):
             occ = 0.0
             if listed:
-                if won >= 0:  # WON: free to the agent that won it, whoever else is near
+                if won >= 0:  # free to the agent that holds it, whoever else is near
                     occ = ti.max(occupancy(f, ib, b, won, i), f[P_SUCCESS])
                 else:
                     occ = reading(lists, f, ib, b, ib[idx + k], i)
@@ -309,47 +292,16 @@ def agent_landmarks(
 
 
 @ti.func
-def claim_first(f: ti.template(), ib: ti.template(), ctx: ti.math.ivec2, l: ti.i32, d2: ti.f32) -> ti.f32:
-    """CLAIM's rank of landmark l for agent ctx[1] of environment ctx[0]: its squared distance,
-    plus more than any listed one has (sense_radius^2) where the threshold matching gives it to
-    another agent (``claimed``), so that every unclaimed landmark in range is listed before any
-    claimed one: a duplicate senses the nearest free landmarks, however many held ones lie nearer."""
-    held = claimed(f, ib, ctx[0], l, ctx[1]) < f[P_SUCCESS]
-    return d2 + ti.select(held, f[P_SENSE] * f[P_SENSE] + 1.0, 0.0)
-
-
-@ti.func
 def reading(lists: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
-    """Landmark l's occupancy reading for agent i: ``claimed`` under CLAIM; under RADIO 0 where
-    its own table says another agent holds l, else ``occupancy`` floored at the success threshold
-    (as ``claimed``); else ``occupancy``."""
+    """Landmark l's occupancy reading for agent i: under RADIO 0 where its own table says another
+    agent holds l, else ``occupancy`` floored at the success threshold (a held landmark reads
+    nearer than any free one); else ``occupancy``."""
     out = 0.0
-    if ti.static(lists & CLAIM):
-        out = claimed(f, ib, b, l, i)
-    elif ti.static(lists & RADIO):
+    if ti.static(lists & RADIO):
         if not radio.held_by_other(f, ib, b, i, l):
             out = ti.max(occupancy(f, ib, b, l, i), f[P_SUCCESS])
     else:
         out = occupancy(f, ib, b, l, i)
-    return out
-
-
-@ti.func
-def claimed(f: ti.template(), ib: ti.template(), b: ti.i32, l: ti.i32, i: ti.i32) -> ti.f32:
-    """CLAIM's occupancy of landmark l for agent i: 0 where the threshold matching gives it to
-    another agent (lap_y: target -> agent; the list tasks' landmarks are their targets); else
-    ``occupancy``'s reading, the nearest other agent's distance, floored at the success threshold
-    (it never reads held). Under the matching's incumbent rule a holder keeps its landmark while
-    it stays within the threshold, so the reading is stable where the nearer of two jostling
-    agents is not. The holder's distance can exceed the reader's own (the incumbent, not the
-    nearer, holds), which to an occupancy policy would read "mine: no one nearer"; 0 is nearer
-    than any reader, so a second agent on a claimed landmark reads it held by someone nearer,
-    whatever the distances. The floor keeps every other reading ``occupancy``'s, so an occupancy
-    policy starts from what it knows."""
-    h = ib[blocks.lap_y.env(ib, b) + l]
-    out = 0.0
-    if not (h >= 0 and h != i):
-        out = ti.max(occupancy(f, ib, b, l, i), f[P_SUCCESS])
     return out
 
 
@@ -621,20 +573,19 @@ def settle(
 ):
     """Env b after its agents moved: targets, assignment, reward, done, episode statistics,
     terminal observation and auto-reset (all but the step's own observation). ``searched``
-    (NEAREST): targets, grids and nearest distances are already there (step_wide_kernel's passes),
+    (FREE): targets, grids and nearest distances are already there (step_wide_kernel's passes),
     only the matching is left."""
     M = team_size(sm, ib)
     t = ib[blocks.step.env(ib, b)] + 1
     ib[blocks.step.env(ib, b)] = t
     if ti.static(searched):
-        nearest.matching(f, ib, b, ti.static((lists & CLAIM) != 0))
-        if ti.static(lists & FREE_TARGET):  # after the matching: the targets it leaves free
-            for i in range(M):
-                nearest.agent_free(f, ib, b, i)
+        nearest.matching(f, ib, b)
+        for i in range(M):  # after the matching: the targets it leaves free
+            nearest.agent_free(f, ib, b, i)
     else:
         match(task, cap, sm, lists, f, ib, b)
     sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
-    if ti.static(lists & NEAREST):  # d_t per target; agent i's own d: its nearest (or free) target (lap_dist)
+    if ti.static(lists & FREE):  # d_t per target; agent i's own d: its matched or nearest free target (lap_dist)
         MD, ND, A = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b), blocks.assignment.env(ib, b)
         for i in range(M):
             f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f, f[ND + i])
@@ -663,7 +614,7 @@ def settle(
         u8[blocks.ep_truncated.env(ib, b)] = ti.cast(not success, ti.u8)
         ib[blocks.ep_length.env(ib, b)] = t
         f[blocks.ep_return.env(ib, b)] = ret
-        if ti.static(lists & NEAREST):  # DIST is the mean of the d_t just computed
+        if ti.static(lists & FREE):  # DIST is the mean of the d_t just computed
             f[blocks.ep_dist.env(ib, b)] = sum_d / M
         else:
             f[blocks.ep_dist.env(ib, b)] = target_dist(sm, f, ib, b)
@@ -714,16 +665,13 @@ def step_wide_kernel(
         grid_velocity(sm, f, ib, b, i, u, continuous)
     for b, i in ti.ndrange(B, M):
         move(f, ib, b, i)
-    if ti.static(lists & NEAREST):  # ``match``'s searches, target by target and agent by agent
+    if ti.static(lists & FREE):  # ``match``'s searches, target by target (each agent's: in ``settle``)
         for b in range(B):
             nearest_setup(task, sm, f, ib, b)
         for b, t in ti.ndrange(B, M):
             nearest.target_nearest(f, ib, b, t)
-        if ti.static(not (lists & FREE_TARGET)):  # FREE_TARGET: in ``settle``, after the matching
-            for b, i in ti.ndrange(B, M):
-                nearest.agent_nearest(f, ib, b, i)
     for b in range(B):
-        settle(task, cap, sm, lists, f, ib, u8, b, ti.static((lists & NEAREST) != 0))
+        settle(task, cap, sm, lists, f, ib, u8, b, ti.static((lists & FREE) != 0))
         obs_grids(task, sm, lists, f, ib, b)
         ib[blocks.dropped.env(ib, b)] = 0
     for b, i in ti.ndrange(B, M):
@@ -734,14 +682,9 @@ def step_wide_kernel(
     if ti.static(lists & OCCUPANCY):
         for b, l in ti.ndrange(B, L):
             landmark_occupants(f, ib, b, l)
-    if ti.static(lists & WON):
+    if ti.static(lists & RADIO):  # each agent's own table in parallel; the rounds per env
         for b, i in ti.ndrange(B, M):
-            auction.candidates(f, ib, b, i)
-        for b in range(B):
-            auction.local_solve(f, ib, b, M, L)
-    if ti.static(lists & RADIO):  # each agent's own table in parallel; the rounds per env, as local_solve
-        for b, i in ti.ndrange(B, M):
-            auction.candidates(f, ib, b, i)
+            radio.candidates(f, ib, b, i)
             radio.rebuild(f, ib, b, i)
         for b in range(B):
             radio.rounds(f, ib, u8, b, M, False)

@@ -24,7 +24,7 @@ import numpy as np
 import taichi as ti
 
 # --- int32 header: sizes and switches -------------------------------------------------
-# H_ROUNDS: the agents' own auction's bid rounds per step (auction_rounds; 0: run to the end)
+# H_ROUNDS: the radio auction's message rounds per step (auction_rounds; 0: no radio)
 H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL, H_GT, H_DENSITY, H_ROUNDS = range(12)
 SIZE_SLOTS = 12
 SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
@@ -66,7 +66,6 @@ def dense_dims(M: int, L: int) -> dict:
         "GT1": 0,
         "LO": 0,
         "BM": 0,
-        "BL": 0,
         "RM": 0,
     }
 
@@ -100,9 +99,8 @@ BLOCKS = (
     BlockSpec("nbr_d2", "f32", ("M", "K")),  # squared distances of the listed neighbours
     BlockSpec("ent_d2", "f32", ("M", "KL")),  # squared distances of the listed landmarks
     BlockSpec("occ_d2", "f32", ("LO", 2)),  # each landmark's two nearest agents (occupancy), d^2
-    # the agents' own auction (landmark_order="auction"): its candidates' d^2, each landmark's price
+    # the radio auction's candidates (radio.candidates): the landmarks each agent senses, their d^2
     BlockSpec("bid_d2", "f32", ("BM", "KL")),
-    BlockSpec("bid_price", "f32", ("BL",)),
     # the radio auction (landmark_order="radio", radio.py): each agent's own table of up to KL
     # entries, keyed by landmark id, and the next round's (double buffer: every agent merges the
     # tables of the round before); the messages and bytes each agent received per step (env means)
@@ -125,13 +123,9 @@ BLOCKS = (
     BlockSpec("ent_idx", "i32", ("M", "KL")),  # scratch: each agent's landmark list being built (agents search at once)
     BlockSpec("occ_idx", "i32", ("LO", 2)),  # ... and their indices
     BlockSpec("occ_found", "i32", ("LO",)),  # ... how many of the two are within sense_radius
-    # the agents' own auction: each agent's landmarks to bid for and how many, each landmark's
-    # highest bidder (-1: none), each agent's landmark (-1: none), the agents still to bid
+    # ... and their ids and how many
     BlockSpec("bid_cand", "i32", ("BM", "KL")),
     BlockSpec("bid_count", "i32", ("BM",)),
-    BlockSpec("bid_holder", "i32", ("BL",)),
-    BlockSpec("bid_won", "i32", ("BM",)),
-    BlockSpec("bid_stack", "i32", ("BM",)),
     # the radio auction's tables (landmark id ascending, epoch, holder -1: none), their lengths, and
     # the landmark each agent believes it holds (-1: none)
     BlockSpec("radio_lid", "i32", ("RM", "KL")),
@@ -150,7 +144,7 @@ BLOCKS = (
     BlockSpec("lgrid_start", "i32", ("GL1",)),  # the landmarks' cell grid (landmark lists)
     BlockSpec("lgrid_items", "i32", ("LN",)),
     BlockSpec("lgrid_cell", "i32", ("LN", 2)),
-    BlockSpec("tgrid_start", "i32", ("GT1",)),  # the targets' cell grid (auction assignment)
+    BlockSpec("tgrid_start", "i32", ("GT1",)),  # the targets' cell grid (assignment nearest / free)
     BlockSpec("tgrid_items", "i32", ("TN",)),
     BlockSpec("tgrid_cell", "i32", ("TN", 2)),
     BlockSpec("adj", "u8", ("M", "MA")),
@@ -245,11 +239,10 @@ blocks = Blocks()
 # --- float32 header: physical and task parameters ------------------------------------
 # P_CELL / P_LCELL / P_TCELL: cell sides of the agents', landmarks' and targets' grids;
 # P_ARENA: the spawn square's half-width (1, or sqrt(M / 10) with scale="density");
-# P_EPS: the auction assignment's eps; P_BID_EPS: the agents' own auction's bid increment under a
-# budget of rounds (auction.ROUND_EPS)
-(P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA, P_TCELL, P_EPS,
- P_BID_EPS) = range(11)  # fmt: skip
-FLOAT_HEADER = 11
+# P_BID_EPS: the radio auction's bid increment (radio.ROUND_EPS)
+(P_COMM_RADIUS, P_AGENT_RADIUS, P_SUCCESS, P_TASK_PARAM, P_CELL, P_SENSE, P_LCELL, P_ARENA, P_TCELL,
+ P_BID_EPS) = range(10)  # fmt: skip
+FLOAT_HEADER = 10
 
 
 # Teams up to this size get kernels compiled for their exact M: every loop over agents

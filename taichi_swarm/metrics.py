@@ -98,17 +98,23 @@ def result_header(task: str, agents: int, comm: str, comm_radius: float, episode
 
 
 def format_results(rows: list[dict], extra: tuple[str, ...] = ()) -> str:
-    """Result rows as an aligned table: task, comm, M, episodes, [extra columns], S%, T, DIST."""
-    head = f"{'task':<10} {'comm':<4} {'M':>3} {'episodes':>8}" + "".join(f" {c:>{max(5, len(c))}}" for c in extra)
+    """Result rows as an aligned table: task, comm, M, episodes, [extra columns], S%, T, DIST;
+    an extra column "covered" (3 decimals: at M = 1000 a miss is 0.001) or
+    "messages_per_agent_step" (the radio's, as "msgs")."""
+    label = {"messages_per_agent_step": "msgs"}
+    fmt = {"covered": ".3f", "messages_per_agent_step": ".1f"}
+    width = {c: max(5, len(label.get(c, c))) for c in extra}
+    head = f"{'task':<10} {'comm':<4} {'M':>4} {'episodes':>8}" + "".join(f" {label.get(c, c):>{width[c]}}" for c in extra)
     head += f" {'S%':>6} {'T':>6} {'DIST':>7}"
     lines = [head, "-" * len(head)]
     for r in rows:
         d = "-" if r["dist"] is None else f"{r['dist']:.3f}"
         cells = "".join(
-            f" {r[c]:>{max(5, len(c))}.2f}" if isinstance(r[c], float) else f" {r[c]:>{max(5, len(c))}}" for c in extra
+            f" {r[c]:>{width[c]}{fmt.get(c, '.2f')}}" if isinstance(r[c], float) else f" {r[c]:>{width[c]}}"
+            for c in extra
         )
         lines.append(
-            f"{r['task']:<10} {r['comm']:<4} {r['agents']:>3} {r['episodes']:>8}{cells} "
+            f"{r['task']:<10} {r['comm']:<4} {r['agents']:>4} {r['episodes']:>8}{cells} "
             f"{100 * r['success_rate']:>6.1f} {r['mean_length']:>6.2f} {d:>7}"
         )
     return "\n".join(lines)

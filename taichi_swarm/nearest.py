@@ -1,6 +1,6 @@
-"""Local, exact per-step quantities for large teams (``make(..., assignment="nearest")``).
+"""Local, exact per-step quantities for large teams (``make(..., assignment="free")``).
 
-The min-sum assignment behind the exact and auction rewards is not local (the W1 dual
+The min-sum assignment behind the exact reward is not local (the W1 dual
 potential has slope 1 along transport rays, so no bounded search settles it). This mode
 computes instead, per env and step, only quantities that are local and exact:
 
@@ -9,11 +9,9 @@ computes instead, per env and step, only quantities that are local and exact:
   rings of cells round the target's cell, stopping once the nearest found is no farther
   than the nearest point of the next ring; past RING_LIMIT rings (or below SCAN_BELOW
   agents) every agent is scanned. Written to matched_dist [M] (per target t).
-- the distance from each agent to its nearest target, the same search through the
-  targets' cell grid (the one the auction builds), into lap_dist [M] (per agent i): the
-  per-agent reward's d. With ``assignment="free"`` (kernels.FREE_TARGET) d is instead the
-  distance to the target the matching below gives the agent or, where it has none, to the
-  nearest target the matching leaves free (``agent_free``).
+- each agent's own reward's d, into lap_dist [M] (per agent i): the distance to the target
+  the matching below gives the agent or, where it has none, to the nearest target the matching
+  leaves free (``agent_free``), searched through the targets' cell grid.
 - a maximum bipartite matching of agents to targets over the edges |p_i - t_t| <
   success_threshold (strict, as the success rule): augmenting paths by breadth-first
   search from each free target (Kuhn), warm-started from the last step's matching (the
@@ -35,6 +33,14 @@ from .layout import H_G, H_GT, H_M, P_CELL, P_SUCCESS, P_TCELL, blocks
 from .neighbours import bucket, build, cell_of, ring_cell
 
 INF = 1e30
+
+
+def target_cell(num_agents: int, arena: float) -> float:
+    """The targets' cell side: about two targets per cell for targets spread over the
+    spawn square (2 arena)^2; any side gives the same answer, this one a short search."""
+    return max(2.0 * arena * (2.0 / max(num_agents, 1)) ** 0.5, 0.02)
+
+
 RING_LIMIT = 3  # rings of cells searched before every point is scanned
 SCAN_BELOW = 32  # below this many points, scan them all (cheaper than the 9 cells' bookkeeping)
 SAFE = 0.999  # a ring's distance bound, shrunk for float32 rounding of the cell coordinates
@@ -102,22 +108,18 @@ def _dist(f: ti.template(), ib: ti.template(), P0: ti.i32, i: ti.i32, T0: ti.i32
 
 
 @ti.func
-def solve(f: ti.template(), ib: ti.template(), b: ti.i32, free: ti.template(), incumbent: ti.template()):
-    """Env b's d_t (matched_dist), each agent's own d (lap_dist: its nearest target's distance,
-    or with ``free`` ``agent_free``'s) and the maximum threshold matching (assignment). The
+def solve(f: ti.template(), ib: ti.template(), b: ti.i32):
+    """Env b's d_t (matched_dist), the maximum threshold matching (assignment) and each agent's
+    own d (lap_dist: ``agent_free``'s). The
     agents' and the targets' grids must hold the current positions (kernels.nearest_setup
     builds them just before). kernels.step_wide_kernel runs the same pieces with the searches
-    parallel over targets and agents. ``incumbent``: ``matching``'s."""
+    parallel over targets and agents."""
     M = ib[H_M]
     for t in range(M):
         target_nearest(f, ib, b, t)
-    if ti.static(not free):
-        for i in range(M):
-            agent_nearest(f, ib, b, i)
-    matching(f, ib, b, incumbent)
-    if ti.static(free):
-        for i in range(M):
-            agent_free(f, ib, b, i)
+    matching(f, ib, b)
+    for i in range(M):
+        agent_free(f, ib, b, i)
 
 
 @ti.func
@@ -136,20 +138,11 @@ def target_nearest(f: ti.template(), ib: ti.template(), b: ti.i32, t: ti.i32):
 
 
 @ti.func
-def agent_nearest(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
-    """Agent i's distance to its nearest target, through the targets' grid."""
-    TS, TI, TC = blocks.tgrid_start.env(ib, b), blocks.tgrid_items.env(ib, b), blocks.tgrid_cell.env(ib, b)
-    p = blocks.pos.get2(f, ib, blocks.pos.env(ib, b), i)
-    d = nearest(f, ib, p[0], p[1], blocks.targets.env(ib, b), ib[H_M], f[P_TCELL], ib[H_GT], TS, TI, TC, -1)
-    f[blocks.lap_dist.env(ib, b) + i] = d
-
-
-@ti.func
 def agent_free(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
-    """assignment="free": agent i's own d is its distance to the target the threshold matching
-    gives it or, where it has none, to the nearest target the matching leaves free. An agent
-    that stands on a held target (a duplicate) is then measured to a target it alone can fill,
-    where its nearest target (``agent_nearest``) would pay it for staying. Needs ``matching``
+    """Agent i's own d: its distance to the target the threshold matching gives it or, where it
+    has none, to the nearest target the matching leaves free. An agent that stands on a held
+    target (a duplicate) is then measured to a target it alone can fill, where its nearest
+    target would pay it for staying. Needs ``matching``
     first. There is a free target whenever an agent is unmatched (M agents, M targets)."""
     A = blocks.assignment.env(ib, b)
     j = ib[A + i]
@@ -165,12 +158,11 @@ def agent_free(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
 
 
 @ti.func
-def matching(f: ti.template(), ib: ti.template(), b: ti.i32, incumbent: ti.template()):
+def matching(f: ti.template(), ib: ti.template(), b: ti.i32):
     """The maximum threshold matching, from the d_t just computed (a target farther than the
-    threshold from every agent has no edge). ``incumbent`` (landmark_order="claim"): last step's
-    pairs that are still edges are kept, nearer newcomer or not, so that who holds a target
-    changes only when its holder leaves (kernels.claimed shows it to the agents); otherwise a
-    nearer newcomer takes it over."""
+    threshold from every agent has no edge); last step's pairs are kept while the agent is still
+    the target's nearest, else a nearer newcomer takes it over. A training signal (rewards and
+    success), never an observation: no agent reads it."""
     M = ib[H_M]
     P0, T0 = blocks.pos.env(ib, b), blocks.targets.env(ib, b)
     G, h = ib[H_G], f[P_CELL]
@@ -190,9 +182,7 @@ def matching(f: ti.template(), ib: ti.template(), b: ti.i32, incumbent: ti.templ
                 d = _dist(f, ib, P0, i, T0, j)
                 # ... and whose agent is still the target's nearest (d_t, the same float32
                 # computation): a nearer newcomer takes the target over (the holders' pass below)
-                keep = d < thr
-                if ti.static(not incumbent):
-                    keep = keep and d <= f[MD + j]
+                keep = d < thr and d <= f[MD + j]
         if keep:
             ib[Y + j] = i
         else:

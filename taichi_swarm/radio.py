@@ -1,10 +1,9 @@
 """The radio auction (``landmark_order="radio"``): agents agree on who takes which landmark only
 through messages exchanged with the teammates they hear.
 
-auction.py's agents' auction keeps one price and one holder per landmark, which every agent
-reads and writes: a beacon at each landmark, not something a team of radios has. Here each agent
-keeps its own bounded table, one entry per landmark it senses (its KL nearest within
-sense_radius, auction.candidates), keyed by landmark id: (epoch, price, holder), and the landmark
+No price or holder is kept per landmark (a beacon at each landmark, which a team of radios does
+not have). Each agent keeps its own bounded table, one entry per landmark it senses (its KL
+nearest within sense_radius, ``candidates``), keyed by landmark id: (epoch, price, holder), and the landmark
 it believes it holds (``radio_won``; -1: none). That is all an agent knows of the auction; it
 learns the rest by merging the tables of the agents on its neighbour list (obs nbr / nbr_mask).
 
@@ -18,7 +17,7 @@ A step (``rebuild`` per agent, then ``rounds``):
     before (the ``radio_next_*`` blocks are the double buffer), so the order in which agents are
     visited does not matter and both step kernels give the same results bit for bit.
     a. bid: an agent holding nothing bids for its cheapest entry, if it beats staying out
-       (OUT sense radii, as auction.py), at price + (second cheapest - cheapest) + increment;
+       (OUT sense radii), at price + (second cheapest - cheapest) + increment;
     b. exchange: for each landmark in its own table, it takes the greatest entry among its own
        and its heard teammates' (epoch, then price; on a tie the lower holder, none lowest);
     c. outbid: if its landmark's entry now names another holder, it holds nothing (and bids in
@@ -37,11 +36,11 @@ a price, which a max cannot; the epoch counter makes the release the greater ent
 spreads like a bid. Each bid raises a price by at least the increment, and no price passes the
 staying-out cost, so with agents still the bidding ends, and the winners hold landmarks within
 the increment of their best (eps-complementary slackness): the matching is then within M
-increments of the optimum over what each senses, as auction.py's.
+increments of the optimum over what each senses (Bertsekas' eps-complementary slackness).
 
 Locality: an agent's step reads its own position, the landmarks it senses, its own table and
 won, and in 2b the tables of the agents on its list — nothing else, and no per-landmark shared
-state (the layout's bid_price / bid_holder are not allocated for this order). News thus moves
+state (the layout has none). News thus moves
 one hop per round: with R rounds, an agent at hop distance h > R from a change cannot see it at
 that step (tests/test_taichi_swarm/test_radio_auction.py checks this).
 
@@ -53,12 +52,49 @@ step's messages and bytes received per agent (radio_messages, radio_bytes [B];
 
 import taichi as ti
 
-from .auction import HOLD_SLACK, OUT, _consider
-from .layout import H_K, H_ROUNDS, P_BID_EPS, P_SENSE, blocks
+from .layout import H_GL, H_K, H_KL, H_ROUNDS, P_BID_EPS, P_LCELL, P_SENSE, blocks
+from .neighbours import by_distance, nearest_in_grid
 
 ENTRY_BYTES = 10  # one table entry on the air: u16 landmark id + u16 epoch + f32 price + u16 holder
 DEFAULT_ROUNDS = 4  # auction_rounds=None: message rounds per control step
 MAX_ROUNDS = 64
+OUT = 2.0  # staying out costs this many sense radii: more than any sensed landmark's distance
+# Each bid raises a price by at least the increment ROUND_EPS (header P_BID_EPS). A bidding war's
+# rounds grow as the prices it must climb over the increment, and a policy needs its landmark
+# within its first steps; the matching is then within the increment per agent of the optimum: at
+# most that much more travel for an agent.
+ROUND_EPS = 0.5
+# A holder keeps its landmark until another option is better by HOLD_SLACK increments: more than
+# a fresh winner's one (it won at its second best plus the increment), with room for a step's
+# motion; each release reopens the bidding for the landmark at price 0.
+HOLD_SLACK = 2.0
+
+
+@ti.func
+def candidates(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
+    """Agent i's landmarks this step, from its own sensing: its KL nearest within sense_radius,
+    nearest first (bid_cand, their squared distances in bid_d2, how many in bid_count)."""
+    P0, LM = blocks.pos.env(ib, b), blocks.landmarks.env(ib, b)
+    GS, GI, GC = blocks.lgrid_start.env(ib, b), blocks.lgrid_items.env(ib, b), blocks.lgrid_cell.env(ib, b)
+    p = blocks.pos.get2(f, ib, P0, i)
+    d2 = blocks.bid_d2.row(ib, blocks.bid_d2.env(ib, b), i)
+    idx = blocks.bid_cand.row(ib, blocks.bid_cand.env(ib, b), i)
+    found = nearest_in_grid(
+        f, ib, p[0], p[1], -1, LM, f[P_SENSE] * f[P_SENSE], f[P_LCELL], ib[H_GL], GS, GI, GC, d2, idx, ib[H_KL],
+        by_distance, ti.math.ivec2(0, 0),
+    )  # fmt: skip
+    ib[blocks.bid_count.env(ib, b) + i] = found[0]
+
+
+@ti.func
+def _consider(d: ti.f32, j: ti.i32, best: ti.math.vec3) -> ti.math.vec3:
+    """best = (w1, w2, j1): fold in an option j of cost d."""
+    out = best
+    if d < best[0]:
+        out = ti.math.vec3(d, best[0], ti.cast(j, ti.f32))
+    elif d < best[1]:
+        out[1] = d
+    return out
 
 
 @ti.func
@@ -137,7 +173,7 @@ def _settle(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, T: ti.mat
 @ti.func
 def rebuild(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
     """Step 1, agent i alone: its table rebuilt over this step's candidates (bid_cand, bid_count:
-    auction.candidates, called first), entries kept for landmarks still sensed; a fresh episode
+    ``candidates``, called first), entries kept for landmarks still sensed; a fresh episode
     (step 0) starts from an empty table. Then its landmark let go if no longer sensed or worse
     than another option by more than HOLD_SLACK increments."""
     T, N = _rows(ib, b, i, False), _rows(ib, b, i, True)

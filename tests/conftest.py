@@ -5,6 +5,11 @@ import pytest
 # One Taichi runtime for the whole session, on the CPU, with the offline cache
 # shared across runs (kernels compile once per machine, not per test).
 os.environ.setdefault("TAICHI_SWARM_CACHE", os.path.join(os.path.dirname(__file__), "..", ".taichi_cache"))
+# Kernel variants compile about 5x faster without Taichi's IR optimisation passes (runtime.py), and
+# compiling is most of this suite's time on a fresh machine. The tests compare kernels run under
+# one setting with each other, or with references within a tolerance; the subprocesses they start
+# inherit it.
+os.environ.setdefault("TAICHI_SWARM_FAST_COMPILE", "1")
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -73,3 +78,23 @@ def lock_held_elsewhere():
             holder.wait()
 
     return hold
+
+
+# The fast lane (`pytest -m "not slow"`) is the paper-scale product: the dense simulator, PPO,
+# checkpoints, export and the in-process executor, the CLI's parsing, the docs and the zoo's index.
+# What compiles the large-team kernel variants (neighbour and landmark lists, the radio auction),
+# starts agent processes, Ray workers or end-to-end CLI training runs, is slow: each such kernel
+# variant costs about 30 s to compile on a fresh machine.
+SLOW_MODULES = {
+    "test_neighbours.py", "test_density.py", "test_assignment_nearest.py", "test_assignment_large.py",
+    "test_radio_auction.py", "test_train_lists.py", "test_model_lists.py", "test_landmark_order.py",
+    "test_lists.py", "test_edges.py", "test_network.py", "test_net_lifecycle.py", "test_fine_actions_training.py",
+    "test_agent_reward_training.py", "test_agent_reward.py", "test_video.py",
+}  # fmt: skip
+SLOW_TESTS = {"test_readme_python_example_runs", "test_a_large_team_policy_evaluates_in_its_own_setting_as_loaded"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in SLOW_MODULES or item.originalname in SLOW_TESTS:
+            item.add_marker(pytest.mark.slow)

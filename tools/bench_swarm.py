@@ -2,20 +2,20 @@
 
 B x M = 10,000 agents (B = 1000 x M = 10, 100 x 100, 10 x 1000), coverage under "rc" with
 the density-scaled arena (scale="density": the agents per unit area of M = 10), random
-actions; the dense layout against neighbour lists (K = 16), with the exact assignment, the
-auction and the nearest-agent rewards (assignment="nearest"); then M = 10,000 in one
-environment (lists with the auction and with "nearest": the dense layout and the exact
-solver need M x M blocks); ``--layouts`` picks some. Prints ns per agent-step, the ratio to
+actions; the dense layout against neighbour lists (K = 16), with the exact assignment and the
+local rewards (assignment="free"), and the zoo's radio lists (the agents' auction by
+messages, 8 rounds a step); then M = 10,000 in one environment (the layouts with "free" or
+radio: the dense layout and the exact solver need M x M blocks); ``--layouts`` picks some. Prints ns per agent-step, the ratio to
 M = 10 of the same layout, and the first call (make + reset + one step: compiling, unless
 cached; ``--cold`` compiles into a fresh cache directory).
 
     python tools/bench_swarm.py            # about 2-5 minutes on 2 CPU cores
     python tools/bench_swarm.py --cold --seconds 1
     python tools/bench_swarm.py --arch cuda       # the GPU (torch tensors on the device)
-    python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 nearest" "lists KL=16 nearest"
-    python tools/bench_swarm.py --layouts "lists KL=16 nearest" --skip-10k --vmas 10 100   # pip install vmas
-    python tools/bench_swarm.py --arch cuda --layouts "lists KL=16 nearest" "lists KL=16 nearest wide"
-    python tools/bench_swarm.py --layouts "claim-zero lists" "auction lists" "auction lists R=16" --skip-10k
+    python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 free" "lists KL=16 free"
+    python tools/bench_swarm.py --layouts "lists KL=16 free" --skip-10k --vmas 10 100   # pip install vmas
+    python tools/bench_swarm.py --arch cuda --layouts "lists KL=16 free" "lists KL=16 free wide"
+    python tools/bench_swarm.py --layouts "radio lists R=8" --policy coverage-rc-m100-radio   # the radio's cost
 
 A layout ending in "wide" steps every agent in parallel (``agent_parallel=True``, the default
 on CUDA); the others pin one thread per environment, so a pair of them is an A/B in one run
@@ -32,40 +32,37 @@ import time
 import numpy as np
 
 SIZES = ((1000, 10), (100, 100), (10, 1000))
-CLAIM_ZERO_LISTS = {
+# the lists and the agents' auction by messages (radio.py) as the zoo's coverage-rc-m100-radio runs
+# them: 8 message rounds a step, tables of the 64 nearest landmarks within the sense radius
+RADIO_LISTS = {
     "neighbours": 12,
-    "landmark_neighbours": 16,
+    "landmark_neighbours": 64,
     "sense_radius": 6.0,
     "landmark_occupancy": True,
-    "landmark_order": "claim-zero",
+    "landmark_order": "radio",
+    "auction_rounds": 8,
     "assignment": "free",
 }
 LAYOUTS = (
     ("dense", {}),
     ("lists K=16", {"neighbours": 16}),
-    ("lists K=16 auction", {"neighbours": 16, "assignment": "auction"}),
-    ("lists K=16 nearest", {"neighbours": 16, "assignment": "nearest"}),
+    ("lists K=16 free", {"neighbours": 16, "assignment": "free"}),
     # landmark lists too: no [M, L] entities block, every observation O(K) per agent
     (
-        "lists KL=16 nearest",
-        {"neighbours": 16, "landmark_neighbours": 16, "sense_radius": 1.0, "assignment": "nearest"},
+        "lists KL=16 free",
+        {"neighbours": 16, "landmark_neighbours": 16, "sense_radius": 1.0, "assignment": "free"},
     ),
-    # the lists of the zoo's coverage policies at M = 100: claim-zero lists, and the agents' own
-    # auction over the same candidates (landmark_order="auction"), an A/B of the auction's cost
-    ("claim-zero lists", CLAIM_ZERO_LISTS),
-    ("auction lists", {**CLAIM_ZERO_LISTS, "landmark_order": "auction"}),
-    # ... with a radio's budget of 16 bid rounds a step (auction_rounds), carried over between steps
-    ("auction lists R=16", {**CLAIM_ZERO_LISTS, "landmark_order": "auction", "auction_rounds": 16}),
+    ("radio lists R=8", RADIO_LISTS),
     # the same stepped agent by agent in parallel (agent_parallel, the default on CUDA; the rows
     # above pin one thread per environment on every arch, so each pair is an A/B in one run)
-    ("lists K=16 nearest wide", {"neighbours": 16, "assignment": "nearest", "agent_parallel": True}),
+    ("lists K=16 free wide", {"neighbours": 16, "assignment": "free", "agent_parallel": True}),
     (
-        "lists KL=16 nearest wide",
+        "lists KL=16 free wide",
         {
             "neighbours": 16,
             "landmark_neighbours": 16,
             "sense_radius": 1.0,
-            "assignment": "nearest",
+            "assignment": "free",
             "agent_parallel": True,
         },
     ),  # fmt: skip
@@ -114,6 +111,36 @@ def measure(
     }
 
 
+def measure_policy(name: str, B: int, M: int, seconds: float, comm_radius: float) -> dict:
+    """ns per agent of the policy's batched forward (torch on 1 thread) on observations of its own
+    trained setting at B x M, after a few random steps: with lists the network attends over K
+    teammates and KL landmarks, so the cost per agent should not grow with M."""
+    import torch
+
+    import taichi_swarm
+    from trainer.checkpoint import load_policy
+    from trainer.evaluate import swarm_options
+    from trainer.model import policy_inputs
+
+    torch.set_num_threads(1)
+    policy, _ = load_policy(name)
+    swarm = swarm_options(**policy.trained_swarm)
+    env = taichi_swarm.make("coverage", B, M, comm="rc", comm_radius=comm_radius, seed=0, **swarm)
+    obs = env.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        obs = env.step(rng.integers(0, 5, size=(B, M)))[0]
+    inputs, fused = policy_inputs(obs, "cpu"), policy.fused_weights()
+    with torch.no_grad():
+        policy(**inputs, fused=fused)  # warm-up outside the clock
+        calls, t = 0, time.perf_counter()
+        while calls < 3 or time.perf_counter() - t < seconds:
+            policy(**inputs, fused=fused)
+            calls += 1
+    per_call = (time.perf_counter() - t) / calls
+    return {"ms": 1e3 * per_call, "ns": 1e9 * per_call / (B * M)}
+
+
 def measure_vmas(B: int, M: int) -> float:
     """ns per agent-step of VMAS's simple_spread (random discrete actions, torch on 1 thread):
     one step untimed, one timed (its step is seconds at M = 100: its reward and collision
@@ -148,6 +175,11 @@ def main() -> None:
         "--vmas", type=int, nargs="*", metavar="M", default=None,
         help="also time VMAS simple_spread at these team sizes of the table (default with the flag: 10 100; "
         "1000 takes minutes a step) and print the first layout's speed-up over it",
+    )  # fmt: skip
+    parser.add_argument(
+        "--policy", metavar="NAME",
+        help="also time this policy's forward per agent at each size, on its own trained setting "
+        "(a zoo name, e.g. coverage-rc-m100-radio)",
     )  # fmt: skip
     args = parser.parse_args()
     if args.vmas == []:
@@ -190,6 +222,13 @@ def main() -> None:
             ns = measure_vmas(B, M)
             ours = next(r["ns"] for name, b, m, r in rows if name == first and m == M)
             print(f"vmas {B:>5} x {M:>5}: {ns:>12.0f} ns/agent-step; {first} is {ns / ours:.0f}x faster", flush=True)
+    if args.policy:
+        print(f"\npolicy forward of {args.policy} (torch 1 thread, B x M = 10,000 agents):")
+        base = None
+        for B, M in SIZES:
+            r = measure_policy(args.policy, B, M, args.seconds, args.comm_radius)
+            base = base or r["ns"]
+            print(f"{'policy':<20} {B:>5} {M:>6} {r['ms']:>9.1f} ms/call {r['ns']:>10.0f} ns/agent {r['ns'] / base:>7.2f}")
     paired = [(n, n + " wide") for n, _ in LAYOUTS if n + " wide" in args.layouts and n in args.layouts]
     if paired:
         print("\nagent-parallel step against one thread per environment (time ratio, < 1: faster):")
@@ -197,7 +236,7 @@ def main() -> None:
             ns = {(name, M): r["ns"] for name, B, M, r in rows}
             ratios = "  ".join(f"M = {M}: {ns[wide, M] / ns[one, M]:.2f}" for _, M in SIZES if (one, M) in ns)
             print(f"{wide:<26} {ratios}", flush=True)
-    for name, options in LAYOUTS[2:]:  # no M x M block: the auction and "nearest"
+    for name, options in LAYOUTS[2:]:  # no M x M block: "free" and the radio
         if args.skip_10k or name not in args.layouts:
             continue
         r = measure(1, 10_000, options, args.seconds, args.comm_radius, args.arch, min_steps=3)

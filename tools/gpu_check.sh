@@ -72,8 +72,8 @@ done
 # "wide" rows, CUDA's default), and one environment of M = 10,000 (docs/SWARM.md). Not the
 # exact or auction assignments: one GPU thread solving a team's M x M problem took 5.5 s a step
 # at M = 1000 on an H200
-run "$python" tools/bench_swarm.py --arch cuda --seconds 1 --skip-dense-large --layouts dense "lists K=16 nearest" \
-    "lists K=16 nearest wide" "lists KL=16 nearest" "lists KL=16 nearest wide"
+run "$python" tools/bench_swarm.py --arch cuda --seconds 1 --skip-dense-large --layouts dense "lists K=16 free" \
+    "lists K=16 free wide" "lists KL=16 free" "lists KL=16 free wide"
 if [ "$train_seconds" -gt 0 ]; then
     # SIGINT at the limit: the trainer saves its checkpoint and exits 130 (not a failure
     # here); a process still there 60 s later is killed

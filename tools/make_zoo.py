@@ -4,8 +4,8 @@
     python tools/make_zoo.py --check    # exit 1 if the written index differs from a rebuild
 
 One entry per published setting: each task x UC/RC x M = 3, 5, 6, 7, 10 from the recipe
-spec (seed 0), the transfer policy from the beyond spec, the robust policy, and the frozen
-large-team entries of models/large-teams.toml (trained at the git tag swarm-chains). Where the recipe has two
+spec (seed 0), the transfer policy from the beyond spec, the robust policy, and the large-team
+policies on the agents' auction by radio (tools/radio_recipe.sh). Where the recipe has two
 policies of one setting (a Table 1 run and a curriculum stage of the same size), the entry
 is the one with the higher S% on its 500 fresh episodes, the Table 1 run on a tie. Then
 ``swarm models --render`` writes the cards and models/README.md from the index.
@@ -18,7 +18,6 @@ import json
 import os
 import sys
 
-import tomllib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
@@ -31,16 +30,14 @@ TASKS = ("coverage", "formation", "line")
 COMMS = ("uc", "rc")
 SIZES = (3, 5, 6, 7, 10)
 RECIPE_ROOT = "results/reproduce-recipe"
-LARGE_TEAMS = os.path.join(ROOT, "models", "large-teams.toml")
 RADIO_ROOT = "results/radio"
-# the large-team policies on the agents' own auction by messages (landmark_order radio): each a
-# `swarm train` run (its command in docs/SWARM.md) from the shared-price auction entry, then
-# `swarm eval RUN/policy.pt --episodes 100 --seed 777 --json RUN/eval-777.json` (M >= 100: 100
-# episodes, with the fraction covered beside S%)
+# the large-team policies on the agents' own auction by messages (landmark_order radio):
+# tools/radio_recipe.sh TASK trains M = 10 from scratch, then M = 100 from it, and evaluates
+# (M >= 100: 100 episodes at seed 777, with the fraction covered beside S%)
 RADIO = (
-    ("coverage-rc-m100-radio", "coverage-rc-m100-auction", 6.0),
-    ("line-rc-m100-radio", "line-rc-m100-auction", 3.0),
-    ("formation-rc-m100-radio", "formation-rc-m100-auction", 1.5),
+    ("coverage-rc-m100-radio", 6.0),
+    ("line-rc-m100-radio", 3.0),
+    ("formation-rc-m100-radio", 1.5),
 )
 BEYOND_ROOT = "results/reproduce-beyond"
 # the transfer policy: M = 3 and 4 trained together (beyond spec), the seed of four whose
@@ -176,16 +173,14 @@ def build() -> list[dict]:
         weights = _rel(os.path.join(ROOT, policy_path(root, cell, 0, stage)))
         entry = _entry(cell, 0, agents, rows[agents], weights, {}, trained_on)
         entries.append({"name": name, **entry, "summary": summary, "use": USES[name]})
-    with open(LARGE_TEAMS, "rb") as f:  # as they are: their spec and its options left main
-        entries += tomllib.load(f)["model"]
-    for name, start, sense in RADIO:
-        entry = radio_entry(name, start, sense)
+    for name, sense in RADIO:
+        entry = radio_entry(name, sense)
         if entry is not None:
             entries.append(entry)
     return entries
 
 
-def radio_entry(name: str, start: str, sense: float) -> dict | None:
+def radio_entry(name: str, sense: float) -> dict | None:
     run = os.path.join(RADIO_ROOT, name)
     paths = {k: os.path.join(ROOT, run, f) for k, f in (("eval", "eval-777.json"), ("summary", "summary.json"))}
     if not all(os.path.exists(p) for p in paths.values()):
@@ -197,6 +192,9 @@ def radio_entry(name: str, start: str, sense: float) -> dict | None:
         summary = json.load(f)
     with open(os.path.join(ROOT, run, "config.json")) as f:
         config = json.load(f)
+    small = os.path.join(ROOT, os.path.dirname(config["init_from"]), "summary.json")  # the M = 10 cell
+    with open(small) as f:
+        first = json.load(f)
     weights = os.path.join(run, "policy.pt")
     task = config["task"]
     return {
@@ -211,23 +209,25 @@ def radio_entry(name: str, start: str, sense: float) -> dict | None:
         "spec": "radio",
         "cell": name,
         "seed": 0,
-        "trained_on": [config["agents"]],
+        "trained_on": [10, config["agents"]],
         "success": row["success_rate"],
         "mean_length": round(row["mean_length"], 3),
         "dist": None if row.get("dist") is None else round(row["dist"], 4),
         "covered": None if row.get("covered") is None else round(row["covered"], 4),
         "episodes": row["episodes"],
         "eval_seed": row["seed"],
-        "updates": summary["update"],
-        "env_steps": summary["env_steps"],
-        "minutes": round(summary["wall_time"] / 60, 1),
+        "updates": first["update"] + summary["update"],
+        "env_steps": first["env_steps"] + summary["env_steps"],
+        "minutes": round((first["wall_time"] + summary["wall_time"]) / 60, 1),
         "zero_shot": {},
         "curves": os.path.join(run, "curves.png"),
-        "summary": f"{start} trained {summary['update']} more updates on the agents' own auction by messages "
-        f"(landmark_order radio, {config['auction_rounds']} rounds a step)",
+        "summary": f"trained from scratch at M = 10 ({first['update']} updates), then {summary['update']} at "
+        f"M = {config['agents']}, on the agents' own auction by messages (landmark_order radio, "
+        f"{config['auction_rounds']} rounds a step, tables of the {config['landmark_neighbours']} nearest landmarks)",
         "use": f"Use it for {task} RC teams of about {config['agents']} where coordination must travel by radio: "
         f"each agent's landmark comes from an auction the agents run by messages to the teammates they hear "
-        f"(comm radius {config['comm_radius']:g}), sensing landmarks within {sense:g}.",
+        f"within comm radius {config['comm_radius']:g}; it senses the landmarks within {sense:g} and, for each, "
+        f"how near its nearest other agent is (occupancy).",
     }
 
 

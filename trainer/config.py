@@ -25,6 +25,8 @@ RETIRED = {
     "hold_reward": 0.0,
     "auction_eps": None,
 }
+# values of kept options that left with the shared-price auction and the team-wide claim readings
+RETIRED_VALUES = {"landmark_order": ("claim-zero", "auction"), "assignment": ("auction", "nearest")}
 MAX_TRANSFER_OFFSET = 1000  # |d| of a --transfer-offsets entry
 MAX_SEED = 2**31 - 1  # training seeds (the environments' seeds: trainer.train.train_seed)
 MAX_NUM_ENVS = 2**20
@@ -174,29 +176,22 @@ class TrainConfig:
     """With neighbours and landmark_neighbours: each sensed landmark also carries its distance
     to the nearest other agent (capped at sense_radius), whether a teammate already holds it;
     the network takes it as a third landmark input (docs/SWARM.md)."""
-    landmark_order: Literal["nearest", "claim-zero", "auction", "radio"] = "nearest"
-    """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; claim-zero
-    (with assignment free), the landmarks the threshold matching gives no other agent listed
-    before the others, a claimed one reading 0, so that an agent on a held landmark senses the
-    nearest free ones within sense_radius; auction (with assignment free), only the landmark the
-    agent wins in an auction over the landmarks each senses (claim-zero lists for an agent that
-    wins none): a planner picks the landmark, the network drives. The auction's prices live in
-    the simulator, and the claim readings come from a team-wide matching (docs/SWARM.md);
-    radio (with assignment free), the same lists from an auction the agents run by messages to
-    the teammates they hear alone: decentralised (taichi_swarm/radio.py)."""
+    landmark_order: Literal["nearest", "radio"] = "nearest"
+    """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; radio
+    (with assignment free), only the landmark the agent holds in an auction the agents run by
+    messages to the teammates they hear, each over the landmarks it senses: a planner picks the
+    landmark, the network drives (taichi_swarm/radio.py, docs/SWARM.md)."""
     auction_rounds: int | None = None
-    """With landmark_order auction: a budget of R bid rounds a step, the auction carried over
-    from step to step, an agent still bidding reading claim-zero lists (None: the auction
-    solved to the end each step). With radio: R message rounds a step (None: 4)."""
+    """With landmark_order radio: R message rounds a step (None: 4)."""
     scale: Literal["density"] | None = None
     """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
     (None: the paper's geometry)."""
-    assignment: Literal["exact", "auction", "nearest", "free"] | None = None
+    assignment: Literal["exact", "free"] | None = None
     """How targets are matched to agents for the reward: exact (the paper's min-sum matching,
-    the default), auction (eps-optimal) or nearest (with neighbour lists: each target's nearest
-    agent, local and flat in cost per agent; success from the exact matching within the
-    threshold), or free (nearest, with each agent's own reward from its matched target or,
-    unmatched, the nearest free one: a duplicate is paid to cross to a free target). docs/SWARM.md."""
+    the default) or free (with neighbour lists: the team reward from each target's nearest
+    agent, local and flat in cost per agent; success from a maximum matching within the
+    threshold; each agent's own reward from its matched target or, unmatched, the nearest free
+    one: a duplicate is paid to cross to a free target). docs/SWARM.md."""
     action_space: Literal["discrete", "fine"] = "discrete"
     """discrete: the paper's 5 actions; fine: 9, the paper's and four pushes at a quarter of the
     force, with which an agent at rest can park within 0.035 of any point, where with the
@@ -451,6 +446,11 @@ def train_config_from_dict(d: dict) -> TrainConfig:
     for key, off in RETIRED.items():
         if key in d and d.pop(key) != off:
             raise ValueError(f"{key}: the run was made with an option this version no longer has (tag swarm-chains)")
+    for key, values in RETIRED_VALUES.items():
+        if d.get(key) in values:
+            raise ValueError(
+                f"{key}: the run was made with {d[key]!r}, which this version no longer has (tag swarm-chains)"
+            )
     d.setdefault("compile", False)  # runs from before the option existed ran eagerly
     d.setdefault("tensorboard", False)
     for key in ("transfer_offsets", "team_sizes"):

@@ -24,7 +24,7 @@ def swarm_options(
     neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None,
     action_space=None, landmark_order=None, auction_rounds=None,
 ) -> dict:  # fmt: skip
-    """The simulator's neighbour-list, scaling, assignment, occupancy, landmark-order, auction-budget
+    """The simulator's neighbour-list, scaling, assignment, occupancy, landmark-order, radio-round
     and action-set options that are set, as ``make()`` keywords (none set: the dense layout, the
     paper's geometry, the exact assignment, the paper's 5 actions)."""
     given = dict(
@@ -65,10 +65,10 @@ def swarm_options(
     if auction_rounds is not None:
         if isinstance(auction_rounds, bool) or not isinstance(auction_rounds, numbers.Integral) or auction_rounds < 1:
             raise ValueError(f"auction_rounds must be an integer >= 1, got {auction_rounds!r}")
-        if landmark_order not in ("auction", "radio"):
+        if landmark_order != "radio":
             raise ValueError(
-                f"auction_rounds is the budget of the agents' own auction: it needs landmark_order 'auction' or "
-                f"'radio' (--landmark-order), got {landmark_order!r}"
+                f"auction_rounds is the radio auction's message rounds a step: it needs landmark_order 'radio' "
+                f"(--landmark-order), got {landmark_order!r}"
             )
     if landmark_order == "nearest":  # the default: recorded as unset
         given["landmark_order"] = None
@@ -176,8 +176,10 @@ def _evaluate(
 
 def format_table(rows: list[dict]) -> str:
     """Rows of evaluate() results as an aligned text table (S% and T as in the paper; the
-    fraction of landmarks covered beside them where every row has it)."""
-    extra = ("covered",) if rows and all(r.get("covered") is not None for r in rows) else ()
+    fraction of landmarks covered, and the radio's messages per agent-step, beside them where
+    every row has them)."""
+    keys = ("covered", "messages_per_agent_step")
+    extra = tuple(k for k in keys if rows and all(r.get(k) is not None for r in rows))
     return format_results(rows, extra)
 
 

@@ -90,14 +90,11 @@ class ZooEntry:
 
     def command(self) -> str:
         seed = f" --first-seed {self.seed}" if self.seed else ""
-        if self.spec == FROZEN_SPEC:  # the chain's spec and options live at the tag (models/large-teams.toml)
-            return f"git checkout {FROZEN_SPEC} && swarm reproduce --spec swarm --cells {self.cell}{seed}"
-        if self.spec == "radio":  # a swarm train run from another entry (tools/make_zoo.py, RADIO)
+        if self.spec == "radio":  # two swarm train cells (tools/make_zoo.py, RADIO)
             return f"tools/radio_recipe.sh {self.task}"
         return f"swarm reproduce --spec {self.spec} --cells {self.cell}{seed}"
 
 
-FROZEN_SPEC = "swarm-chains"  # the git tag that retrains the frozen large-team entries
 
 
 def load_index(path: str = INDEX) -> list[ZooEntry]:

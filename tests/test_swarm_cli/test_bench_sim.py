@@ -159,7 +159,7 @@ def test_gpu_check_script_arguments():
     bench_swarm = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench_swarm)
     names = [name for name, _ in bench_swarm.LAYOUTS]
-    assert "lists KL=16 nearest wide" in layouts and set(layouts) <= set(names), layouts
+    assert "lists KL=16 free wide" in layouts and set(layouts) <= set(names), layouts
     r = subprocess.run(
         [script, "--dry-run", "--python", "python3", "--train-seconds", "60", "--precisions", "bf16"],
         capture_output=True,

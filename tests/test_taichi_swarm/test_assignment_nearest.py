@@ -1,5 +1,6 @@
-"""assignment="nearest" (nearest.py): each target's nearest-agent distance d_t and each
-agent's nearest-target distance against a scipy cKDTree, the reward against its formula, and
+"""assignment="free" (nearest.py): each target's nearest-agent distance d_t against a scipy
+cKDTree, each agent's own d (to its matched target, else the nearest free one), the rewards
+against their formulas, and
 success / covered against scipy's maximum bipartite matching on the threshold graph, at M =
 200 and 1000, from steps, warm starts and arbitrary states (agents far from every target,
 so the full scan runs; agents on a permutation of the landmarks; one agent within the
@@ -15,7 +16,7 @@ from scipy.spatial import cKDTree
 import taichi_swarm
 
 
-def _make(M, B=2, task="coverage", assignment="nearest", **kw):
+def _make(M, B=2, task="coverage", assignment="free", **kw):
     opts = {"scale": "density"} if task == "coverage" else {}
     return taichi_swarm.make(
         task, B, M, comm="rc", comm_radius=1.0, neighbours=16, assignment=assignment, seed=M, array="numpy",
@@ -24,10 +25,9 @@ def _make(M, B=2, task="coverage", assignment="nearest", **kw):
 
 
 def _reference(pos, targets, thr):
-    """d_t per target, each agent's nearest-target distance, the maximum threshold matching's size."""
+    """d_t per target, the maximum threshold matching's size."""
     pos, targets = pos.astype(np.float64), targets.astype(np.float64)
     d_t, _ = cKDTree(pos).query(targets)
-    d_i, _ = cKDTree(targets).query(pos)
     pairs = cKDTree(targets).query_ball_point(pos, r=thr * (1 + 1e-4))  # candidates, then the strict rule
     rows, cols = [], []
     for i, ts in enumerate(pairs):
@@ -38,7 +38,20 @@ def _reference(pos, targets, thr):
     M = len(pos)
     graph = csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(M, M))
     size = int((maximum_bipartite_matching(graph, perm_type="column") >= 0).sum()) if rows else 0
-    return d_t, d_i, size
+    return d_t, size
+
+
+def _free_reference(pos, targets, a):
+    """assignment="free"'s d per agent: to its matched target, else to the nearest unmatched one."""
+    pos, targets = pos.astype(np.float64), targets.astype(np.float64)
+    free = np.setdiff1d(np.arange(len(targets)), a[a >= 0])
+    d = np.empty(len(pos))
+    on = a >= 0
+    d[on] = np.linalg.norm(pos[on] - targets[a[on]], axis=-1)
+    if (~on).any():
+        d[~on] = cKDTree(targets[free]).query(pos[~on])[0]
+    return d
+
 
 
 def _check_matching(env, b, pos, targets):
@@ -49,7 +62,7 @@ def _check_matching(env, b, pos, targets):
     assert len(set(matched.tolist())) == len(matched), "two agents on one target"
     d = np.linalg.norm(pos[a >= 0].astype(np.float64) - targets[matched], axis=-1)
     assert (d < thr + 1e-6).all()
-    _, _, size = _reference(pos, targets, thr)
+    _, size = _reference(pos, targets, thr)
     assert len(matched) == size
     return size
 
@@ -58,7 +71,8 @@ def _check_step(env, pos, targets):
     """After a step: d_t, the agents' rewards, the team reward and the matching."""
     thr = env.params["success_threshold"]
     for b in range(env.num_envs):
-        d_t, d_i, size = _reference(pos[b], targets[b], thr)
+        d_t, size = _reference(pos[b], targets[b], thr)
+        d_i = _free_reference(pos[b], targets[b], env.assignment[b])
         np.testing.assert_allclose(env.matched_dist[b], d_t, rtol=1e-5, atol=1e-5)
         np.testing.assert_allclose(env.info["agent_reward"][b], np.clip(-d_i, -15, 15), rtol=1e-5, atol=1e-5)
         assert env.reward[b] == pytest.approx(np.clip(-d_t.mean(), -15, 15), rel=1e-5, abs=1e-5)
@@ -71,7 +85,7 @@ def test_nearest_distances_rewards_and_matching_like_scipy(M):
     B = env.num_envs
     env.reset()
     for b in range(B):  # after a reset: d_t and the matching (the rewards of a reset are 0)
-        d_t, _, _ = _reference(env.get_state()["pos"][b], env.targets[b], 0.1)
+        d_t, _ = _reference(env.get_state()["pos"][b], env.targets[b], 0.1)
         np.testing.assert_allclose(env.matched_dist[b], d_t, rtol=1e-5, atol=1e-5)
         _check_matching(env, b, env.get_state()["pos"][b], env.targets[b])
     rng = np.random.default_rng(M)
@@ -89,7 +103,7 @@ def test_nearest_distances_rewards_and_matching_like_scipy(M):
         env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
         s = env.get_state()
         for b in range(B):
-            d_t, _, _ = _reference(s["pos"][b], env.targets[b], 0.1)
+            d_t, _ = _reference(s["pos"][b], env.targets[b], 0.1)
             np.testing.assert_allclose(env.matched_dist[b], d_t, rtol=1e-5, atol=1e-5)
             _check_matching(env, b, s["pos"][b], env.targets[b])
         for _ in range(2):  # warm-started steps from there
@@ -117,7 +131,7 @@ def test_small_cells_under_uc():
     rings and often end in the full scan."""
     M, B = 200, 2
     env = taichi_swarm.make(
-        "coverage", B, M, comm="uc", neighbours=16, assignment="nearest", scale="density", seed=2, array="numpy"
+        "coverage", B, M, comm="uc", neighbours=16, assignment="free", scale="density", seed=2, array="numpy"
     )
     env.reset()
     rng = np.random.default_rng(2)
@@ -171,7 +185,7 @@ def test_success_tempting_landmarks_and_warm_start():
     for b in range(B):
         assert _check_matching(env, b, s["pos"][b], env.targets[b]) == M
         assert env.assignment[b, a] == 1 and env.assignment[b, c] == 0
-        d_t, _, _ = _reference(s["pos"][b], env.targets[b], 0.1)
+        d_t, _ = _reference(s["pos"][b], env.targets[b], 0.1)
         np.testing.assert_allclose(env.matched_dist[b], d_t, rtol=1e-5, atol=1e-5)
     env.step(np.zeros((B, M), dtype=np.int64))
     assert env.done.all() and env.info["episode"]["success"].all()
@@ -191,7 +205,7 @@ def test_truncated_episode_statistics_are_the_terminal_states():
     assert env.done.all() and ep["truncated"].all()
     for b in range(B):
         pos = term["self"][b, :, 2:4]
-        d_t, _, size = _reference(pos, lmk[b], 0.1)
+        d_t, size = _reference(pos, lmk[b], 0.1)
         np.testing.assert_allclose(ep["matched_dist"][b], d_t, rtol=1e-5, atol=1e-5)
         assert ep["dist"][b] == pytest.approx(d_t.mean(), rel=1e-5)
         assert ep["covered"][b] == pytest.approx(size / M)
@@ -210,7 +224,8 @@ def test_line_targets():
         s = env.get_state()
         thr = env.params["success_threshold"]
         for b in range(B):
-            d_t, d_i, size = _reference(s["pos"][b], env.targets[b], thr)
+            d_t, size = _reference(s["pos"][b], env.targets[b], thr)
+            d_i = _free_reference(s["pos"][b], env.targets[b], env.assignment[b])
             np.testing.assert_allclose(env.matched_dist[b], d_t, rtol=1e-5, atol=1e-5)
             if env.done[b]:
                 continue  # rewards of the old episode, state of the new
@@ -219,43 +234,22 @@ def test_line_targets():
             assert _check_matching(env, b, s["pos"][b], env.targets[b]) == size
 
 
-def _free_reference(pos, targets, a):
-    """assignment="free"'s d per agent: to its matched target, else to the nearest unmatched one."""
-    pos, targets = pos.astype(np.float64), targets.astype(np.float64)
-    free = np.setdiff1d(np.arange(len(targets)), a[a >= 0])
-    d = np.empty(len(pos))
-    on = a >= 0
-    d[on] = np.linalg.norm(pos[on] - targets[a[on]], axis=-1)
-    if (~on).any():
-        d[~on] = cKDTree(targets[free]).query(pos[~on])[0]
-    return d
-
-
 @pytest.mark.parametrize("wide", [False, True])
 def test_free_rewards_each_agent_by_its_matched_or_nearest_free_target(wide):
-    """assignment="free" is "nearest" but for each agent's own reward: an agent the threshold
-    matching holds is measured to its target, an unmatched one to the nearest target the matching
-    leaves free (scipy over the free targets); everything else is the same bit for bit. Both
-    kernels (one env per thread and every agent in parallel). A duplicate on a held landmark is
-    measured to the free one across the arena, where "nearest" pays it 0 for staying."""
+    """An agent the threshold matching holds is measured to its target, an unmatched one to the
+    nearest target the matching leaves free (scipy over the free targets), on both kernels (one
+    env per thread and every agent in parallel). A duplicate on a held landmark is measured to the
+    free one across the arena, not paid for staying."""
     M, B = 200, 2
-    kw = dict(max_steps=50, agent_parallel=wide)
-    free, near = _make(M, B, assignment="free", **kw), _make(M, B, **kw)
+    free = _make(M, B, max_steps=50, agent_parallel=wide)
     rng = np.random.default_rng(11)
-    free.reset(), near.reset()
+    free.reset()
     lmk = free.get_state()["landmarks"]
     near_targets = lmk + rng.normal(0, 0.06, size=lmk.shape)  # many threshold edges, duplicates among them
-    for env in (free, near):
-        env.set_state(pos=near_targets, vel=np.zeros((B, M, 2)))
+    free.set_state(pos=near_targets, vel=np.zeros((B, M, 2)))
     for _ in range(4):
-        actions = rng.integers(0, 5, size=(B, M))
-        free.step(actions), near.step(actions)
+        free.step(rng.integers(0, 5, size=(B, M)))
         s = free.get_state()
-        for key in ("pos", "vel"):
-            np.testing.assert_array_equal(s[key], near.get_state()[key])
-        np.testing.assert_array_equal(free.reward, near.reward)
-        np.testing.assert_array_equal(free.assignment, near.assignment)
-        np.testing.assert_array_equal(free.matched_dist, near.matched_dist)
         for b in range(B):
             assert (free.assignment[b] < 0).any()  # some agents unmatched: the free search runs
             want = np.clip(-_free_reference(s["pos"][b], free.targets[b], free.assignment[b]), -15, 15)
@@ -266,19 +260,16 @@ def test_free_rewards_each_agent_by_its_matched_or_nearest_free_target(wide):
     pos = lat.copy()
     a, c = 3, 150
     pos[:, a] = lat[:, c] + (0.02, 0.0)
-    for env in (free, near):  # the lattice held first: c keeps its landmark (held, and nearer than a)
-        env.set_state(pos=lat, vel=np.zeros((B, M, 2)), landmarks=lat, step=np.zeros(B, dtype=np.int64))
-        env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
-        env.step(np.zeros((B, M), dtype=np.int64))
+    # the lattice held first: c keeps its landmark (held, and nearer than a)
+    free.set_state(pos=lat, vel=np.zeros((B, M, 2)), landmarks=lat, step=np.zeros(B, dtype=np.int64))
+    free.set_state(pos=pos, vel=np.zeros((B, M, 2)))
+    free.step(np.zeros((B, M), dtype=np.int64))
     s = free.get_state()  # the step's contact pushed a and c apart a little
     for b in range(B):
         assert free.assignment[b, a] == -1 and free.assignment[b, c] == c  # c, the nearer, holds it
         far, own = np.linalg.norm(s["pos"][b, a] - lat[b, a]), np.linalg.norm(s["pos"][b, a] - lat[b, c])
         assert far > 6 and own < 0.1
         assert free.info["agent_reward"][b, a] == pytest.approx(-far, rel=1e-4)  # a's own landmark, the one free
-        assert near.info["agent_reward"][b, a] == pytest.approx(-own, abs=1e-5)  # nearest: paid for staying
-        others = np.delete(free.info["agent_reward"][b], a), np.delete(near.info["agent_reward"][b], a)
-        np.testing.assert_array_equal(*others)
 
 
 @pytest.mark.parametrize("wide", [False, True])
@@ -289,7 +280,7 @@ def test_the_nearer_of_two_agents_on_a_target_holds_it(wide):
     agent that is its target's nearest agent stays matched to it (unless another target's
     nearest it is), and the matching stays maximum (scipy)."""
     M, B = 200, 2
-    env = _make(M, B, assignment="free", max_steps=50, agent_parallel=wide)
+    env = _make(M, B, max_steps=50, agent_parallel=wide)
     env.reset()
     lat = np.broadcast_to(_lattice(M), (B, M, 2)).copy()
     a, c = 3, 150
@@ -325,99 +316,15 @@ def test_the_nearer_of_two_agents_on_a_target_holds_it(wide):
                 assert assign[i] == t
 
 
-@pytest.mark.parametrize("wide", [False, True])
-def test_under_claim_the_incumbent_keeps_its_target_and_each_agent_reads_who_holds_it(wide):
-    """landmark_order="claim-zero": a newcomer nearer a held target does not take it over (the
-    incumbent keeps it while within the threshold), the incumbent reads its landmark free (the
-    newcomer's distance, floored at the threshold) and the newcomer reads it held (0), and
-    "free" pays the newcomer for crossing to the free target. Once the incumbent leaves, the
-    newcomer holds it. Under "nearest" order the nearer takes it over (the test above)."""
-    M, B, KL, sense = 200, 2, 4, 1.0
-    env = _make(
-        M, B, assignment="free", max_steps=50, agent_parallel=wide, landmark_neighbours=KL, sense_radius=sense,
-        landmark_occupancy=True, landmark_order="claim-zero",
-    )  # fmt: skip
-    env.reset()
-    lat = np.broadcast_to(_lattice(M), (B, M, 2)).copy()
-    a, c = 3, 150
-    env.set_state(pos=lat, vel=np.zeros((B, M, 2)), landmarks=lat, step=np.zeros(B, dtype=np.int64))
-    assert (env.assignment == np.arange(M)).all()
-    pos = lat.copy()
-    pos[:, c] = lat[:, c] + (0.06, 0.0)  # c, the incumbent, 0.06 off its landmark
-    pos[:, a] = lat[:, c] - (0.03, 0.0)  # a arrives nearer: 0.03 from it
-    obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
-    for b in range(B):
-        assert env.assignment[b, c] == c and env.assignment[b, a] == -1  # the incumbent keeps it
-        assert _check_matching(env, b, pos[b], env.targets[b]) == M - 1
-        ent, mask = obs["entities"][b], obs["entity_mask"][b]
-        mine = np.flatnonzero(mask[c] & (np.abs(ent[c, :, :2] - (lat[b, c] - pos[b, c])).sum(-1) < 1e-5))
-        # c reads it free: a's distance, under the threshold, floored at it
-        assert len(mine) == 1 and ent[c, mine[0], 2] == pytest.approx(env.params["success_threshold"])
-        theirs = np.flatnonzero(mask[a] & (np.abs(ent[a, :, :2] - (lat[b, c] - pos[b, a])).sum(-1) < 1e-5))
-        # a reads it held (0), listed after every free landmark in range
-        assert len(theirs) == 1 and ent[a, theirs[0], 2] == pytest.approx(0.0, abs=1e-5)
-        assert (ent[a, : theirs[0], 2] >= env.params["success_threshold"]).all()
-    env.step(np.zeros((B, M), dtype=np.int64))
-    s = env.get_state()
-    for b in range(B):
-        assert env.assignment[b, c] == c and env.assignment[b, a] == -1
-        far = np.linalg.norm(s["pos"][b, a] - lat[b, a])  # a is paid by its own landmark, the one free
-        assert env.info["agent_reward"][b, a] == pytest.approx(-far, rel=1e-4)
-    pos = env.get_state()["pos"]
-    pos[:, c] = lat[:, c] + (0.5, 0.0)  # the incumbent leaves: a, within the threshold, takes it
-    env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
-    for b in range(B):
-        assert env.assignment[b, a] == c and env.assignment[b, c] == -1
-
-
-@pytest.mark.parametrize("order", ["claim-zero", "auction"])
-def test_claim_needs_the_threshold_matching(order):
-    with pytest.raises(ValueError, match=f"landmark_order='{order}' needs assignment"):
+def test_radio_needs_the_threshold_matching():
+    with pytest.raises(ValueError, match="landmark_order='radio' needs assignment"):
         _make(20, assignment="exact", landmark_neighbours=4, sense_radius=1.0, landmark_occupancy=True,
-              landmark_order=order)  # fmt: skip
+              landmark_order="radio")  # fmt: skip
 
 
-def test_nearest_needs_neighbour_lists():
-    for method in ("nearest", "free"):
-        with pytest.raises(ValueError, match=f"assignment='{method}' needs neighbours=K"):
-            taichi_swarm.make("coverage", 2, 5, assignment=method, array="numpy")
-    with pytest.raises(ValueError, match="assignment must be one of"):
-        taichi_swarm.make("coverage", 2, 5, assignment="greedy", array="numpy")
-
-
-@pytest.mark.parametrize("task", ["coverage", "formation", "line"])
-def test_claim_readings_name_each_listed_landmarks_own_holder_in_every_task(task):
-    """kernels.claimed reads landmark l's holder as target l's in the matching, so every list task
-    keeps landmark k at target k (line once stored its first row's end second, and every claim
-    reading on its rows named another target's holder: none read held). With the agents parked
-    near their targets, each listed landmark that the matching gives another agent reads 0, and
-    every other one reads at least the threshold."""
-    M, B, thr_tol = 60, 2, 1e-5
-    env = taichi_swarm.make(
-        task, B, M, comm="rc", comm_radius=1.0, neighbours=8, assignment="free", seed=3, array="numpy",
-        scale="density", landmark_neighbours=8, sense_radius=1.5, landmark_occupancy=True, landmark_order="claim-zero",
-    )  # fmt: skip
-    env.reset()
-    lmk = env.get_state()["landmarks"]
-    np.testing.assert_array_equal(lmk, env.targets)  # landmark k is target k
-    rng = np.random.default_rng(5)
-    pos = env.targets + rng.uniform(-0.03, 0.03, size=(B, M, 2))
-    obs = env.set_state(pos=pos, vel=np.zeros((B, M, 2)))
-    thr = env.params["success_threshold"]
-    held_seen = 0
-    for b in range(B):
-        holder = np.full(M, -1)
-        assigned = env.assignment[b]
-        holder[assigned[assigned >= 0]] = np.flatnonzero(assigned >= 0)
-        ent, mask = obs["entities"][b], obs["entity_mask"][b]
-        for i in range(M):
-            for k in np.flatnonzero(mask[i]):
-                q = pos[b, i] + ent[i, k, :2]
-                t = int(np.linalg.norm(env.targets[b] - q, axis=-1).argmin())
-                h = holder[t]
-                if h >= 0 and h != i:
-                    held_seen += 1
-                    assert ent[i, k, 2] == 0.0, (b, i, k, t, h)
-                else:
-                    assert ent[i, k, 2] >= thr - thr_tol, (b, i, k, t)
-    assert held_seen > B * M  # most listed landmarks are some teammate's
+def test_free_needs_neighbour_lists():
+    with pytest.raises(ValueError, match="assignment='free' needs neighbours=K"):
+        taichi_swarm.make("coverage", 2, 5, assignment="free", array="numpy")
+    for retired in ("greedy", "nearest"):
+        with pytest.raises(ValueError, match="assignment must be one of"):
+            taichi_swarm.make("coverage", 2, 5, assignment=retired, array="numpy")

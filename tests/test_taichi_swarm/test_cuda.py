@@ -102,11 +102,10 @@ def test_cuda_training_end_to_end(tmp_path):
     assert summary["update"] == 2 and summary["last_eval"]["success_rate"] >= 0
 
 
-def test_cuda_neighbour_lists_and_auction():
+def test_cuda_neighbour_lists():
     """Lists holding everyone match the dense layout on the GPU; lists at M = 1000 are a
-    cKDTree's K nearest; the auction is eps-optimal."""
+    cKDTree's K nearest."""
     import torch
-    from scipy.optimize import linear_sum_assignment
     from scipy.spatial import cKDTree
 
     if runtime.current_arch() != "cuda":
@@ -137,7 +136,7 @@ def test_cuda_neighbour_lists_and_auction():
         np.testing.assert_array_equal(heard[clear], adj[clear])
     M, K, r = 1000, 16, 0.5
     env = taichi_swarm.make(
-        "coverage", 2, M, comm="rc", comm_radius=r, neighbours=K, scale="density", assignment="auction", arch="cuda"
+        "coverage", 2, M, comm="rc", comm_radius=r, neighbours=K, scale="density", assignment="free", arch="cuda"
     )
     env.reset(seed=0)
     env.step(torch.randint(0, 5, (2, M), device="cuda"))
@@ -151,7 +150,3 @@ def test_cuda_neighbour_lists_and_auction():
             assert len(listed) == min(K, len(cand))
             if len(cand) <= K:
                 assert listed == set(cand)
-        cost = np.linalg.norm(pos[b][:, None] - env.targets[b].cpu().numpy()[None], axis=-1)
-        rows, cols = linear_sum_assignment(cost)
-        got = cost[np.arange(M), env.assignment[b].cpu().numpy()].sum()
-        assert got <= cost[rows, cols].sum() + M * env.assignment_eps + 1e-4 * M

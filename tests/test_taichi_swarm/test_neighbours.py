@@ -282,14 +282,52 @@ def test_landmark_occupancy_is_the_nearest_other_agents_distance(M, comm):
     assert (third < sense).any() and (third == np.float32(sense)).any()  # both held and free landmarks seen
 
 
+def test_an_observation_reads_nothing_beyond_its_sensing_and_hearing():
+    """Locality of landmark_order "nearest" with occupancy (the radio's own: test_radio_auction.py):
+    an agent's observation depends only on agents within its comm radius (whom it hears) or within
+    the sense radius of a landmark it senses (the occupancy reading). Every other agent moved, by
+    any amount within the arena's far side, changes nothing it reads; one moved onto a landmark
+    it senses changes its reading (so the check can fail)."""
+    M, sense, radius = 200, 0.6, 0.8
+    kw = dict(comm="rc", comm_radius=radius, neighbours=6, landmark_neighbours=5, sense_radius=sense)
+    env = taichi_swarm.make("coverage", 1, M, landmark_occupancy=True, scale="density", seed=4, array="numpy", **kw)
+    env.reset()
+    state = env.get_state()
+    pos, lmk = state["pos"][0].astype(np.float64), state["landmarks"][0].astype(np.float64)
+    counts = (np.linalg.norm(lmk[None] - pos[:, None], axis=-1) <= sense).sum(1)
+    o = int(counts.argmax())  # the observer: the agent sensing the most landmarks
+    sensed = lmk[np.linalg.norm(lmk - pos[o], axis=-1) <= sense]
+    reach = np.linalg.norm(pos - pos[o], axis=-1) <= radius + 1e-6
+    for q in sensed:
+        reach |= np.linalg.norm(pos - q, axis=-1) <= sense + 1e-6
+    far = np.flatnonzero(~reach)
+    assert len(sensed) >= 2 and len(far) > M // 2
+
+    def observe(p):
+        obs = env.set_state(pos=p[None].astype(np.float32), vel=np.zeros((1, M, 2)), step=np.zeros(1, dtype=np.int64))
+        return {k: np.asarray(v)[0, o].copy() for k, v in obs.items()}
+
+    before = observe(pos)
+    moved = pos.copy()
+    corner = pos[o] - 3 * (radius + 2 * sense) * np.sign(pos[o] + 1e-9)  # the far side of the observer
+    moved[far] = corner + np.random.default_rng(0).uniform(-0.5, 0.5, size=(len(far), 2))
+    after = observe(moved)
+    for k in before:
+        np.testing.assert_array_equal(before[k], after[k], err_msg=k)
+    near = moved.copy()
+    near[far[0]] = sensed[0] + (0.01, 0.0)  # a stranger onto a landmark the observer senses
+    assert not np.array_equal(observe(near)["entities"], before["entities"])
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
         (
-            {"landmark_order": "claim-zero", "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5},
-            "needs landmark_occupancy=True",
+            {"landmark_order": "radio", "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5},
+            "needs neighbours=K, landmark_neighbours=KL and landmark_occupancy=True",
         ),
         ({"landmark_order": "held"}, "landmark_order must be one of"),
+        ({"landmark_order": "auction"}, "landmark_order must be one of"),
         ({"landmark_occupancy": True}, "landmark_occupancy needs neighbours=K and landmark_neighbours"),
         ({"landmark_occupancy": True, "neighbours": 4}, "landmark_occupancy needs"),
         ({"landmark_occupancy": 1, "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5}, "True or False"),
@@ -319,10 +357,10 @@ def _assert_same(a, b, where):
     ("task", "M", "kwargs"),
     [
         ("coverage", 40, dict(comm="rc", neighbours=6, landmark_neighbours=5, sense_radius=0.8,
-                              landmark_occupancy=True, assignment="nearest", scale="density")),
+                              landmark_occupancy=True, assignment="free", scale="density")),
         ("coverage", 12, dict(comm="uc", neighbours=4)),  # the exact assignment, every landmark seen
         ("formation", 20, dict(comm="rc", neighbours=5, landmark_neighbours=6, sense_radius=0.8, scale="density",
-                               assignment="auction")),
+                               assignment="free")),
         ("line", 30, dict(comm="rc", neighbours=4, scale="density", action_space="continuous")),
     ],
 )  # fmt: skip

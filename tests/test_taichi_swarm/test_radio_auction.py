@@ -13,7 +13,8 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 
 import taichi_swarm
-from taichi_swarm import auction, radio
+from taichi_swarm import radio
+from taichi_swarm.layout import BLOCKS
 
 TABLE = ("radio_won", "radio_count", "radio_lid", "radio_epoch", "radio_price", "radio_holder")
 # every env here shares one compiled variant (B * M^2 below env.SERIAL_BELOW_WORK: serial env loop)
@@ -52,8 +53,9 @@ def test_both_step_kernels_agree_bit_for_bit_through_an_auto_reset():
     for env in (*envs, fresh):
         env.reset()
     assert envs[0].auction_rounds == radio.DEFAULT_ROUNDS
-    for name in ("bid_price", "bid_holder"):  # the radio keeps nothing per landmark
-        assert envs[0].layout.blocks[name].shape == (B, 0)
+    for spec in BLOCKS:  # the radio keeps nothing per landmark: its blocks are per agent (or per env)
+        if spec.name.startswith(("radio", "bid")):
+            assert spec.per_env[:1] in ((), ("BM",), ("RM",)), spec
     rng = np.random.default_rng(1)
     restarted, held = 0, []
     for _ in range(60):
@@ -82,7 +84,7 @@ def _sensed_optimum(pos, lmk, KL, sense):
     agent free to stay out at OUT sense radii (a dummy column per agent)."""
     M, L = len(pos), len(lmk)
     d = np.linalg.norm(pos[:, None] - lmk[None], axis=-1)
-    out = auction.OUT * sense
+    out = radio.OUT * sense
     cost = np.full((M, L + M), 1e3)
     cost[:, L:] = out
     for i in range(M):
@@ -142,7 +144,7 @@ def test_agents_held_still_settle_within_the_increment_of_the_optimum():
         assert sorted(won[b].tolist()) == list(range(M)), "a landmark held by none or by two"
         best, d = _sensed_optimum(pos[b], lmk[b], KL, sense)
         got = d[np.arange(M), won[b]].sum()
-        assert best - 1e-3 <= got <= best + M * auction.ROUND_EPS
+        assert best - 1e-3 <= got <= best + M * radio.ROUND_EPS
         gaps.append((got - best) / M)
         n, lid, holder = last["radio_count"][b], last["radio_lid"][b], last["radio_holder"][b]
         for i in range(M):
@@ -258,7 +260,7 @@ def test_the_radio_counts_its_messages():
         ({"landmark_neighbours": None, "sense_radius": None}, "landmark_order='radio' needs neighbours=K"),
         ({"auction_rounds": 0}, "auction_rounds must be >= 1, got 0"),
         ({"auction_rounds": 65}, "auction_rounds must be <= 64, got 65"),
-        ({"assignment": "exact"}, "landmark_order='radio' needs assignment 'nearest' or 'free'"),
+        ({"assignment": "exact"}, "landmark_order='radio' needs assignment 'free'"),
     ],
 )
 def test_refusals(kw, message):

@@ -77,15 +77,15 @@ def test_models_names_the_entry_to_use_for_a_team_size(capsys):
 
     entries = zoo.load_index()
     picked = {(e.task, e.comm): e.name for e in zoo.select(entries, "line", None, 50)}
-    assert picked == {("line", "uc"): "line-uc-m10", ("line", "rc"): "line-rc-m100-auction"}
+    assert picked == {("line", "uc"): "line-uc-m10", ("line", "rc"): "line-rc-m100-radio"}
     assert [e.name for e in zoo.select(entries, "coverage", "uc", 4)] == ["coverage-uc-m5"]  # 5/4 is nearer than 4/3
     assert models_main(["--task", "line", "--agents", "50"]) == 0
     out = capsys.readouterr().out
-    assert "line-rc-m100-auction" in out and "line-rc-m10`" not in out
+    assert "line-rc-m100-radio" in out and "line-rc-m10`" not in out
     for e in entries:
         assert e.when().startswith("Use it")
-        if e.spec == zoo.FROZEN_SPEC:  # the large-team cards say how each agent's landmark is chosen
-            assert "senses" in e.when() or "rounds a step" in e.when()
+        if e.spec == "radio":  # the large-team cards say how each agent's landmark is chosen and what it senses
+            assert "auction the agents run by messages" in e.when() and "senses the landmarks within" in e.when()
 
 
 def test_a_large_team_policy_evaluates_in_its_own_setting_as_loaded():
