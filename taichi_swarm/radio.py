@@ -112,12 +112,17 @@ def _rows(ib: ti.template(), b: ti.i32, i: ti.i32, nxt: ti.template()) -> ti.mat
 
 @ti.func
 def _find(ib: ti.template(), LID: ti.i32, n: ti.i32, l: ti.i32) -> ti.i32:
-    """The slot of landmark l in a table of n entries (-1: not in it)."""
-    s = -1
-    for k in range(n):
-        if ib[LID + k] == l:
-            s = k
-    return s
+    """The slot of landmark l in a table of n entries (-1: not in it). A table is sorted by id
+    (``rebuild``), so a binary search: the observation asks this of every landmark an agent's
+    search passes (about 280 within a sense radius of 6 from M = 400 on)."""
+    lo, hi = 0, n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if ib[LID + mid] < l:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if lo < n and ib[LID + lo] == l else -1
 
 
 @ti.func
