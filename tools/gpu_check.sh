@@ -70,8 +70,8 @@ done
 # large teams on CUDA: simulator cost per agent-step at M = 10 / 100 / 1000 (10,000 agents per
 # step) with neighbour lists, one thread per environment against every agent in parallel (the
 # "wide" rows, CUDA's default), and one environment of M = 10,000 (docs/SWARM.md). Not the
-# exact or auction assignments: one GPU thread solving a team's M x M problem took 5.5 s a step
-# at M = 1000 on an H200
+# exact assignment: one GPU thread solving a team's M x M problem took 5.5 s a step at M = 1000
+# on an H200
 run "$python" tools/bench_swarm.py --arch cuda --seconds 1 --skip-dense-large --layouts dense "lists K=16 free" \
     "lists K=16 free wide" "lists KL=16 free" "lists KL=16 free wide"
 if [ "$train_seconds" -gt 0 ]; then
