@@ -104,7 +104,9 @@ def format_results(rows: list[dict], extra: tuple[str, ...] = ()) -> str:
     label = {"messages_per_agent_step": "msgs"}
     fmt = {"covered": ".3f", "messages_per_agent_step": ".1f"}
     width = {c: max(5, len(label.get(c, c))) for c in extra}
-    head = f"{'task':<10} {'comm':<4} {'M':>4} {'episodes':>8}" + "".join(f" {label.get(c, c):>{width[c]}}" for c in extra)
+    head = f"{'task':<10} {'comm':<4} {'M':>4} {'episodes':>8}" + "".join(
+        f" {label.get(c, c):>{width[c]}}" for c in extra
+    )
     head += f" {'S%':>6} {'T':>6} {'DIST':>7}"
     lines = [head, "-" * len(head)]
     for r in rows:

@@ -5,9 +5,10 @@ the density-scaled arena (scale="density": the agents per unit area of M = 10), 
 actions; the dense layout against neighbour lists (K = 16), with the exact assignment and the
 local rewards (assignment="free"), and the zoo's radio lists (the agents' auction by
 messages, 8 rounds a step); then M = 10,000 in one environment (the layouts with "free" or
-radio: the dense layout and the exact solver need M x M blocks); ``--layouts`` picks some. Prints ns per agent-step, the ratio to
-M = 10 of the same layout, and the first call (make + reset + one step: compiling, unless
-cached; ``--cold`` compiles into a fresh cache directory).
+radio: the dense layout and the exact solver need M x M blocks); ``--layouts`` picks some.
+Prints ns per agent-step, the ratio to M = 10 of the same layout, and the first call (make +
+reset + one step: compiling, unless cached; ``--cold`` compiles into a fresh cache directory);
+``--policy NAME`` also the policy's forward per agent at each size.
 
     python tools/bench_swarm.py            # about 2-5 minutes on 2 CPU cores
     python tools/bench_swarm.py --cold --seconds 1
@@ -228,7 +229,8 @@ def main() -> None:
         for B, M in SIZES:
             r = measure_policy(args.policy, B, M, args.seconds, args.comm_radius)
             base = base or r["ns"]
-            print(f"{'policy':<20} {B:>5} {M:>6} {r['ms']:>9.1f} ms/call {r['ns']:>10.0f} ns/agent {r['ns'] / base:>7.2f}")
+            ratio = r["ns"] / base
+            print(f"{'policy':<20} {B:>5} {M:>6} {r['ms']:>9.1f} ms/call {r['ns']:>10.0f} ns/agent {ratio:>7.2f}")
     paired = [(n, n + " wide") for n, _ in LAYOUTS if n + " wide" in args.layouts and n in args.layouts]
     if paired:
         print("\nagent-parallel step against one thread per environment (time ratio, < 1: faster):")

@@ -95,8 +95,6 @@ class ZooEntry:
         return f"swarm reproduce --spec {self.spec} --cells {self.cell}{seed}"
 
 
-
-
 def load_index(path: str = INDEX) -> list[ZooEntry]:
     """Every entry of the index, in its order; a malformed index is a ZooError naming the entry."""
     try:

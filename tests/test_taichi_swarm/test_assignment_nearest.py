@@ -53,7 +53,6 @@ def _free_reference(pos, targets, a):
     return d
 
 
-
 def _check_matching(env, b, pos, targets):
     """env.assignment[b] is a matching of threshold edges (distinct targets) of the maximum size."""
     thr = env.params["success_threshold"]
