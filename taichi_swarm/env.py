@@ -62,7 +62,6 @@ COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "free")
-LOCAL_ASSIGNMENTS = ("free",)  # nearest.py's: per-target d_t, the threshold matching, no M x M block
 # landmark lists: the KL nearest; or the one landmark the agents agree on by messages to the
 # teammates they hear alone ("radio": radio.py)
 LANDMARK_ORDERS = ("nearest", "radio")
@@ -256,12 +255,12 @@ class SwarmEnv:
         self.auction_rounds = auction_rounds
         # the bid increment, recorded so equal runs share a key (None: no auction)
         self.auction_eps = None if auction_rounds is None else radio.ROUND_EPS
-        if landmark_order == "radio" and assignment not in LOCAL_ASSIGNMENTS:
+        if landmark_order == "radio" and assignment != "free":
             raise ValueError(
                 f"landmark_order='radio' needs assignment 'free', got {assignment!r}: its rewards and "
                 "success come from the threshold matching over the agents' grid"
             )
-        if assignment in LOCAL_ASSIGNMENTS and self.neighbours is None:
+        if assignment == "free" and self.neighbours is None:
             raise ValueError(
                 f"assignment={assignment!r} needs neighbours=K: it finds each target's nearest agent through the "
                 "agents' cell grid the neighbour lists build"
@@ -355,7 +354,7 @@ class SwarmEnv:
             if self.landmark_order == "radio":  # candidates and each agent's own table; no per-landmark state
                 dims.update(BM=M, RM=M)
         # a grid of the targets instead of the M x M costs
-        if self.assignment_method in LOCAL_ASSIGNMENTS:
+        if self.assignment_method == "free":  # nearest.py's grids: no M x M block
             dims.update(MC=0, TN=M, GT1=neighbours.buckets(M) + 1)
         return dims
 

@@ -144,7 +144,7 @@ BLOCKS = (
     BlockSpec("lgrid_start", "i32", ("GL1",)),  # the landmarks' cell grid (landmark lists)
     BlockSpec("lgrid_items", "i32", ("LN",)),
     BlockSpec("lgrid_cell", "i32", ("LN", 2)),
-    BlockSpec("tgrid_start", "i32", ("GT1",)),  # the targets' cell grid (assignment nearest / free)
+    BlockSpec("tgrid_start", "i32", ("GT1",)),  # the targets' cell grid (assignment free)
     BlockSpec("tgrid_items", "i32", ("TN",)),
     BlockSpec("tgrid_cell", "i32", ("TN", 2)),
     BlockSpec("adj", "u8", ("M", "MA")),

@@ -33,11 +33,7 @@ RADIO_ROOT = "results/radio"
 # the large-team policies on the agents' own auction by messages (landmark_order radio):
 # tools/radio_recipe.sh TASK trains M = 10 from scratch, then M = 100 from it, and evaluates
 # (M >= 100: 100 episodes at seed 777, with the fraction covered beside S%)
-RADIO = (
-    ("coverage-rc-m100-radio", 6.0),
-    ("line-rc-m100-radio", 3.0),
-    ("formation-rc-m100-radio", 1.5),
-)
+RADIO = ("coverage-rc-m100-radio", "line-rc-m100-radio", "formation-rc-m100-radio")
 BEYOND_ROOT = "results/reproduce-beyond"
 # the transfer policy: M = 3 and 4 trained together (beyond spec), the seed of four whose
 # M = 3 policy carried furthest to M = 5 on 500 fresh episodes (x-zs-coverage-uc-m34)
@@ -172,14 +168,14 @@ def build() -> list[dict]:
         weights = _rel(os.path.join(ROOT, policy_path(root, cell, 0, stage)))
         entry = _entry(cell, 0, agents, rows[agents], weights, {}, trained_on)
         entries.append({"name": name, **entry, "summary": summary, "use": USES[name]})
-    for name, sense in RADIO:
-        entry = radio_entry(name, sense)
+    for name in RADIO:
+        entry = radio_entry(name)
         if entry is not None:
             entries.append(entry)
     return entries
 
 
-def radio_entry(name: str, sense: float) -> dict | None:
+def radio_entry(name: str) -> dict | None:
     run = os.path.join(RADIO_ROOT, name)
     paths = {k: os.path.join(ROOT, run, f) for k, f in (("eval", "eval-777.json"), ("summary", "summary.json"))}
     if not all(os.path.exists(p) for p in paths.values()):
@@ -225,8 +221,8 @@ def radio_entry(name: str, sense: float) -> dict | None:
         f"{config['auction_rounds']} rounds a step, tables of the {config['landmark_neighbours']} nearest landmarks)",
         "use": f"Use it for {task} RC teams of about {config['agents']} where coordination must travel by radio: "
         f"each agent's landmark comes from an auction the agents run by messages to the teammates they hear "
-        f"within comm radius {config['comm_radius']:g}; it senses the landmarks within {sense:g} and, for each, "
-        f"how near its nearest other agent is (occupancy).",
+        f"within comm radius {config['comm_radius']:g}; it senses the landmarks within "
+        f"{config['sense_radius']:g} and, for each, how near its nearest other agent is (occupancy).",
     }
 
 

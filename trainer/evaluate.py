@@ -7,7 +7,7 @@ import numbers
 import torch
 
 import taichi_swarm
-from taichi_swarm.env import ASSIGNMENTS, LANDMARK_ORDERS, LOCAL_ASSIGNMENTS
+from taichi_swarm.env import ASSIGNMENTS, LANDMARK_ORDERS
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 
@@ -43,7 +43,7 @@ def swarm_options(
         raise ValueError(f"scale must be 'density' (or unset: the paper's geometry), got {scale!r}")
     if assignment is not None and assignment not in ASSIGNMENTS:
         raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
-    if assignment in LOCAL_ASSIGNMENTS and neighbours is None:
+    if assignment == "free" and neighbours is None:
         raise ValueError(f"assignment {assignment!r} needs neighbour lists: set neighbours (--neighbours K)")
     if assignment == "exact":  # the default: recorded as unset, so the exact runs' records stay as they were
         given["assignment"] = None
