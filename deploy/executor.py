@@ -350,15 +350,8 @@ def resolve_settings(
 def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, threads: int = 1) -> dict:
     """One episode per environment, greedy actions, decided agent by agent; S%, T, DIST as ``swarm eval``
     (T is the episode length: the time limit, 50, for a failed episode)."""
-    import taichi_swarm
-
     swarm = s.swarm or {}
-    L = swarm.get("landmark_neighbours") or taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents)
-    model.check_landmarks(s.task, L)
-    env = taichi_swarm.make(
-        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy",
-        **swarm,
-    )  # fmt: skip
+    env = make_env(model, s)
     executor = Executor(
         model, s.episodes, s.agents, s.drop, s.delay, s.seed, threads, (s.burst_loss, s.burst_len), s.hold
     )
@@ -385,6 +378,21 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
         "messages_delivered": executor.bus.delivered,
         **tally.summary(s.task),
     }
+
+
+def make_env(model: ExportedModel, s: ExecuteSettings):
+    """The B worlds a team acts in (``swarm execute``, ``swarm world``), on the policy's whole setting:
+    its lists, sensing, landmark order and action space (fine: its manifest's 9 actions)."""
+    import taichi_swarm
+
+    swarm = s.swarm or {}
+    L = swarm.get("landmark_neighbours") or taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents)
+    model.check_landmarks(s.task, L)
+    fine = model.manifest["num_actions"] == taichi_swarm.physics.NUM_FINE_ACTIONS
+    return taichi_swarm.make(
+        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy",
+        **{"action_space": "fine" if fine else "discrete", **swarm},
+    )  # fmt: skip
 
 
 def lists_to_dense(attention: np.ndarray, nbr: np.ndarray, nbr_mask: np.ndarray) -> np.ndarray:

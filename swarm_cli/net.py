@@ -170,14 +170,13 @@ def _slow(text: str) -> tuple[int, float]:
 # ----------------------------------------------------------------------------- agent
 def agent_main(argv: list[str]) -> int:
     args = parse(AgentOptions, argv, "swarm agent")
-    from deploy.net.agent import NetAgent, check_faults, check_wire
+    from deploy.net.agent import NetAgent, check_faults
     from deploy.net.transport import Endpoint, TransportError, open_session
     from deploy.policy import DeployError, ExportedModel
 
     try:
         spec = args.faults
         model = ExportedModel(args.directory)
-        check_wire(model)
         check_faults(spec, model)
         session = open_session("peer", [args.listen], [args.connect])
         endpoint = Endpoint(session, args.ns)
@@ -210,10 +209,10 @@ def world_main(argv: list[str]) -> int:
     from deploy.video import open_recorders
 
     args = parse(WorldOptions, argv, "swarm world")
-    from deploy.executor import DeployError, ExportedModel, resolve_settings
-    from deploy.net.agent import check_faults, check_wire
+    from deploy.executor import DeployError, ExportedModel, make_env, resolve_settings
+    from deploy.net.agent import check_faults
     from deploy.net.transport import Endpoint, TransportError, check_endpoint, check_namespace, open_session
-    from deploy.net.world import AgentProcesses, NetSettings, SpawnError, World, format_net, make_env
+    from deploy.net.world import AgentProcesses, NetSettings, SpawnError, World, format_net
     from taichi_swarm.tasks.base import COMMON_PARAMS
 
     try:
@@ -222,7 +221,6 @@ def world_main(argv: list[str]) -> int:
         check_namespace(args.ns)
         spec = args.faults
         model = ExportedModel(args.export)
-        check_wire(model)
         s = resolve_settings(
             model, args.task, args.agents, args.comm, args.comm_radius, episodes=args.episodes, seed=args.seed
         )
@@ -264,7 +262,7 @@ def world_main(argv: list[str]) -> int:
                 args.agent_logs,
                 hold=args.hold,
                 # no observation before the start barrier, the first step's kernels and a period: not idle yet
-                idle_timeout=60 + net.start_timeout + 2 * (net.period + net.deadline(model.rounds)),
+                idle_timeout=60 + net.start_timeout + 2 * (net.period + net.deadline(world.rounds)),
             )
             for i in sorted(present):
                 procs.start(i)

@@ -50,6 +50,7 @@ from deploy.net.faults import FaultSpec, LinkFaults
 from deploy.net.limits import check_agent_id, check_seconds
 from deploy.net.transport import Endpoint
 from deploy.policy import DeployError, ExportedModel, Pieces
+from deploy.radio import AgentAuction, Sensing
 
 HELLO_EVERY_S = 0.25
 ALIVE_EVERY_S = 1.0  # the hello's period once the agent is in a run (the world's liveness of a binding)
@@ -80,13 +81,30 @@ def check_agent(agent_id: int, round_deadline: float, slow_ms: float, hold: int,
         raise DeployError(f"--threads must be in 1..{cores}, this machine's cores, got {threads}")
 
 
-def check_wire(model: ExportedModel) -> None:
-    """Refuse an export the wire format cannot feed (``swarm agent``, ``swarm world``, before any session)."""
-    if model.edge_position != "none":  # its rounds need each sender's p_j - p_i; protocol.py OBS has only its own
-        raise DeployError(
-            f"{model.directory}: edge_position {model.edge_position!r} needs the position of every agent heard, "
-            "which the OBS packet does not carry: the networked agents cannot run it (`swarm execute` can)"
-        )
+def _size(payload) -> int:
+    """Bytes a kept message holds: messages [B, 2, H], or a table per world."""
+    if isinstance(payload, np.ndarray):
+        return payload.nbytes
+    return sum(t.lid.nbytes + t.epoch.nbytes + t.price.nbytes + t.holder.nbytes for t in payload)
+
+
+def radio_settings(model: ExportedModel) -> dict | None:
+    """A radio policy's auction (landmark_order "radio" in its manifest's contract): its rounds R a
+    step, table size KL, sense radius and the task's success threshold; None for any other policy."""
+    swarm = (model.manifest.get("contract") or {}).get("swarm") or {}
+    if swarm.get("landmark_order") != "radio":
+        return None
+    from taichi_swarm import TASK_SPECS
+    from taichi_swarm.radio import DEFAULT_ROUNDS
+    from taichi_swarm.tasks import COMMON_PARAMS
+
+    task = model.task.get("task")
+    return {
+        "rounds": int(swarm.get("auction_rounds") or DEFAULT_ROUNDS),
+        "kl": int(swarm["landmark_neighbours"]),
+        "sense_radius": float(swarm["sense_radius"]),
+        "success_threshold": float({**COMMON_PARAMS, **TASK_SPECS[task].params}["success_threshold"]),
+    }
 
 
 class NetAgent:
@@ -103,7 +121,6 @@ class NetAgent:
         hold: int = 0,
     ):
         check_agent(agent_id, round_deadline, slow_ms, hold, threads)
-        check_wire(model)
         check_faults(faults or FaultSpec(), model)
         self.id = agent_id
         self.nonce = secrets.randbits(64) or 1  # this instance (0 is the world's "none bound")
@@ -111,6 +128,11 @@ class NetAgent:
         self.model = model
         self.pieces = Pieces(model, threads)
         self.H, self.K = model.hidden, model.rounds
+        # a radio policy first runs R rounds of its auction (TABLE packets), then the network's K
+        # (MSG): one numbering of a step's rounds, 0..R-1 the tables', R..R+K-1 the messages'
+        self.radio = radio_settings(model)
+        self.R = self.radio["rounds"] if self.radio else 0
+        self.auction: AgentAuction | None = None
         self.sha = model.manifest["manifest_sha256"]
         self.ep = endpoint
         self.round_deadline = float(round_deadline)
@@ -140,6 +162,8 @@ class NetAgent:
         self._warned: set[str] = set()
         endpoint.subscribe("obs", agent_id)
         endpoint.subscribe("msg", "*")
+        if self.radio:
+            endpoint.subscribe("table", "*")
         # after msg, on the same session: hearing a teammate's hello shows the routes from it exist
         # (the world starts once every agent has heard every other, protocol.py HELLO)
         endpoint.subscribe("hello", "*")
@@ -165,6 +189,8 @@ class NetAgent:
                 self._on_obs(P.decode_obs(data), t)
             elif topic == "msg":
                 self._on_msg(*P.decode_msg(data, self.H), t)
+            elif topic == "table":
+                self._on_msg(*P.decode_table(data), t)
             elif topic == "hello":
                 h = P.decode_hello(data)[0]
                 if h.sender != self.id:
@@ -200,29 +226,34 @@ class NetAgent:
     def _late(self, step: int, round_: int) -> bool:
         return step < self.step or (step == self.step and round_ < self.round)
 
-    def _on_msg(self, h: P.Header, message: np.ndarray, t: float) -> None:
+    def _on_msg(self, h: P.Header, payload, t: float) -> None:
+        """A teammate's round: MSG (payload: messages [B, 2, H]) or TABLE (its auction table per world)."""
         if h.sender == self.id:
             return  # our own publication, delivered back by the session
         if h.run != self.run:
-            return self._keep_early(h, message, t)  # used, or dropped as foreign, at the next OBS
+            return self._keep_early(h, payload, t)  # used, or dropped as foreign, at the next OBS
         if (self.M is not None and h.sender >= self.M) or (self.B is not None and h.envs != self.B):
             return self._drop("foreign", f"a message from agent {h.sender} for {h.envs} worlds")
         if h.step > self.step + STEPS_AHEAD:
             return self._drop("overflow", f"a message of step {h.step}, this agent is at step {self.step}")
-        if h.round >= max(self.K, 1):
-            return self._drop("malformed", f"a message of round {h.round}; the policy has {self.K} rounds")
-        if self._late(h.step, h.round):
+        table = h.kind == P.TABLE
+        if h.round >= (self.R if table else max(self.K, 1)):
+            return self._drop(
+                "malformed", f"a {P.KINDS[h.kind]} of round {h.round}; the policy has {self.R if table else self.K}"
+            )
+        round_ = h.round if table else self.R + h.round  # the step's rounds: the tables' first
+        if self._late(h.step, round_):
             # only what this agent would have used counts as late (a non-neighbour's message is no loss)
             needs = self._need.get(h.step)
             n = h.envs if needs is None else sum(h.sender in need for need in needs)
-            return self._drop("late", f"step {h.step} round {h.round} arrived after its deadline", n) if n else None
+            return self._drop("late", f"step {h.step} round {round_} arrived after its deadline", n) if n else None
         for b in range(h.envs):
-            fate = self.faults.fate(b, h.sender, h.round)
+            fate = self.faults.fate(b, h.sender, None if table else h.round)
             if fate is None:
                 continue
             delay, held = fate
             self._seq += 1
-            item = (self._seq, h.run, h.step, h.round, b, h.sender, message[b])
+            item = (self._seq, h.run, h.step, round_, b, h.sender, payload[b])
             if (held or delay > 0) and len(self._pending) >= PENDING_KEPT:
                 self._drop("overflow", f"more than {PENDING_KEPT} messages held back by the injected faults")
                 continue
@@ -234,12 +265,13 @@ class NetAgent:
             else:
                 self._deliver(item)
 
-    def _keep_early(self, h: P.Header, message: np.ndarray, t: float) -> None:
+    def _keep_early(self, h: P.Header, payload, t: float) -> None:
         """Keep a message of a run not yet observed, the oldest going first past the bounds."""
-        self._early.append((h, message, t))
-        self._early_bytes += message.nbytes
+        size = _size(payload)
+        self._early.append((h, payload, t, size))
+        self._early_bytes += size
         while len(self._early) > EARLY_KEPT or self._early_bytes > EARLY_BYTES:
-            self._early_bytes -= self._early.popleft()[1].nbytes
+            self._early_bytes -= self._early.popleft()[3]
             self._drop("overflow", f"more than {EARLY_KEPT} messages ({EARLY_BYTES >> 20} MiB) before an observation")
 
     def _deliver(self, item) -> None:
@@ -287,36 +319,50 @@ class NetAgent:
 
     # ------------------------------------------------------------------ deciding
     def _decide(self, obs) -> None:
-        h, self_obs, entities, hears, t0 = obs
+        h, o, t0 = obs
         if self.run != h.run:
             self.box.clear()
             self._kept.clear()
         self.run, self.step, self.round = h.run, h.step, 0
-        B, M = h.envs, hears.shape[1]
+        B, M = h.envs, o.agents
+        if self.B != B:
+            self.auction = None
         self.B, self.M = B, M
         while self._early:
-            eh, message, t = self._early.popleft()
-            self._early_bytes -= message.nbytes
+            eh, payload, t, size = self._early.popleft()
+            self._early_bytes -= size
             if eh.run != h.run:
                 self._drop("foreign", f"a message of run {eh.run:08x}, this agent is in run {h.run:08x}")
             elif eh.step >= h.step:  # (a restarted agent's messages of earlier steps are no loss)
-                self._on_msg(eh, message, t)
-        try:
-            self.model.check_landmarks(self.model.task.get("task"), entities.shape[1])
-        except DeployError as exc:
-            return self._drop("foreign", f"an observation this export cannot take: {exc}")
+                self._on_msg(eh, payload, t)
+        if (o.sensed is None) == bool(self.radio):
+            return self._drop("foreign", "an observation without the sensing of a radio policy, or with it for another")
+        if not self.radio:
+            try:
+                self.model.check_landmarks(self.model.task.get("task"), o.entities.shape[1])
+            except DeployError as exc:
+                return self._drop("foreign", f"an observation this export cannot take: {exc}")
         if self.slow_s:
             time.sleep(self.slow_s)
+        # whom it hears in each world, in the order it stacks their messages, and their offsets
+        slots = [np.flatnonzero(o.heard[b] >= 0) for b in range(B)]
+        heard = [o.heard[b, k] for b, k in enumerate(slots)]
+        need = [set(x.tolist()) for x in heard]
+        self._need = {k: v for k, v in self._need.items() if k >= h.step - 1}
+        self._need[h.step] = need
+        if self.radio:
+            entities = self._auction(h, o, need, heard)
+            if entities is None:
+                return
+        else:
+            padded = self.model.entity_mode == "padded"  # (an unsensed slot a zero one, as the executor)
+            rows, sensed = o.entities, o.entity_mask
+            entities = [rows[b] * sensed[b][:, None] if padded else rows[b][sensed[b]] for b in range(B)]
         pieces, H = self.pieces, self.H
         messages = np.empty((B, 2, H), np.float32)
         hs = np.empty((B, H), np.float32)  # this agent's state in each of the B worlds
         for b in range(B):
-            hs[b], messages[b] = pieces.encode(self_obs[b], entities[b])
-        expected = hears.copy()
-        expected[:, self.id] = False
-        need = [set(np.flatnonzero(expected[b]).tolist()) for b in range(B)]
-        self._need = {k: v for k, v in self._need.items() if k >= h.step - 1}
-        self._need[h.step] = need
+            hs[b], messages[b] = pieces.encode(o.self_obs[b], np.ascontiguousarray(entities[b], np.float32))
         actions = np.zeros(B, np.int64)
         attention = np.zeros((B, M), np.float32)
         if self.K == 0:
@@ -325,36 +371,32 @@ class NetAgent:
                 actions[b] = int(np.argmax(logits))
                 attention[b, self.id] = 1.0
         for r in range(self.K):
-            self.round = r
             self.ep.publish(P.msg_packet(h.run, h.step, r, self.id, messages, self.nonce), "msg", self.id)
-            box = self.box.setdefault((h.step, r), {})
-
-            def complete(box=box):
-                return all(need[b] <= box.get(b, {}).keys() for b in range(B))
-
-            self.pump(time.perf_counter() + self.round_deadline, lambda c=complete: c() or self.next_obs is not None)
-            if self.stopped or self.refused is not None or self.next_obs is not None:
-                self.stats["late"] += 1  # the world moved on: this step's action would be late
+            box = self._collect(h.step, self.R + r, need)
+            if box is None:
                 return
-            self.round = r + 1  # round r is closed
             last = r == self.K - 1
             nxt = messages if last else np.empty_like(messages)
             for b in range(B):
                 got = box.get(b, {})
-                senders = sorted(j for j in got if expected[b, j])
+                keep = np.array([j in got for j in heard[b].tolist()], bool)
+                senders = heard[b][keep]
                 self.stats["msgs_heard"] += len(senders)
                 self.stats["missed"] += len(need[b]) - len(senders)
+                offsets = o.offsets[b, slots[b][keep]]
                 if self.hold:
-                    got = self._hold(b, r, h.step, need[b], {j: got[j] for j in senders})
-                    senders = sorted(got)
-                heard = np.stack([got[j] for j in senders]) if senders else np.zeros((0, 2, H), np.float32)
+                    got = self._hold(b, r, h.step, need[b], {j: got[j] for j in senders.tolist()})
+                    keep = np.array([j in got for j in heard[b].tolist()], bool)
+                    senders, offsets = heard[b][keep], o.offsets[b, slots[b][keep]]
+                vec = np.stack([got[j] for j in senders.tolist()]) if len(senders) else np.zeros((0, 2, H), np.float32)
+                offsets = np.ascontiguousarray(offsets, np.float32)
                 if last:
-                    logits, w = pieces.decide(hs[b], heard)
+                    logits, w = pieces.decide(hs[b], vec, offsets)
                     actions[b] = int(np.argmax(logits))
                     attention[b, self.id] = w[0]
                     attention[b, senders] = w[1:]
                 else:
-                    hs[b], nxt[b] = pieces.round(hs[b], heard)
+                    hs[b], nxt[b] = pieces.round(hs[b], vec, offsets)
             messages = nxt
         for key in [k for k in self.box if k[0] <= h.step]:
             del self.box[key]
@@ -365,6 +407,49 @@ class NetAgent:
         stats = [self.counters()[k] for k in P.STATS]
         self.ep.publish(P.act_packet(h.run, h.step, self.id, actions, attention, stats, self.nonce), "act", self.id)
         self.steps += 1
+
+    def _collect(self, step: int, round_: int, need: list[set[int]]):
+        """Wait for round ``round_``'s messages from everyone in ``need`` (per world), or until the
+        round deadline -> the round's box {world: {sender: payload}}; None if the world moved on."""
+        self.round = round_
+        box = self.box.setdefault((step, round_), {})
+
+        def complete():
+            return all(need[b] <= box.get(b, {}).keys() for b in range(len(need)))
+
+        self.pump(time.perf_counter() + self.round_deadline, lambda: complete() or self.next_obs is not None)
+        if self.stopped or self.refused is not None or self.next_obs is not None:
+            self.stats["late"] += 1  # the world moved on: this step's action would be late
+            return None
+        self.round = round_ + 1  # this round is closed
+        return box
+
+    def _auction(self, h: P.Header, o: P.Observation, need: list[set[int]], heard: list[np.ndarray]):
+        """The radio policy's R auction rounds (deploy/radio.py), its table to the teammates it hears
+        each round -> its landmark rows in each world ([n, 3]); None if the world moved on."""
+        B, cfg = h.envs, self.radio
+        if self.auction is None:
+            self.auction = AgentAuction(self.id, B, cfg["sense_radius"], cfg["success_threshold"], cfg["kl"])
+        sensing = []
+        for b in range(B):
+            n = int((o.sensed[b] >= 0).sum())
+            sensing.append(Sensing(o.sensed[b, :n], o.sensed_offsets[b, :n], o.occupancy[b, :n]))
+            self.auction.rebuild(b, bool(o.fresh[b]), sensing[b])
+        for r in range(self.R):
+            for b in range(B):
+                self.auction.bid(b)
+            tables = [self.auction.table(b) for b in range(B)]
+            self.ep.publish(P.table_packet(h.run, h.step, r, self.id, tables, self.nonce), "table", self.id)
+            box = self._collect(h.step, r, need)
+            if box is None:
+                return None
+            for b in range(B):
+                got = box.get(b, {})
+                senders = [j for j in heard[b].tolist() if j in got]
+                self.stats["msgs_heard"] += len(senders)
+                self.stats["missed"] += len(need[b]) - len(senders)
+                self.auction.merge(b, [got[j] for j in senders])
+        return [self.auction.landmarks(b, sensing[b]) for b in range(B)]
 
     def _hold(self, b: int, r: int, step: int, need: set[int], fresh: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         """``fresh`` and, for each neighbour in ``need`` not in it, its last round-r message if at most

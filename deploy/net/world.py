@@ -35,12 +35,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from deploy.executor import DeployError, ExecuteSettings, ExportedModel
+from deploy.executor import DeployError, ExecuteSettings, ExportedModel, make_env
 from deploy.net import protocol as P
-from deploy.net.agent import ALIVE_EVERY_S
+from deploy.net.agent import ALIVE_EVERY_S, radio_settings
 from deploy.net.faults import FaultSpec
 from deploy.net.limits import LimitError, check_seconds, check_team
 from deploy.net.transport import Endpoint
+from deploy.radio import sense
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
 
 NOOP = 0  # ACTION_MEANINGS[0]
@@ -124,7 +125,11 @@ class World:
         self.reports = [AgentReport() for _ in range(self.M)]
         self.bound: dict[int, int] = {}  # agent id -> the nonce of the instance taken as that agent
         self.last_heard: dict[int, float] = {}  # agent id -> arrival time of its bound instance's last packet
-        self.live_s = net.live_s(model.rounds)
+        self.radio = radio_settings(model)
+        # a step's rounds: the radio policy's R auction rounds, then the network's K
+        self.rounds = model.rounds + (self.radio["rounds"] if self.radio else 0)
+        self.live_s = net.live_s(self.rounds)
+        self.env = None
         self.refused: set[int] = set()  # ids only heard from agents of another export
         self.duplicates: set[int] = set()  # ids a second instance claimed while the first was live
         self._named: dict[int, tuple[int, float]] = {}  # id -> (the claimant last named, when)
@@ -162,6 +167,8 @@ class World:
                 self._on_hello(*P.decode_hello(data), t)
             elif topic == "act":
                 h, a, att, stats = P.decode_act(data)
+                if (a >= self.model.manifest["num_actions"]).any():
+                    raise P.PacketError(f"an action {int(a.max())} of a policy of {self.model.manifest['num_actions']}")
                 if h.run != self.run or h.sender >= self.M or h.envs != self.B or att.shape[1] != self.M:
                     return self._drop("foreign", f"an action of run {h.run:08x} from agent {h.sender}")
                 if self.bound.get(h.sender) != h.nonce:
@@ -279,17 +286,13 @@ class World:
         t0 = time.perf_counter()
         if self.step_hook is not None:
             self.step_hook(self.step)
-        self_obs = np.asarray(obs["self"], np.float32)
-        entities = np.asarray(obs["entities"], np.float32)
-        adj = np.asarray(obs["adj"], bool)
-        for i in range(self.M):
+        for i, o in enumerate(self.observations(obs)):
             nonce = self.bound.get(i, 0)  # (0: nobody acts on it yet)
-            packet = P.obs_packet(self.run, self.step, i, self_obs[:, i], entities[:, i], adj[:, i], nonce)
-            self.ep.publish(packet, "obs", i)
+            self.ep.publish(P.obs_packet(self.run, self.step, i, o, nonce), "obs", i)
         actions = np.full((self.B, self.M), NOOP, np.int64)
         attention = np.zeros((self.B, self.M, self.M), np.float32)
         got: set[int] = set()
-        until = t0 + self.net.deadline(self.model.rounds)
+        until = t0 + self.net.deadline(self.rounds)
         wanted = set(self.bound)
         while not wanted <= got:
             now = time.perf_counter()
@@ -311,6 +314,50 @@ class World:
                 self.overruns += 1
         return actions, attention
 
+    def observations(self, obs) -> list[P.Observation]:
+        """Each agent's own observation in the B worlds: its state, its landmark rows (a radio
+        policy: its sensing instead, deploy/radio.py), whom it hears this step and their offsets."""
+        B, M = self.B, self.M
+        self_obs = np.asarray(obs["self"], np.float32)
+        pos = self_obs[..., 2:4]
+        me = np.arange(M)
+        if "nbr" in obs:  # neighbour lists: the heard in list order (the executor's slots)
+            nbr = np.asarray(obs["nbr"], np.int64)
+            ok = np.asarray(obs["nbr_mask"], bool) & (nbr != me[None, :, None]) & (nbr >= 0) & (nbr < M)
+        else:  # the dense graph: ascending ids
+            nbr = np.broadcast_to(me, (B, M, M))
+            ok = np.asarray(obs["adj"], bool) & (nbr != me[None, :, None])
+        heard = np.where(ok, nbr, -1)
+        others = pos[np.arange(B)[:, None, None], np.clip(heard, 0, None)]  # [B, M, K, 2]
+        offsets = np.where(ok[..., None], others - pos[:, :, None], 0)
+        # which worlds start an episode (without the simulator, a caller's own loop: the first step)
+        state = self.env.get_state() if self.env is not None else None
+        fresh = np.asarray(state["step"]) == 0 if state is not None else np.full(B, self.step == 0)
+        radio = self.radio
+        if radio:
+            S = 2 * radio["kl"]
+            sensed = np.full((B, M, S), -1, np.int64)
+            sensed_off = np.zeros((B, M, S, 2), np.float32)
+            occ = np.zeros((B, M, S), np.float32)
+            for b in range(B):
+                for i, x in enumerate(sense(state["pos"][b], state["landmarks"][b], radio["sense_radius"], S)):
+                    n = x.ids.size
+                    sensed[b, i, :n], sensed_off[b, i, :n], occ[b, i, :n] = x.ids, x.offsets, x.occupancy
+            entities = np.zeros((B, M, 0, 3), np.float32)
+            mask = np.zeros((B, M, 0), bool)
+        else:
+            entities = np.asarray(obs["entities"], np.float32)
+            mask = np.asarray(obs["entity_mask"], bool) if "entity_mask" in obs else np.ones(entities.shape[:3], bool)
+        out = []
+        for i in range(M):
+            o = P.Observation(
+                self_obs[:, i], entities[:, i], mask[:, i], heard[:, i], offsets[:, i].astype(np.float32), fresh, M
+            )
+            if radio:
+                o.sensed, o.sensed_offsets, o.occupancy = sensed[:, i], sensed_off[:, i], occ[:, i]
+            out.append(o)
+        return out
+
     def _sleep_listening(self, seconds: float) -> None:
         """Sleep out the control period while still reading (late actions, hellos)."""
         until = time.perf_counter() + seconds
@@ -323,7 +370,7 @@ class World:
     def run_episodes(self, recorder=None, env=None) -> dict:
         """``env``: the simulator ``make_env`` built (None: built here)."""
         s = self.s
-        env = env if env is not None else make_env(self.model, s)
+        env = self.env = env if env is not None else make_env(self.model, s)
         t0 = time.perf_counter()
         tally = run_first_episodes(env, self.decide, recorder)
         wall = time.perf_counter() - t0
@@ -334,7 +381,7 @@ class World:
             "wall_s": wall,
             "period_s": self.net.period,
             "round_deadline_s": self.net.round_deadline,
-            "action_deadline_s": self.net.deadline(self.model.rounds),
+            "action_deadline_s": self.net.deadline(self.rounds),
             "overruns": self.overruns,
             "missing_actions": sum(r.missing for r in self.reports),
             "dropped_at_world": {**self.dropped, "overflow": getattr(self.ep, "overflow", 0)},
@@ -345,18 +392,6 @@ class World:
         for _ in range(3):  # a few times: a stop is one small packet, and nothing answers it
             self.ep.publish(P.stop_packet(self.run), "stop")
             time.sleep(0.02)
-
-
-def make_env(model: ExportedModel, s: ExecuteSettings):
-    """The B worlds the team acts in; ``swarm world`` builds them before any agent starts, so
-    what the simulator refuses is refused first."""
-    import taichi_swarm
-
-    fine = model.manifest["num_actions"] == taichi_swarm.physics.NUM_FINE_ACTIONS
-    return taichi_swarm.make(
-        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed,
-        array="numpy", action_space="fine" if fine else "discrete",
-    )  # fmt: skip
 
 
 def format_net(row: dict) -> str:

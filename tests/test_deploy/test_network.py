@@ -28,6 +28,7 @@ from deploy.net.agent import NetAgent  # noqa: E402
 from deploy.net.faults import FaultError, FaultSpec, LinkFaults  # noqa: E402
 from deploy.net.transport import Endpoint, TransportError, check_endpoint, open_session  # noqa: E402
 from deploy.net.world import AgentProcesses, NetSettings, World  # noqa: E402
+from deploy.radio import Table  # noqa: E402
 from taichi_swarm.metrics import run_first_episodes  # noqa: E402
 from trainer import checkpoint  # noqa: E402
 from trainer.model import ModelConfig, SwarmPolicy  # noqa: E402
@@ -211,14 +212,42 @@ def test_bad_fault_parameters_are_refused(kwargs, word):
 
 
 # ----------------------------------------------------------------------------- packets
+def _obs(entities, heard, agents=3, **sensing):
+    """An Observation of B worlds: landmark rows ``entities`` [B, L, F], ``heard`` [B, K] (-1: empty)."""
+    B, L = entities.shape[:2]
+    offsets = np.arange(B * heard.shape[1] * 2, dtype=np.float32).reshape(B, -1, 2)
+    return P.Observation(
+        np.zeros((B, 4), np.float32), entities.astype(np.float32), np.ones((B, L), bool), heard, offsets,
+        np.zeros(B, bool), agents, **sensing,
+    )  # fmt: skip
+
+
 def test_packets_round_trip():
     rng = np.random.default_rng(0)
-    so, ent, hears = rng.normal(size=(2, 4)), rng.normal(size=(2, 3, 2)), rng.random((2, 3)) < 0.5
-    h, so2, ent2, hears2 = P.decode_obs(P.obs_packet(7, 11, 1, so, ent, hears))
-    assert (h.run, h.step, h.envs, h.sender) == (7, 11, 2, 1)
-    np.testing.assert_array_equal(so2, so.astype(np.float32))
-    np.testing.assert_array_equal(ent2, ent.astype(np.float32))
-    np.testing.assert_array_equal(hears2, hears)
+    o = _obs(rng.normal(size=(2, 3, 3)), np.array([[2, -1], [0, 2]]))
+    o.self_obs = rng.normal(size=(2, 4)).astype(np.float32)
+    o.entity_mask[1, 2] = False
+    o.fresh[1] = True
+    h, o2 = P.decode_obs(P.obs_packet(7, 11, 1, o))
+    assert (h.run, h.step, h.envs, h.sender) == (7, 11, 2, 1) and o2.agents == 3 and o2.sensed is None
+    for name in ("self_obs", "entities", "entity_mask", "heard", "offsets", "fresh"):
+        np.testing.assert_array_equal(getattr(o2, name), getattr(o, name), err_msg=name)
+    sensed_offsets = rng.normal(size=(1, 3, 2)).astype(np.float32)
+    occupancy = np.ones((1, 3), np.float32)
+    radio = _obs(np.zeros((1, 0, 3)), np.array([[1]]), sensed=np.array([[4, 0, -1]]), sensed_offsets=sensed_offsets,
+                 occupancy=occupancy)  # fmt: skip
+    _, r2 = P.decode_obs(P.obs_packet(7, 11, 0, radio))
+    np.testing.assert_array_equal(r2.sensed, radio.sensed)
+    np.testing.assert_array_equal(r2.sensed_offsets, radio.sensed_offsets)
+    price = np.array([0.5, 2.0], np.float32)
+    tables = [Table.empty(), Table(np.array([3, 9]), np.array([1, 0]), price, np.array([-1, 2]))]
+    h, t2 = P.decode_table(P.table_packet(7, 11, 3, 2, tables))
+    assert (h.round, h.sender, h.envs) == (3, 2, 2) and t2[0].lid.size == 0
+    for name in ("lid", "epoch", "price", "holder"):
+        np.testing.assert_array_equal(getattr(t2[1], name), getattr(tables[1], name), err_msg=name)
+    unsorted = Table(np.array([9, 3]), np.array([1, 0]), price, np.array([-1, 2]))
+    with pytest.raises(P.PacketError, match="not sorted"):
+        P.decode_table(P.table_packet(7, 11, 3, 2, [unsorted]))
     msg = rng.normal(size=(2, 2, 8)).astype(np.float32)
     h, msg2 = P.decode_msg(P.msg_packet(7, 11, 1, 2, msg), 8)
     assert (h.round, h.sender) == (1, 2)
@@ -271,15 +300,15 @@ def test_agent_drops_and_counts_what_it_cannot_use(emp_dir, capsys):
     agent = NetAgent(ExportedModel(emp_dir), 0, _FakeEndpoint(), round_deadline=0.01)
     agent.run, agent.step, agent.B, agent.M = 5, 3, 1, 3
     good = np.zeros((1, 2, 32), np.float32)
-    ones = np.ones((1, 3), bool)
+    ones = np.array([[1, 2]])  # agent 0 hears 1 and 2
     cases = [
         ("swarm/msg/1", b"\x00" * 3, "malformed"),
         ("swarm/msg/1", P.header_bytes(P.MSG, 5, 3, 1, 0, 1)[:4] + bytes([7]) + bytes(40), "version"),
         ("swarm/msg/1", P.msg_packet(5, 3, 0, 9, good), "foreign"),  # a sender outside the team
         ("swarm/msg/1", P.msg_packet(5, 2, 0, 1, good), "late"),  # an older step
         ("swarm/msg/1", P.msg_packet(5, 3, 0, 1, np.zeros((1, 2, 16), np.float32)), "malformed"),  # other H
-        ("swarm/obs/0", P.obs_packet(5, 2, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), ones, agent.nonce), "late"),
-        ("swarm/obs/0", P.obs_packet(5, 4, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), ones, agent.nonce ^ 1), "foreign"),
+        ("swarm/obs/0", P.obs_packet(5, 2, 0, _obs(np.zeros((1, 3, 2)), ones), agent.nonce), "late"),
+        ("swarm/obs/0", P.obs_packet(5, 4, 0, _obs(np.zeros((1, 3, 2)), ones), agent.nonce ^ 1), "foreign"),
     ]
     for key, data, counter in cases:
         before = agent.stats[counter]
@@ -301,8 +330,7 @@ def test_agent_uses_what_came_before_its_observation_and_drops_other_runs(emp_di
     agent._on_packet("swarm/msg/1", P.msg_packet(5, 0, 0, 1, good), 0.0)  # before any OBS
     agent._on_packet("swarm/msg/2", P.msg_packet(6, 0, 0, 2, good), 0.0)  # of another run
     assert agent.stats["foreign"] == 0
-    hears = np.array([[True, True, False]])  # agent 0 hears agent 1
-    obs = P.decode_obs(P.obs_packet(5, 0, 0, np.zeros((1, 4)), np.zeros((1, 3, 2)), hears, agent.nonce))
+    obs = P.decode_obs(P.obs_packet(5, 0, 0, _obs(np.zeros((1, 3, 2)), np.array([[1, -1]])), agent.nonce))  # hears 1
     agent._decide((*obs, 0.0))
     assert agent.stats["msgs_heard"] == 1 and agent.stats["missed"] == agent.K - 1  # round 0 heard
     assert agent.stats["foreign"] == 1
