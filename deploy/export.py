@@ -323,6 +323,7 @@ def swarm_contract(payload: dict) -> dict:
     if not swarm:
         return {}
     return {
+        **radio_contract(payload),
         "swarm": dict(swarm),
         "swarm_doc": "the simulator options it trained on: neighbours K: an agent hears its K nearest "
         "(within comm_radius under rc), never more; landmark_neighbours KL: entities holds the KL nearest "
@@ -333,6 +334,35 @@ def swarm_contract(payload: dict) -> dict:
         "its own table says another holds listed last, reading 0; "
         "auction_rounds R: the radio's message rounds a step, each bid raising a price by at least 0.5; "
         "scale density: the arena's half side is sqrt(M / 10)",
+    }
+
+
+def radio_contract(payload: dict) -> dict:
+    """A radio policy's auction rules, what each agent process runs (deploy/radio.py): {} for another."""
+    from taichi_swarm import TASK_SPECS, radio
+    from taichi_swarm.tasks import COMMON_PARAMS
+
+    swarm = payload.get("swarm") or {}
+    if swarm.get("landmark_order") != "radio":
+        return {}
+    params = {**COMMON_PARAMS, **TASK_SPECS[payload["task"]["task"]].params}
+    return {
+        "radio": {
+            "rounds": int(swarm.get("auction_rounds") or radio.DEFAULT_ROUNDS),
+            "table": int(swarm["landmark_neighbours"]),
+            "sense_radius": float(swarm["sense_radius"]),
+            "success_threshold": float(params["success_threshold"]),
+            "increment": radio.ROUND_EPS,
+            "hold_slack": radio.HOLD_SLACK,
+            "stay_out": radio.OUT,
+        },
+        "radio_doc": "the agents' auction (deploy/radio.py, docs/SWARM.md): before the network's rounds, R "
+        "rounds a step, each agent bids (holding nothing) for its cheapest of the `table` nearest landmarks it "
+        "senses (distance + price, against staying out at stay_out sense radii), raising the price by the gap "
+        "to its second best + increment; sends its table (TABLE packets) to the teammates it hears and keeps "
+        "the greatest entry of each (epoch, price, lower holder); lets its landmark go when another option is "
+        "cheaper by hold_slack increments. Its landmark rows: the held one alone (occupancy floored at "
+        "success_threshold), else the sensed ones with those another holds last, reading 0",
     }
 
 

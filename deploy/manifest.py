@@ -26,9 +26,7 @@ import json
 
 import jsonschema
 
-from taichi_swarm import COMMS, TASKS
-from taichi_swarm.layout import EDGE_POSITIONS, ENTITY_MODES
-from taichi_swarm.physics import NUM_ACTIONS, NUM_FINE_ACTIONS
+from taichi_swarm.constants import COMMS, EDGE_POSITIONS, ENTITY_MODES, NUM_ACTIONS, NUM_FINE_ACTIONS
 
 MANIFEST = "manifest.json"
 FORMAT = "taichi-swarm-onnx"
@@ -62,7 +60,7 @@ SCHEMA = {
             "type": "object",
             "required": ["task", "comm", "comm_radius"],
             "properties": {
-                "task": {"enum": list(TASKS)},
+                "task": {"type": "string"},  # (a registered task: the simulator checks it, ``make``)
                 "agents": {"anyOf": [_POSITIVE_INT, {"type": "null"}]},
                 "comm": {"enum": list(COMMS)},
                 "comm_radius": {"type": "number", "minimum": 0, "maximum": 1e6},
@@ -117,6 +115,26 @@ SCHEMA = {
                 "comm": {"enum": list(COMMS)},
                 "comm_radius": {"type": "number", "minimum": 0},
                 "message_schema_version": _POSITIVE_INT,
+                "radio": {  # a radio policy's auction, as each agent runs it (deploy/radio.py)
+                    "type": "object",
+                    "required": [
+                        "rounds",
+                        "table",
+                        "sense_radius",
+                        "success_threshold",
+                        "increment",
+                        "hold_slack",
+                        "stay_out",
+                    ],
+                    "properties": {
+                        "rounds": {"type": "integer", "minimum": 1, "maximum": 64},
+                        "table": {"type": "integer", "minimum": 1, "maximum": 4096},
+                        **{
+                            k: {"type": "number", "exclusiveMinimum": 0, "maximum": 1e6}
+                            for k in ("sense_radius", "success_threshold", "increment", "hold_slack", "stay_out")
+                        },
+                    },
+                },
             },
         },
     },
@@ -128,7 +146,7 @@ def integrator_contract(task: dict, rounds: int, hidden: int) -> dict:
     the control period the policy was trained at, K, the communication graph, the observation
     layout and units, the action and the wire format of the messages (deploy/net/protocol.py)."""
     from deploy.net.protocol import HEADER_BYTES, SCHEMA_VERSION
-    from taichi_swarm.physics import DAMPING, DT, MASS, SENSITIVITY
+    from taichi_swarm.constants import DAMPING, DT, MASS, SENSITIVITY
 
     return {
         "control_period_s": DT,

@@ -21,9 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from taichi_swarm.radio import ENTRY_BYTES, HOLD_SLACK, OUT, ROUND_EPS
-
-__all__ = ["ENTRY_BYTES", "AgentAuction", "Sensing", "Table", "sense"]
+__all__ = ["AgentAuction", "Sensing", "Table", "sense"]
 
 f32 = np.float32
 
@@ -81,16 +79,17 @@ def sense(pos: np.ndarray, landmarks: np.ndarray, sense_radius: float, slots: in
 
 class AgentAuction:
     """Agent ``me``'s side of the radio auction in each of B worlds (radio.py's per-agent blocks:
-    its table, its cost to each entry, the landmark it holds)."""
+    its table, its cost to each entry, the landmark it holds). ``rules``: the export manifest's
+    ``contract["radio"]`` (deploy/export.py writes radio.py's constants there)."""
 
-    def __init__(self, me: int, worlds: int, sense_radius: float, success_threshold: float, kl: int):
-        self.me, self.kl = int(me), int(kl)
-        radius = f32(sense_radius)
-        self.out = f32(OUT) * radius  # staying out: OUT sense radii
-        self.eps = f32(ROUND_EPS)
-        self.slack = f32(HOLD_SLACK) * self.eps
+    def __init__(self, me: int, worlds: int, rules: dict):
+        self.me, self.kl = int(me), int(rules["table"])
+        radius = f32(rules["sense_radius"])
+        self.out = f32(rules["stay_out"]) * radius  # staying out: stay_out sense radii
+        self.eps = f32(rules["increment"])
+        self.slack = f32(rules["hold_slack"]) * self.eps
         self.s2 = radius * radius
-        self.floor = f32(success_threshold)
+        self.floor = f32(rules["success_threshold"])
         self.tables = [Table.empty() for _ in range(worlds)]
         self.cost = [np.zeros(0, f32) for _ in range(worlds)]
         self.won = np.full(worlds, -1, np.int64)

@@ -14,11 +14,30 @@ Taichi is initialised by the first ``make`` (or ``taichi_swarm.init``), never
 at import.
 """
 
-from .env import ARRAYS, COMMS, NaNActionsError, SwarmEnv, make
-from .physics import ACTION_DIM, ACTION_MEANINGS, ACTION_SPACES, NUM_ACTIONS, num_actions
-from .runtime import init
-from .setting import TaskSetting
-from .tasks import TASK_SPECS, TASKS
+import importlib
+
+# Taichi is imported with the first name that needs it, not with the package: an agent process
+# (deploy/net/agent.py) reads taichi_swarm.files and nothing that compiles kernels, and stays
+# small without it
+_NAMES = {
+    **dict.fromkeys(("ARRAYS", "COMMS", "NaNActionsError", "SwarmEnv", "make"), "env"),
+    **dict.fromkeys(("ACTION_DIM", "ACTION_MEANINGS", "ACTION_SPACES", "NUM_ACTIONS", "num_actions"), "physics"),
+    "init": "runtime",
+    "TaskSetting": "setting",
+    **dict.fromkeys(("TASK_SPECS", "TASKS"), "tasks"),
+}
+
+
+def __getattr__(name: str):
+    if name in _NAMES:
+        return getattr(importlib.import_module(f".{_NAMES[name]}", __name__), name)
+    try:  # a submodule (taichi_swarm.physics), as when the package imported them all
+        return importlib.import_module(f".{name}", __name__)
+    except ModuleNotFoundError as exc:
+        if exc.name != f"{__name__}.{name}":
+            raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "ACTION_DIM",

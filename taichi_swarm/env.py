@@ -36,6 +36,7 @@ import sys
 import numpy as np
 
 from . import assignment, kernels, nearest, neighbours, radio, rng, runtime
+from .constants import COMMS
 from .layout import (
     FLOAT_HEADER,
     H_COMM_RC,
@@ -58,7 +59,6 @@ from .layout import (
 from .physics import ACTION_DIM, ACTION_SPACES, CONTACT_MARGIN, CUTOFF_MARGINS, num_actions
 from .tasks import COMMON_PARAMS, TASK_SPECS
 
-COMMS = ("uc", "rc")
 ARRAYS = ("torch", "numpy")
 SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "free")

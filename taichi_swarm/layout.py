@@ -28,10 +28,6 @@ import taichi as ti
 H_B, H_M, H_L, H_COMM_RC, H_MAX_STEPS, H_K, H_KL, H_G, H_GL, H_GT, H_DENSITY, H_ROUNDS = range(12)
 SIZE_SLOTS = 12
 SELF_DIM = 4  # an agent's own observation: vx, vy, px, py (the kernels write exactly these)
-# how the network takes the landmark inputs (trainer.model.ModelConfig.entity_mode; deploy/ and
-# reproduce/ read it here, without torch): EMP, concatenated (fixed L), or 10 zero-padded slots
-ENTITY_MODES = ("emp", "concat", "padded")
-EDGE_POSITIONS = ("none", "relative")  # ModelConfig.edge_position, likewise
 
 
 @dataclass(frozen=True)

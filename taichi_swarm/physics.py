@@ -9,13 +9,10 @@ pairwise contact forces between agents, then semi-implicit Euler
 
 import taichi as ti
 
-DT = 0.1
-DAMPING = 0.25
-MASS = 1.0
-SENSITIVITY = 5.0  # MPE's agent.accel default (discrete and continuous actions alike)
+from .constants import DAMPING, DT, MASS, NUM_ACTIONS, NUM_FINE_ACTIONS, SENSITIVITY
+
 CONTACT_FORCE = 100.0
 CONTACT_MARGIN = 1e-3
-NUM_ACTIONS = 5  # the paper's discrete actions
 # action_space "fine": actions 5..8 push as 1..4 do at a quarter of the force. From rest one
 # full push moves an agent's resting point by 0.2 (SENSITIVITY / MASS x DT^2 / DAMPING), so
 # with the paper's five an agent at rest parks only on a lattice of side 0.2 round where it
@@ -23,7 +20,6 @@ NUM_ACTIONS = 5  # the paper's discrete actions
 # (docs/SWARM.md, "An agent at rest parks only on a lattice"); a quarter push moves it by 0.05,
 # so it can park within 0.035 of any point, inside formation's 0.05.
 FINE = 0.25
-NUM_FINE_ACTIONS = 9
 ACTION_DIM = 2  # continuous actions: one force command u per axis
 ACTION_SPACES = ("discrete", "continuous", "fine")
 CUTOFF_MARGINS = 20.0  # contact force treated as 0 beyond dist_min + 20 contact margins

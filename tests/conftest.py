@@ -89,7 +89,7 @@ SLOW_MODULES = {
     "test_neighbours.py", "test_density.py", "test_assignment_nearest.py", "test_assignment_large.py",
     "test_radio_auction.py", "test_train_lists.py", "test_model_lists.py", "test_landmark_order.py",
     "test_lists.py", "test_edges.py", "test_network.py", "test_net_lifecycle.py", "test_fine_actions_training.py",
-    "test_agent_reward_training.py", "test_agent_reward.py", "test_video.py",
+    "test_agent_reward_training.py", "test_agent_reward.py", "test_video.py", "test_radio_agents.py",
 }  # fmt: skip
 SLOW_TESTS = {"test_readme_python_example_runs", "test_a_large_team_policy_evaluates_in_its_own_setting_as_loaded"}
 

@@ -32,8 +32,8 @@ import torch
 from torch import nn
 
 # the observation layout and the actions are defined once, there
-from taichi_swarm.layout import EDGE_POSITIONS, ENTITY_MODES, SELF_DIM
-from taichi_swarm.physics import NUM_ACTIONS, NUM_FINE_ACTIONS
+from taichi_swarm.constants import EDGE_POSITIONS, ENTITY_MODES, NUM_ACTIONS, NUM_FINE_ACTIONS
+from taichi_swarm.layout import SELF_DIM
 
 MAX_ROUNDS = 64  # message rounds (the export manifest's schema has the same bound)
 MAX_HIDDEN = 4096  # hidden width: 4096 is ~170 M weights, 0.7 GB

@@ -89,22 +89,14 @@ def _size(payload) -> int:
 
 
 def radio_settings(model: ExportedModel) -> dict | None:
-    """A radio policy's auction (landmark_order "radio" in its manifest's contract): its rounds R a
-    step, table size KL, sense radius and the task's success threshold; None for any other policy."""
-    swarm = (model.manifest.get("contract") or {}).get("swarm") or {}
-    if swarm.get("landmark_order") != "radio":
+    """A radio policy's auction rules (landmark_order "radio": its manifest's ``contract["radio"]``,
+    rounds R a step, table size, sense radius, ...); None for any other policy."""
+    contract = model.manifest.get("contract") or {}
+    if (contract.get("swarm") or {}).get("landmark_order") != "radio":
         return None
-    from taichi_swarm import TASK_SPECS
-    from taichi_swarm.radio import DEFAULT_ROUNDS
-    from taichi_swarm.tasks import COMMON_PARAMS
-
-    task = model.task.get("task")
-    return {
-        "rounds": int(swarm.get("auction_rounds") or DEFAULT_ROUNDS),
-        "kl": int(swarm["landmark_neighbours"]),
-        "sense_radius": float(swarm["sense_radius"]),
-        "success_threshold": float({**COMMON_PARAMS, **TASK_SPECS[task].params}["success_threshold"]),
-    }
+    if "radio" not in contract:
+        raise DeployError(f"{model.directory} is a radio policy exported without its auction's rules: export it again")
+    return contract["radio"]
 
 
 class NetAgent:
@@ -429,7 +421,7 @@ class NetAgent:
         each round -> its landmark rows in each world ([n, 3]); None if the world moved on."""
         B, cfg = h.envs, self.radio
         if self.auction is None:
-            self.auction = AgentAuction(self.id, B, cfg["sense_radius"], cfg["success_threshold"], cfg["kl"])
+            self.auction = AgentAuction(self.id, B, cfg)
         sensing = []
         for b in range(B):
             n = int((o.sensed[b] >= 0).sum())

@@ -33,7 +33,8 @@ Every packet is one little-endian header followed by a kind-specific body:
                               after its bid in round ``round`` (radio policies, R rounds before the
                               network's); ENTRY_BYTES per entry on the air
     MSG   agent -> neighbours message f32 [B, 2, H]  (the sender's attention key and value, manifest "message")
-    ACT   agent -> world      M u16, actions u8 [B] (< the policy's actions, 5 or 9), attention f32 [B, M], then the agent's stats f32 [len(STATS)]
+    ACT   agent -> world      M u16, actions u8 [B] (below the policy's 5 or 9), attention f32 [B, M], then the
+                              agent's stats f32 [len(STATS)]
     HELLO agent -> all        export manifest sha256 (64 ascii hex): an agent of another export is refused;
                               then n u16 and the n agent ids whose hellos it has heard (its routes from
                               them exist: the world starts once every agent hears every other).

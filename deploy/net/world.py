@@ -335,7 +335,7 @@ class World:
         fresh = np.asarray(state["step"]) == 0 if state is not None else np.full(B, self.step == 0)
         radio = self.radio
         if radio:
-            S = 2 * radio["kl"]
+            S = 2 * radio["table"]
             sensed = np.full((B, M, S), -1, np.int64)
             sensed_off = np.zeros((B, M, S, 2), np.float32)
             occ = np.zeros((B, M, S), np.float32)
