@@ -179,10 +179,10 @@ class NetAgent:
                     self.stopped = True
             elif topic == "obs":
                 self._on_obs(P.decode_obs(data), t)
-            elif topic == "msg":
-                self._on_msg(*P.decode_msg(data, self.H), t)
-            elif topic == "table":
-                self._on_msg(*P.decode_table(data), t)
+            elif topic in ("msg", "table"):
+                if not self._wanted(P.read_header(data)):
+                    return None  # a teammate this agent does not hear this step: no loss, not read
+                self._on_msg(*(P.decode_msg(data, self.H) if topic == "msg" else P.decode_table(data)), t)
             elif topic == "hello":
                 h = P.decode_hello(data)[0]
                 if h.sender != self.id:
@@ -214,6 +214,13 @@ class NetAgent:
         if self.next_obs is not None:
             self.stats["late"] += 1  # an older one never got its turn
         self.next_obs = (*obs, t)
+
+    def _wanted(self, h: P.Header) -> bool:
+        """Whether a message may be of use: every one of a step whose hearers are not known yet
+        (a step ahead, another run), and of this step only those from the agents it hears (in a
+        team of 50 on one machine, reading only those cut the agents' work about fourfold)."""
+        needs = self._need.get(h.step) if h.run == self.run else None
+        return needs is None or any(h.sender in need for need in needs)
 
     def _late(self, step: int, round_: int) -> bool:
         return step < self.step or (step == self.step and round_ < self.round)

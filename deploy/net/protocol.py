@@ -52,6 +52,7 @@ drop such a packet, count it and go on.
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -127,10 +128,11 @@ def read_header(data: bytes) -> Header:
 
 
 def _array(data: bytes, offset: int, dtype, shape: tuple[int, ...]) -> tuple[np.ndarray, int]:
-    n = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    count = math.prod(shape)  # (not np.prod: this runs for every packet an agent reads)
+    n = count * np.dtype(dtype).itemsize
     if offset + n > len(data):
         raise PacketError(f"packet body is truncated (needs {offset + n} bytes, has {len(data)})")
-    return np.frombuffer(data, dtype, count=int(np.prod(shape)), offset=offset).reshape(shape), offset + n
+    return np.frombuffer(data, dtype, count=count, offset=offset).reshape(shape), offset + n
 
 
 def _exact(data: bytes, end: int, what: str) -> None:

@@ -3,7 +3,7 @@
 The world's session is a Zenoh router listening on ``--listen`` (default tcp/127.0.0.1:7447);
 each agent is a peer that connects to it and listens on a port of its own, so the agents
 find each other through the router (gossip) and exchange their messages peer to peer.
-Multicast scouting is off: nothing is sent anywhere but the endpoints named. Every
+Multicast scouting and shared memory are off: nothing is sent anywhere but the endpoints named. Every
 publisher blocks rather than drops under congestion (a loss is a fault we inject, never
 one the transport makes up) and is "express" (sent at once, not batched).
 
@@ -68,6 +68,9 @@ def open_session(mode: str, listen: list[str], connect: list[str]):
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    # no shared-memory pools: the packets are small, and with them each of 50 agent processes on
+    # one machine mapped about 900 MB of its peers' segments (measured)
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     try:
         return zenoh.open(conf)
     except Exception as exc:  # noqa: BLE001 - zenoh.ZError: port in use, bad address

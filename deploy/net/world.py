@@ -404,6 +404,15 @@ def format_net(row: dict) -> str:
     head = f"{'agent':>5} {'missing':>7} {'p50 ms':>7} {'p99 ms':>7} {'msg/s':>7} {'kB/s':>7} {'cpu':>5} " + (
         f"{'heard':>7} {'missed':>6} {'late':>5} {'bad':>4}"
     )
+    decisions = [r[k] for r in row["agents_report"] for k in ("decision_ms_p50", "decision_ms_p99") if r[k] is not None]
+    if decisions:  # over the agents: the median of their p50s, the worst of their p99s
+        p50 = np.median([r["decision_ms_p50"] for r in row["agents_report"] if r["decision_ms_p50"] is not None])
+        p99 = max(r["decision_ms_p99"] for r in row["agents_report"] if r["decision_ms_p99"] is not None)
+        lines.append(f"decision latency: p50 {p50:.0f} ms (median over agents), p99 {p99:.0f} ms (worst agent)")
+    if row.get("agent_rss_mb"):
+        rss = list(row["agent_rss_mb"].values())
+        mb = f"median {np.median(rss):.0f} MB, max {max(rss):.0f} MB"
+        lines.append(f"agent process peak RSS: {mb} ({len(rss)} agents)")
     lines.append(head)
     for i, r in enumerate(row["agents_report"]):
 
@@ -498,6 +507,18 @@ class AgentProcesses:
         if p is not None:
             p.kill()
             p.wait(timeout=10)
+
+    def peak_rss_mb(self) -> dict[int, float]:
+        """Each live agent process's peak resident memory in MB (Linux /proc; {} elsewhere)."""
+        out = {}
+        for i, p in self.procs.items():
+            try:
+                with open(f"/proc/{p.pid}/status") as f:
+                    kb = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+            except (OSError, StopIteration, ValueError):
+                continue
+            out[i] = kb / 1024
+        return out
 
     def stop(self, timeout: float = 10.0) -> None:
         """Wait for the agents to leave (after the world's stop), then kill what is left."""
