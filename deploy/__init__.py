@@ -8,7 +8,8 @@
                                      Rerun .rrd and GIF/MP4 drawn from it     (deploy/recording.py, deploy/video.py)
     swarm replay FILE.npz            reads that record: --stats, --video, --rrd, the viewer  (deploy/replay.py)
     swarm agent DIR --id I           one agent as its own process, and the simulator as the world of
-    swarm world --export DIR         such processes, over Zenoh (deploy/net/, docs/DEPLOY.md)
+    swarm world --export DIR         such processes, over Zenoh (deploy/net/, docs/DEPLOY.md); a radio
+                                     policy's agent runs its side of the auction (deploy/radio.py)
 
 (the commands live in swarm_cli/deploy.py; ``swarm bench deploy`` in swarm_cli/bench_deploy.py)
 

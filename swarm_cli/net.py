@@ -41,7 +41,8 @@ class FaultOptions:
 @dataclass(kw_only=True)
 class AgentOptions(FaultOptions):
     """Run one agent of an exported policy as its own process: it subscribes to its observation,
-    exchanges the K rounds of messages with whoever it hears and publishes its action."""
+    exchanges the K rounds of messages with whoever it hears (a radio policy first its R auction
+    rounds) and publishes its action."""
 
     directory: Annotated[str, Positional, tyro.conf.arg(metavar="DIRECTORY")]
     """directory written by `swarm export`"""
