@@ -6,7 +6,6 @@ refuse such an export."""
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import onnx
@@ -157,20 +156,41 @@ def test_an_inconsistent_edge_position_is_refused_in_one_line(relative, plain, w
     assert words in str(exc.value) and "\n" not in str(exc.value)
 
 
-@pytest.mark.parametrize("command", ["agent", "world"])
-def test_the_networked_agents_refuse_a_relative_export(relative, tmp_path, capsys, command):
-    from swarm_cli.net import agent_main, world_main
+def test_networked_agents_measure_the_offsets_of_those_they_hear(relative):
+    """Relative edges over the wire: each OBS carries the offsets of the agents heard (a range
+    sensor's reading), so M = 3 processes act as the in-process executor does, action for action."""
+    pytest.importorskip("zenoh")
+    import secrets
+
+    from deploy.executor import make_env, resolve_settings
+    from deploy.net.transport import Endpoint, open_session
+    from deploy.net.world import AgentProcesses, NetSettings, World
+    from taichi_swarm.metrics import run_first_episodes
 
     _, model = relative
-    before = sorted(os.listdir(model.directory))
-    row = str(tmp_path / "row.json")
-    # the timeouts: without the refusal, each runs a few seconds and succeeds (and the world writes row)
-    if command == "agent":
-        assert agent_main([model.directory, "--id", "0", "--idle-timeout", "1"]) == 2
-    else:
-        world = ["--export", model.directory, "--json", row, "--episodes", "1", "--period", "0"]
-        assert world_main([*world, "--start-timeout", "0.2", "--action-deadline", "0.01"]) == 2
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"swarm {command}: error:"), lines
-    assert "edge_position 'relative'" in lines[0] and "OBS packet" in lines[0]
-    assert sorted(os.listdir(model.directory)) == before and not os.listdir(tmp_path)  # nothing left behind
+    s = resolve_settings(model, "coverage", 3, "rc", 0.8, episodes=3, seed=11)
+    executor, reference = Executor(model, s.episodes, s.agents, seed=s.seed), []
+
+    def decide(obs):
+        reference.append(executor.decide(obs["self"], obs["entities"], obs["adj"])[1])
+        return reference[-1], None
+
+    run_first_episodes(make_env(model, s), decide)
+    port, ns = 20000 + secrets.randbelow(20000), f"edges{secrets.token_hex(4)}"
+    endpoint = Endpoint(open_session("router", [f"tcp/127.0.0.1:{port}"], []), ns)
+    net = NetSettings(period=0.0, round_deadline=5.0, action_deadline=30.0, start_timeout=60.0)
+    world = World(model, s, net, endpoint, quiet=True)
+    procs = AgentProcesses(model.directory, 3, f"tcp/127.0.0.1:{port}", ns, net.round_deadline)
+    try:
+        for i in range(3):
+            procs.start(i)
+        world.watch = procs.check
+        assert world.wait_for_agents(range(3)) == {0, 1, 2}
+        row = world.run_episodes()
+    finally:
+        world.stop_agents()
+        procs.stop(timeout=15)
+        endpoint.close()
+    assert row["missing_actions"] == 0 and len(world.history) == len(reference)
+    for t, (got, want) in enumerate(zip(world.history, reference, strict=True)):
+        np.testing.assert_array_equal(got, want, err_msg=f"step {t}")
