@@ -144,3 +144,42 @@ def test_the_radio_team_as_processes_acts_as_execute(radio_export, agents):
     assert row["success_rate"] == summary["success_rate"]
     # each agent heard a table and a message per teammate on its list, per round
     assert all(r["msgs_heard"] > 0 for r in row["agents_report"])
+
+
+class _Endpoint:
+    ns = "swarm"
+    sent = sent_bytes = 0
+
+    def subscribe(self, *parts):
+        pass
+
+    def publish(self, data, *parts):
+        pass
+
+    def get(self, timeout):
+        return None
+
+
+def test_tables_are_messages_like_any_other(radio_export):
+    """A TABLE goes through the agent's faults like a MSG (all lost at drop 1), one from an agent
+    it does not hear this step is not read, and a malformed one is counted, never acted on."""
+    from deploy.net import protocol as P
+    from deploy.net.agent import NetAgent
+    from deploy.net.faults import FaultSpec
+    from deploy.radio import Table
+
+    table = [Table(np.array([1, 4], np.int32), np.zeros(2, np.int32), np.ones(2, np.float32), np.array([2, -1]))]
+    for drop, sender, kept in ((0.0, 2, True), (1.0, 2, False), (0.0, 3, False)):
+        agent = NetAgent(ExportedModel(radio_export), 0, _Endpoint(), faults=FaultSpec(drop=drop), quiet=True)
+        agent.run, agent.step, agent.round, agent.B, agent.M = 5, 3, 0, 1, 4
+        agent._need = {3: [{1, 2}]}  # this step it hears agents 1 and 2
+        agent._on_packet(f"swarm/table/{sender}", P.table_packet(5, 3, 0, sender, table), 0.0)
+        got = agent.box.get((3, 0), {}).get(0, {})
+        assert (sender in got) == kept, (drop, sender)
+        if kept:
+            np.testing.assert_array_equal(got[sender].lid, [1, 4])
+    assert agent.faults.injected_losses == 0 and agent.stats["late"] == 0  # (agent 3's: not read at all)
+    unsorted = Table(np.array([4, 1], np.int32), np.zeros(2, np.int32), np.ones(2, np.float32), np.array([2, -1]))
+    bad = P.table_packet(5, 3, 0, 2, [unsorted])
+    agent._on_packet("swarm/table/2", bad, 0.0)
+    assert agent.stats["malformed"] == 1
