@@ -211,7 +211,7 @@ def world_main(argv: list[str]) -> int:
 
     args = parse(WorldOptions, argv, "swarm world")
     from deploy.executor import DeployError, ExportedModel, make_env, resolve_settings
-    from deploy.net.agent import check_faults
+    from deploy.net.agent import check_faults, radio_settings
     from deploy.net.transport import Endpoint, TransportError, check_endpoint, check_namespace, open_session
     from deploy.net.world import AgentProcesses, NetSettings, SpawnError, World, format_net
     from taichi_swarm.tasks.base import COMMON_PARAMS
@@ -222,6 +222,7 @@ def world_main(argv: list[str]) -> int:
         check_namespace(args.ns)
         spec = args.faults
         model = ExportedModel(args.export)
+        radio_settings(model)  # (a radio export without its auction's rules is refused here, in one line)
         s = resolve_settings(
             model, args.task, args.agents, args.comm, args.comm_radius, episodes=args.episodes, seed=args.seed
         )

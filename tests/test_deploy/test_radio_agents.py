@@ -183,3 +183,22 @@ def test_tables_are_messages_like_any_other(radio_export):
     bad = P.table_packet(5, 3, 0, 2, [unsorted])
     agent._on_packet("swarm/table/2", bad, 0.0)
     assert agent.stats["malformed"] == 1
+
+
+@pytest.mark.parametrize("command", ["agent", "world"])
+def test_a_radio_export_without_its_rules_is_refused_in_one_line(radio_export, tmp_path, capsys, command):
+    import json
+    import shutil
+
+    from deploy.manifest import seal
+    from swarm_cli.net import agent_main, world_main
+
+    old = str(tmp_path / "old")
+    shutil.copytree(radio_export, old)
+    manifest = json.load(open(f"{old}/manifest.json"))
+    del manifest["contract"]["radio"]
+    manifest.pop("manifest_sha256")
+    json.dump(seal(manifest), open(f"{old}/manifest.json", "w"))
+    code = agent_main([old, "--id", "0"]) if command == "agent" else world_main(["--export", old, "--episodes", "1"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "exported without its auction's rules" in lines[0], lines
