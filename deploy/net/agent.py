@@ -4,11 +4,14 @@ observation, its messages over Zenoh.
 Per control step t (the world's OBS packet for this agent starts it), for each of the B
 worlds the packet covers (B = 1 on a robot):
 
+    a radio policy first: its table rebuilt from its sensing (the OBS packet's), then R auction
+        rounds: bid, publish TABLE(t, r), merge the tables of the agents it hears by the round
+        deadline (deploy/radio.py); its landmark rows from its table
     encode(own obs) -> h, message; publish MSG(t, round 0)
-    round r = 0..K-1: wait until every agent it hears this step (the OBS packet's row of the
-        graph, nothing more) has sent its MSG(t, r), or until the round deadline; then
-        round(h, heard) -> h, message and publish MSG(t, r + 1)   (the last round: round_heads
-        -> logits, action = argmax)
+    round r = 0..K-1: wait until every agent it hears this step (the OBS packet's heard list,
+        nothing more) has sent its MSG(t, r), or until the round deadline; then
+        round(h, heard, their offsets) -> h, message and publish MSG(t, r + 1)   (the last
+        round: round_heads -> logits, action = argmax)
     publish ACT(t): actions [B], attention [B, M], this agent's counters
 
 With ``hold`` A >= 1 (``swarm agent --hold A``), a neighbour the OBS packet says it hears but
@@ -20,8 +23,9 @@ What arrives after its round closed, of an older step, or of another run is drop
 counted (late, foreign); a packet that does not decode is dropped and counted (malformed,
 version), with one line on stderr the first time, and never stops the agent. A newer OBS
 that arrives mid-step (this agent fell behind) abandons the step: the world has moved on.
-The heard messages are stacked in sender order, as the in-process executor does, so at zero
-faults the actions are the executor's bit for bit. What is kept for later is bounded, the rest
+The heard messages are stacked in the OBS packet's heard order (the executor's: ascending ids
+on the dense graph, list order on neighbour lists), so at zero faults the actions are the
+executor's bit for bit. What is kept for later is bounded, the rest
 dropped and counted (overflow): messages of at most STEPS_AHEAD steps ahead, EARLY_KEPT
 messages (EARLY_BYTES) before the run's observation, PENDING_KEPT delayed by injected faults.
 
