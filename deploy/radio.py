@@ -72,8 +72,7 @@ def sense(pos: np.ndarray, landmarks: np.ndarray, sense_radius: float, slots: in
         ids = ids[np.argsort(d2[i, ids], kind="stable")][:slots]
         first_is_me = order[ids, 0] == i
         other = np.where(first_is_me, near[ids, 1] if M > 1 else np.inf, near[ids, 0])
-        occ = np.where(np.isfinite(other), np.minimum(np.sqrt(np.where(np.isfinite(other), other, 0)), radius), radius)
-        out.append(Sensing(ids, d[i, ids], occ.astype(f32)))
+        out.append(Sensing(ids, d[i, ids], np.minimum(np.sqrt(other), radius).astype(f32)))  # (none: inf -> radius)
     return out
 
 
@@ -159,16 +158,12 @@ class AgentAuction:
         read free; else the KL sensed ranked by distance, those its table says another holds
         last, reading 0 (kernels.agent_landmarks)."""
         won = int(self.won[b])
-        rows = np.zeros((0, 3), f32)
         if won >= 0:
             k = int(np.flatnonzero(sensing.ids == won)[0])
             return np.array([[*sensing.offsets[k], max(sensing.occupancy[k], self.floor)]], f32)
-        n = sensing.ids.size
-        if n == 0:
-            return rows
         off = sensing.offsets
         d2 = off[:, 0] * off[:, 0] + off[:, 1] * off[:, 1]
-        held = np.array([self._held_by_other(b, int(l)) for l in sensing.ids], bool)
+        held = self._held_by_other(b, sensing.ids)
         rank = d2 + np.where(held, self.s2 + f32(1.0), f32(0.0)).astype(f32)
         pick = np.argsort(rank, kind="stable")[: self.kl]
         reading = np.where(held[pick], f32(0.0), np.maximum(sensing.occupancy[pick], self.floor)).astype(f32)
@@ -210,7 +205,11 @@ class AgentAuction:
         for s in np.flatnonzero((t.holder == self.me) & (t.lid != won)):
             self._release(t, int(s))
 
-    def _held_by_other(self, b: int, l: int) -> bool:
+    def _held_by_other(self, b: int, ids: np.ndarray) -> np.ndarray:
+        """For each landmark in ``ids``: whether its own table says another agent holds it."""
         t = self.tables[b]
-        s = self._find(t, l)
-        return s >= 0 and t.holder[s] >= 0 and t.holder[s] != self.me
+        if not t.lid.size:
+            return np.zeros(ids.size, bool)
+        at = np.minimum(np.searchsorted(t.lid, ids), t.lid.size - 1)
+        who = t.holder[at]
+        return (t.lid[at] == ids) & (who >= 0) & (who != self.me)

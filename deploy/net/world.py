@@ -404,10 +404,10 @@ def format_net(row: dict) -> str:
     head = f"{'agent':>5} {'missing':>7} {'p50 ms':>7} {'p99 ms':>7} {'msg/s':>7} {'kB/s':>7} {'cpu':>5} " + (
         f"{'heard':>7} {'missed':>6} {'late':>5} {'bad':>4}"
     )
-    decisions = [r[k] for r in row["agents_report"] for k in ("decision_ms_p50", "decision_ms_p99") if r[k] is not None]
-    if decisions:  # over the agents: the median of their p50s, the worst of their p99s
-        p50 = np.median([r["decision_ms_p50"] for r in row["agents_report"] if r["decision_ms_p50"] is not None])
-        p99 = max(r["decision_ms_p99"] for r in row["agents_report"] if r["decision_ms_p99"] is not None)
+    decided = [r for r in row["agents_report"] if r["decision_ms_p50"] is not None]
+    if decided:  # over the agents: the median of their p50s, the worst of their p99s
+        p50 = np.median([r["decision_ms_p50"] for r in decided])
+        p99 = max(r["decision_ms_p99"] for r in decided)
         lines.append(f"decision latency: p50 {p50:.0f} ms (median over agents), p99 {p99:.0f} ms (worst agent)")
     if row.get("agent_rss_mb"):
         rss = list(row["agent_rss_mb"].values())
