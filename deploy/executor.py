@@ -53,13 +53,18 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from deploy.loss import GilbertElliott
 from deploy.loss import check as check_burst
 from deploy.policy import DeployError, ExportedModel, Pieces
+from taichi_swarm.constants import NUM_FINE_ACTIONS
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
+
+if TYPE_CHECKING:
+    from taichi_swarm.sim import Sim
 
 
 class MessageBus:
@@ -270,10 +275,8 @@ class Executor:
 
 @dataclass
 class ExecuteSettings:
-    task: str
-    agents: int
-    comm: str = "uc"
-    comm_radius: float = 1.0
+    sim: Sim
+    """the setting the team runs in: the policy's own (its manifest), with the command's options over it"""
     episodes: int = 10
     drop: float = 0.0
     delay: int = 0
@@ -284,14 +287,10 @@ class ExecuteSettings:
     """its mean burst length, in messages"""
     hold: int = 0
     """a lost message is replaced by the sender's last one heard, up to this many steps old (MessageBus)"""
-    swarm: dict | None = None
-    """the simulator's neighbour lists / density scaling (``make()`` keywords; None: dense)"""
 
     def __post_init__(self):
         """Every setting checked here, once (``swarm execute`` and ``run_episodes`` alike)."""
-        from taichi_swarm import TaskSetting
-
-        TaskSetting(self.task, self.agents, self.comm, self.comm_radius)  # task, team size, comm
+        self.sim.team_size("the manifest")
         for name, low in (("episodes", 1), ("delay", 0), ("hold", 0)):
             if getattr(self, name) < low:
                 raise DeployError(f"--{name} must be >= {low}, got {getattr(self, name)}")
@@ -305,6 +304,12 @@ class ExecuteSettings:
             raise DeployError(f"--delay must be < the episode length ({steps} steps), got {self.delay}")
         if self.hold > steps:  # (the bus keeps hold + 1 steps of messages per agent pair)
             raise DeployError(f"--hold must be at most the episode length ({steps} steps), got {self.hold}")
+
+    # the setting's parts every reader of a result names
+    task = property(lambda self: self.sim.task)
+    agents = property(lambda self: self.sim.agents)
+    comm = property(lambda self: self.sim.comm)
+    comm_radius = property(lambda self: self.sim.comm_radius)
 
 
 def episode_length(task: str) -> int:
@@ -321,36 +326,30 @@ def resolve_settings(
     agents: int | None = None,
     comm: str | None = None,
     comm_radius: float | None = None,
+    swarm: dict | None = None,
     **rest,
 ) -> ExecuteSettings:
-    """Fill unset options from the manifest's training setting (``taichi_swarm.TaskSetting``)."""
-    from taichi_swarm import TASK_SPECS, TaskSetting
+    """The manifest's training setting (``taichi_swarm.Sim``) with the command's options over it
+    (``Sim.override``: ``swarm``, the list options), and the rest of ``ExecuteSettings``."""
+    from taichi_swarm import TASK_SPECS
+    from taichi_swarm.sim import Sim
 
-    setting = TaskSetting.resolve(
-        model.task, "the manifest", task=task, agents=agents, comm=comm, comm_radius=comm_radius
-    )
-    team_size = setting.team_size("the manifest")
-    # the lists / scaling the policy trained on (its manifest's contract), the command's over them
-    swarm = {**(model.manifest.get("contract") or {}).get("swarm", {}), **(rest.get("swarm") or {})}
-    swarm = {k: v for k, v in swarm.items() if v is not None}  # None: cleared by the command (another --landmark-order)
-    rest["swarm"] = swarm
-    if swarm.get("landmark_neighbours") and model.entity_mode == "concat":
+    own = (model.manifest.get("contract") or {}).get("swarm", {})
+    overrides = dict(task=task, agents=agents, comm=comm, comm_radius=comm_radius, **(swarm or {}))
+    sim = Sim.resolve(model.task, own, "the manifest", **overrides)
+    if model.manifest["num_actions"] == NUM_FINE_ACTIONS and sim.action_space != "fine":
+        sim = sim.override(action_space="fine")  # a manifest's 9 actions are the fine set
+    team_size = sim.team_size("the manifest")
+    if sim.landmark_neighbours and model.entity_mode == "concat":
         raise DeployError("this model concatenates every landmark (entity_mode 'concat'): no --landmark-neighbours")
-    L = swarm.get("landmark_neighbours") or TASK_SPECS[setting.task].num_landmarks(team_size)
-    model.check_landmarks(setting.task, L)  # before any output opens
-    return ExecuteSettings(
-        task=setting.task,
-        agents=team_size,
-        comm=setting.comm,
-        comm_radius=setting.comm_radius,
-        **rest,
-    )
+    L = sim.landmark_neighbours or TASK_SPECS[sim.task].num_landmarks(team_size)
+    model.check_landmarks(sim.task, L)  # before any output opens
+    return ExecuteSettings(sim=sim, **rest)
 
 
 def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, threads: int = 1) -> dict:
     """One episode per environment, greedy actions, decided agent by agent; S%, T, DIST as ``swarm eval``
     (T is the episode length: the time limit, 50, for a failed episode)."""
-    swarm = s.swarm or {}
     env = make_env(model, s)
     executor = Executor(
         model, s.episodes, s.agents, s.drop, s.delay, s.seed, threads, (s.burst_loss, s.burst_len), s.hold
@@ -369,7 +368,7 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
     tally = run_first_episodes(env, decide, recorder, on_done=executor.bus.reset_envs)
     return {
         **result_header(s.task, s.agents, s.comm, s.comm_radius, s.episodes, s.seed),
-        **swarm,
+        **s.sim.swarm_record(),
         "drop": s.drop,
         "delay": s.delay,
         **({"burst_loss": s.burst_loss, "burst_len": s.burst_len} if s.burst_loss else {}),
@@ -382,17 +381,12 @@ def run_episodes(model: ExportedModel, s: ExecuteSettings, recorder=None, thread
 
 def make_env(model: ExportedModel, s: ExecuteSettings):
     """The B worlds a team acts in (``swarm execute``, ``swarm world``), on the policy's whole setting:
-    its lists, sensing, landmark order and action space (fine: its manifest's 9 actions)."""
+    its lists, sensing, landmark order and action space (``resolve_settings``)."""
     import taichi_swarm
 
-    swarm = s.swarm or {}
-    L = swarm.get("landmark_neighbours") or taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents)
+    L = s.sim.landmark_neighbours or taichi_swarm.TASK_SPECS[s.task].num_landmarks(s.agents)
     model.check_landmarks(s.task, L)
-    fine = model.manifest["num_actions"] == taichi_swarm.physics.NUM_FINE_ACTIONS
-    return taichi_swarm.make(
-        s.task, s.episodes, s.agents, comm=s.comm, comm_radius=s.comm_radius, arch="cpu", seed=s.seed, array="numpy",
-        **{"action_space": "fine" if fine else "discrete", **swarm},
-    )  # fmt: skip
+    return taichi_swarm.make(s.sim, s.episodes, arch="cpu", seed=s.seed, array="numpy")
 
 
 def lists_to_dense(attention: np.ndarray, nbr: np.ndarray, nbr_mask: np.ndarray) -> np.ndarray:

@@ -33,9 +33,9 @@ import torch
 from torch import nn
 
 from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, integrator_contract, metadata, seal
-from taichi_swarm import TaskSetting
 from taichi_swarm.files import atomic_write_bytes, atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
+from taichi_swarm.sim import Sim
 from trainer.checkpoint import CheckpointError, load_policy
 from trainer.model import PADDED_SLOTS, SELF_DIM, SwarmPolicy
 from trainer.zoo import file_sha256
@@ -224,7 +224,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
 
     ``task`` overrides/complements the checkpoint's ``payload["task"]``
     ({"task", "agents", "comm", "comm_radius"}; None values keep the checkpoint's): one
-    ``taichi_swarm.TaskSetting``, checked.
+    ``taichi_swarm.Sim`` with the checkpoint's "swarm" record, checked.
     """
     import onnx
 
@@ -232,7 +232,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     policy = policy.float().eval()
     cfg = policy.config
     try:
-        setting = TaskSetting.resolve(payload.get("task"), "the checkpoint", **(task or {}))
+        setting = Sim.resolve(payload.get("task"), payload.get("swarm"), "the checkpoint", **(task or {}))
     except ValueError as exc:
         raise CheckpointError(str(exc)) from None
     _check_landmarks_fit(cfg, setting)
@@ -241,7 +241,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     os.makedirs(out_dir, exist_ok=True)
 
     files = {}
-    props = metadata({"model_config": cfg.to_dict(), "task": setting.to_dict()})
+    props = metadata({"model_config": cfg.to_dict(), "task": setting.task_record()})
     for name, (_, _, outputs) in PIECES.items():
         path = os.path.join(out_dir, f"{name}.onnx")
         export_piece(name, policy, path, props)
@@ -257,7 +257,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     manifest = {
         "format": FORMAT,
         "version": VERSION,
-        "task": setting.to_dict(),
+        "task": setting.task_record(),
         "model_config": cfg.to_dict(),
         "rounds": cfg.rounds,
         "hidden": H,
@@ -300,7 +300,7 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
             },
             **({"offsets": EDGE_DOC} if edge else {}),
         },
-        "contract": {**integrator_contract(setting.to_dict(), cfg.rounds, H), **swarm_contract(payload)},
+        "contract": {**integrator_contract(setting.task_record(), cfg.rounds, H), **swarm_contract(setting)},
         "action_meanings": list(ACTION_MEANINGS[: cfg.num_actions]),
         "num_actions": cfg.num_actions,
         "opset": OPSET,
@@ -316,14 +316,14 @@ def export(checkpoint: str, out_dir: str, task: dict | None = None, trust_unsign
     return manifest
 
 
-def swarm_contract(payload: dict) -> dict:
+def swarm_contract(sim: Sim) -> dict:
     """The neighbour lists / density scaling the policy trained on, for ``manifest["contract"]``
     (``swarm execute`` runs on them unless told otherwise); {} for a dense policy."""
-    swarm = payload.get("swarm") or {}
+    swarm = sim.swarm_record()
     if not swarm:
         return {}
     return {
-        **radio_contract(payload),
+        **radio_contract(sim),
         "swarm": dict(swarm),
         "swarm_doc": "the simulator options it trained on: neighbours K: an agent hears its K nearest "
         "(within comm_radius under rc), never more; landmark_neighbours KL: entities holds the KL nearest "
@@ -337,20 +337,19 @@ def swarm_contract(payload: dict) -> dict:
     }
 
 
-def radio_contract(payload: dict) -> dict:
+def radio_contract(sim: Sim) -> dict:
     """A radio policy's auction rules, what each agent process runs (deploy/radio.py): {} for another."""
     from taichi_swarm import TASK_SPECS, radio
     from taichi_swarm.tasks import COMMON_PARAMS
 
-    swarm = payload.get("swarm") or {}
-    if swarm.get("landmark_order") != "radio":
+    if sim.landmark_order != "radio":
         return {}
-    params = {**COMMON_PARAMS, **TASK_SPECS[payload["task"]["task"]].params}
+    params = {**COMMON_PARAMS, **TASK_SPECS[sim.task].params}
     return {
         "radio": {
-            "rounds": int(swarm.get("auction_rounds") or radio.DEFAULT_ROUNDS),
-            "table": int(swarm["landmark_neighbours"]),
-            "sense_radius": float(swarm["sense_radius"]),
+            "rounds": sim.rounds,
+            "table": sim.landmark_neighbours,
+            "sense_radius": sim.sense_radius,
             "success_threshold": float(params["success_threshold"]),
             "increment": radio.ROUND_EPS,
             "hold_slack": radio.HOLD_SLACK,

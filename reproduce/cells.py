@@ -115,10 +115,11 @@ def final_eval(policy_path: str, cell: Cell, agents: int, arch: str = "cpu") -> 
     policy, _ = load_policy(policy_path)
     run = cell.run
     config = getattr(run, "config", None)  # the lists / density scaling a run trained on, as its evaluations
-    swarm = config.swarm_options() if hasattr(config, "swarm_options") else None
-    r = evaluate(
-        policy, run.task, agents, run.comm, run.comm_radius, run.final_episodes, run.eval_seed, arch=arch, swarm=swarm
-    )
+    if hasattr(config, "sim_at"):
+        sim = config.sim_at(agents)
+    else:
+        sim = policy.sim.override(task=run.task, agents=agents, comm=run.comm, comm_radius=run.comm_radius)
+    r = evaluate(policy, sim, run.final_episodes, run.eval_seed, arch=arch)
     row = {k: r[k] for k in ("agents", "success_rate", "mean_length", "dist", "episodes", "seed")}
     return {**row, "covered": r["covered"]} if r.get("covered") is not None else row
 

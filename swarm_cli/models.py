@@ -199,7 +199,9 @@ def check(entries, episodes: int, seed: int) -> int:
     flagged = []
     for e in entries:
         policy, _ = load_policy(e.name)  # by name: the file is checked against the index's sha256
-        result = evaluate(policy, e.task, e.agents, e.comm, e.comm_radius, episodes, seed)
+        result = evaluate(
+            policy, policy.sim.override(agents=e.agents, comm=e.comm, comm_radius=e.comm_radius), episodes, seed
+        )
         now = result["success_rate"]
         drift = 100 * (now - e.success)
         # two independent binomial samples: the standard error of their difference

@@ -100,8 +100,12 @@ def parse(options_type, argv: list[str], prog: str, default=None, description: s
 
 def fail(prog: str, exc: BaseException | str) -> int:
     """One error line for a refused input found after parsing (a missing file, a bad
-    checkpoint); returns the exit status 2."""
-    print(f"{prog}: error: {exc}", file=sys.stderr)
+    checkpoint); returns the exit status 2. A refused setting (taichi_swarm.ConfigError) names
+    its field as the command line spells it."""
+    text, field = str(exc), getattr(exc, "field", None)
+    if field and text.startswith(field):
+        text = f"--{field.replace('_', '-')}{text[len(field) :]}"
+    print(f"{prog}: error: {text}", file=sys.stderr)
     return 2
 
 
@@ -138,6 +142,14 @@ class SettingOptions:
     def __post_init__(self):
         at_least(self.comm_radius, 0, "comm-radius")
 
+    def setting_options(self) -> dict:
+        """The options set, as ``Sim.override`` keywords over the policy's own."""
+        return {
+            k: v
+            for k, v in (("task", self.task), ("comm", self.comm), ("comm_radius", self.comm_radius))
+            if v is not None
+        }
+
 
 @dataclass(kw_only=True)
 class SwarmOptions:
@@ -169,9 +181,8 @@ class SwarmOptions:
         positive(self.sense_radius, "sense-radius")
 
     def swarm_kwargs(self) -> dict:
-        """The options set, as make() keywords over the policy's own. A --landmark-order other than
-        radio sets the rounds to None, which clears the ones the policy trained with."""
-        kwargs = {
+        """The options set, as ``Sim.override`` keywords over the policy's own."""
+        return {
             k: v
             for k, v in (
                 ("neighbours", self.neighbours),
@@ -184,9 +195,6 @@ class SwarmOptions:
             )
             if v is not None
         }
-        if self.landmark_order not in (None, "radio") and self.auction_rounds is None:
-            kwargs.update(auction_rounds=None)  # the trained rounds belong to the radio's lists
-        return kwargs
 
 
 @dataclass(kw_only=True)
@@ -317,6 +325,14 @@ class ImportOptions:
 
     def __post_init__(self):
         at_least(self.comm_radius, 0, "comm-radius")
+
+    def setting_options(self) -> dict:
+        """The options set, as ``Sim.override`` keywords over the policy's own."""
+        return {
+            k: v
+            for k, v in (("task", self.task), ("comm", self.comm), ("comm_radius", self.comm_radius))
+            if v is not None
+        }
 
 
 # ----------------------------------------------------------------------------- deploy commands

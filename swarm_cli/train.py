@@ -191,27 +191,13 @@ def train_main(argv: list[str]) -> int:
     return 0
 
 
-def _eval_settings(opts, payload: dict, agents: int | None = None):
-    """The checkpoint's task setting with the command's --task/--comm/--comm-radius (and
-    --agents) over it (taichi_swarm.TaskSetting)."""
-    from taichi_swarm import TaskSetting
+def run_sim(opts, payload: dict, agents: int | None = None):
+    """The setting the checkpoint records (``taichi_swarm.Sim``), with the options the command
+    sets over it (``Sim.override``: the same checks as training)."""
+    from taichi_swarm.sim import Sim
 
-    return TaskSetting.resolve(
-        payload.get("task"), "this checkpoint", task=opts.task, agents=agents, comm=opts.comm,
-        comm_radius=opts.comm_radius,
-    )  # fmt: skip
-
-
-def swarm_setting(opts, payload: dict) -> dict:
-    """The neighbour lists / density scaling the policy was trained on (its "swarm"
-    record), with the command's --neighbours / --landmark-neighbours / --sense-radius /
-    --scale over them."""
-    from trainer.evaluate import SWARM_KEYS, swarm_options
-
-    saved = payload.get("swarm") or {}
-    if not isinstance(saved, dict) or set(saved) - set(SWARM_KEYS):
-        raise ValueError(f"the checkpoint's swarm setting is not one of make()'s list options: {saved!r}")
-    return swarm_options(**{**saved, **opts.swarm_kwargs()})
+    overrides = {"agents": agents, **opts.setting_options(), **opts.swarm_kwargs()}
+    return Sim.resolve(payload.get("task"), payload.get("swarm"), "this checkpoint", **overrides)
 
 
 SAMPLED_NOTE = "(sampled actions: a diagnostic; the paper's numbers are greedy)"
@@ -228,15 +214,15 @@ def eval_main(argv: list[str]) -> int:
         opts.check_outputs()
         torch.set_num_threads(1)
         policy, payload = load_policy(opts.checkpoint, trust_unsigned=opts.trust_unsigned)
-        s = _eval_settings(opts, payload, opts.agents)
+        s = run_sim(opts, payload, opts.agents)
         agents = s.team_size("this checkpoint")
         from deploy.video import open_recorders
 
         recorder = open_recorders(opts, s.task, opts.episodes, agents, s.comm, s.comm_radius)
         try:
             result = evaluate(
-                policy, s.task, agents, s.comm, s.comm_radius, opts.episodes, opts.seed, arch=opts.arch,
-                recorder=recorder, actions=opts.actions, swarm=swarm_setting(opts, payload), progress=True,
+                policy, s, opts.episodes, opts.seed, arch=opts.arch, recorder=recorder, actions=opts.actions,
+                progress=True,
             )  # fmt: skip
         except BaseException:  # (Ctrl-C too): no recording or video written, none replaced
             if recorder is not None:
@@ -271,12 +257,11 @@ def zero_shot_main(argv: list[str]) -> int:
         sizes = parse_sizes(list(opts.sizes))
         torch.set_num_threads(1)
         policy, payload = load_policy(opts.checkpoint, trust_unsigned=opts.trust_unsigned)
-        s = _eval_settings(opts, payload)
+        s = run_sim(opts, payload)
         rows = []
         for M in sizes:
-            rows.append(evaluate(policy, s.task, M, s.comm, s.comm_radius, opts.episodes, opts.seed,
-                                 arch=opts.arch, actions=opts.actions, swarm=swarm_setting(opts, payload),
-                                 progress=True))  # fmt: skip
+            rows.append(evaluate(policy, s.override(agents=M), opts.episodes, opts.seed, arch=opts.arch,
+                                 actions=opts.actions, progress=True))  # fmt: skip
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     except USER_ERRORS as exc:
         return fail("swarm zero-shot", exc)

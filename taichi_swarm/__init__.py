@@ -1,6 +1,8 @@
 """taichi_swarm: batched multi-agent particle teams in Taichi kernels.
 
     env = taichi_swarm.make("coverage", num_envs=1024, num_agents=3)
+    # or from the setting's one declaration (sim.py), as every layer above passes it
+    env = taichi_swarm.make(taichi_swarm.Sim("coverage", 3, comm="rc"), num_envs=1024)
     obs = env.reset(seed=0)
     obs, reward, done, info = env.step(actions)  # actions: int64 [B, M] in 0..4
 
@@ -20,10 +22,11 @@ import importlib
 # (deploy/net/agent.py) reads taichi_swarm.files and nothing that compiles kernels, and stays
 # small without it
 _NAMES = {
-    **dict.fromkeys(("ARRAYS", "COMMS", "NaNActionsError", "SwarmEnv", "make"), "env"),
+    **dict.fromkeys(("ARRAYS", "NaNActionsError", "SwarmEnv", "make"), "env"),
+    "COMMS": "constants",
     **dict.fromkeys(("ACTION_DIM", "ACTION_MEANINGS", "ACTION_SPACES", "NUM_ACTIONS", "num_actions"), "physics"),
     "init": "runtime",
-    "TaskSetting": "setting",
+    **dict.fromkeys(("ConfigError", "Sim"), "sim"),
     **dict.fromkeys(("TASK_SPECS", "TASKS"), "tasks"),
 }
 
@@ -49,7 +52,8 @@ __all__ = [
     "NaNActionsError",
     "TASKS",
     "TASK_SPECS",
-    "TaskSetting",
+    "ConfigError",
+    "Sim",
     "SwarmEnv",
     "init",
     "make",

@@ -30,13 +30,11 @@ is overwritten by the next ``step``/``reset``: copy what you keep.
 
 from __future__ import annotations
 
-import numbers
 import sys
 
 import numpy as np
 
 from . import assignment, kernels, nearest, neighbours, radio, rng, runtime
-from .constants import COMMS
 from .layout import (
     FLOAT_HEADER,
     H_COMM_RC,
@@ -56,15 +54,11 @@ from .layout import (
     Layout,
     static_team_size,
 )
-from .physics import ACTION_DIM, ACTION_SPACES, CONTACT_MARGIN, CUTOFF_MARGINS, num_actions
+from .physics import ACTION_DIM, CONTACT_MARGIN, CUTOFF_MARGINS, num_actions
+from .sim import FIELDS, INT32_MAX, ConfigError, Sim, check_float, check_int, one_of
 from .tasks import COMMON_PARAMS, TASK_SPECS
 
 ARRAYS = ("torch", "numpy")
-SCALES = (None, "density")
-ASSIGNMENTS = ("exact", "free")
-# landmark lists: the KL nearest; or the one landmark the agents agree on by messages to the
-# teammates they hear alone ("radio": radio.py)
-LANDMARK_ORDERS = ("nearest", "radio")
 DENSITY_TEAM = 10  # scale="density" keeps the agents per unit area of this team size in the 2 x 2 arena
 # Taichi's CPU thread pool costs ~120-250 us per parallel loop; a step's work grows
 # like B * M^2 (contact pairs, assignment). Below this much work one thread is faster
@@ -76,37 +70,11 @@ SERIAL_BELOW_WORK = 32768
 # 0.81-0.84 at 2500-5000, 0.54-0.95 at 10,000; docs/SWARM.md)
 WIDE_CPU_AGENTS = 2048
 
-
-INT32_MAX = 2**31 - 1
-MAX_LIST = 1024  # the widest neighbour or landmark list (K, KL) make() takes
 LARGE_TEAM = 64  # from this team size, say that kernels are compiling (it takes a while)
 _ANNOUNCED_CAPACITIES: set[int] = set()
 
 
 assignment_capacity = assignment.capacity  # the module name is taken by a keyword below
-
-
-def _check_int(name: str, value, minimum: int, maximum: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an integer, got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    if maximum is not None and value > maximum:
-        raise ValueError(f"{name} must be <= {maximum}, got {value}")
-    return int(value)
-
-
-def _check_float(name: str, value, minimum: float) -> float:
-    """A finite real >= minimum that stays finite as the float32 the kernels store."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value):
-        raise ValueError(f"{name} must be a finite number, got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    with np.errstate(over="ignore"):
-        narrowed = np.float32(value)
-    if not np.isfinite(narrowed):
-        raise ValueError(f"{name} must fit a float32 (|x| < 3.4e38), got {value!r}")
-    return float(value)
 
 
 class NaNActionsError(ValueError):
@@ -162,110 +130,52 @@ class SwarmEnv:
 
     def __init__(
         self,
-        task: str,
+        sim: Sim,
         num_envs: int,
-        num_agents: int,
-        comm: str = "uc",
-        comm_radius: float = 1.0,
         arch: str = "cpu",
         seed: int | None = None,
         array: str = "torch",
-        action_space: str = "discrete",
-        neighbours: int | None = None,
-        landmark_neighbours: int | None = None,
-        sense_radius: float | None = None,
-        scale: str | None = None,
-        assignment: str = "exact",
-        landmark_occupancy: bool = False,
-        landmark_order: str = "nearest",
-        auction_rounds: int | None = None,
         agent_parallel: bool | None = None,
         **task_params,
     ):
-        if not isinstance(task, str) or task not in TASK_SPECS:
-            raise ValueError(f"task must be one of {tuple(TASK_SPECS)}, got {task!r}")
-        spec = TASK_SPECS[task]
-        self.task = task
-        self.num_envs = _check_int("num_envs", num_envs, 1)
-        self.num_agents = _check_int("num_agents", num_agents, spec.min_agents)
-        self.num_landmarks = spec.num_landmarks(self.num_agents, listed=landmark_neighbours is not None)
-        if comm not in COMMS:
-            raise ValueError(f"comm must be one of {COMMS}, got {comm!r}")
-        self.comm = comm
-        self.comm_radius = _check_float("comm_radius", comm_radius, 0.0)
-        if array not in ARRAYS:
-            raise ValueError(f"array must be one of {ARRAYS}, got {array!r}")
+        if not isinstance(sim, Sim):
+            raise ConfigError("sim", f"SwarmEnv takes a taichi_swarm.Sim, got {type(sim).__name__} (make() builds one)")
+        spec = TASK_SPECS[sim.task]
+        self.sim = sim
+        self.task = sim.task
+        self.num_envs = check_int("num_envs", num_envs, 1, INT32_MAX)
+        self.num_agents = sim.team_size("the setting")
+        self.comm, self.comm_radius = sim.comm, sim.comm_radius
+        self.neighbours, self.landmark_neighbours, self.sense_radius = (
+            sim.neighbours, sim.landmark_neighbours, sim.sense_radius,
+        )  # fmt: skip
+        self.scale, self.assignment_method = sim.scale, sim.assignment
+        self.landmark_occupancy, self.landmark_order = sim.landmark_occupancy, sim.landmark_order
+        self.auction_rounds = sim.rounds
+        # the bid increment, recorded so equal runs share a key (None: no auction)
+        self.auction_eps = None if self.auction_rounds is None else radio.ROUND_EPS
+        self.num_landmarks = spec.num_landmarks(self.num_agents, listed=sim.landmark_neighbours is not None)
+        one_of("array", array, ARRAYS)
         self.array = array
-        if not isinstance(action_space, str) or action_space not in ACTION_SPACES:
-            raise ValueError(f"action_space must be one of {ACTION_SPACES}, got {action_space!r}")
-        self.action_space = action_space
-        self.continuous = action_space == "continuous"
-        if seed is not None:
-            seed = _check_int("seed", seed, 0)
-        self._seed = seed
+        self.action_space = sim.action_space
+        self.continuous = sim.action_space == "continuous"
+        self._seed = None if seed is None else check_int("seed", seed, 0)
         allowed = {**COMMON_PARAMS, **spec.params}
         unknown = sorted(set(task_params) - set(allowed))
         if unknown:
-            raise ValueError(f"unknown parameter(s) {unknown} for task {task!r}; known: {sorted(allowed)}")
+            raise ConfigError(
+                unknown[0], f"unknown parameter(s) {unknown} for task {sim.task!r}; known: {sorted(allowed)}"
+            )
         params = {**allowed, **task_params}
         self.params = {
-            k: (_check_int(k, v, 1, INT32_MAX) if k == "max_steps" else _check_float(k, v, 0.0))
+            k: (check_int(k, v, 1, INT32_MAX) if k == "max_steps" else check_float(k, v, 0.0))
             for k, v in params.items()
         }
-        self.num_actions = num_actions(action_space)  # discrete actions per agent (0: continuous)
+        self.num_actions = num_actions(sim.action_space)  # discrete actions per agent (0: continuous)
         self.action_dim = ACTION_DIM  # continuous: float32 [B, M, 2]
         self._task_id = spec.task_id
-        self._check_lists(spec, neighbours, landmark_neighbours, sense_radius, scale)
-        if not isinstance(landmark_occupancy, bool):
-            raise ValueError(f"landmark_occupancy must be True or False, got {landmark_occupancy!r}")
-        if landmark_order == "radio" and (
-            self.neighbours is None or self.landmark_neighbours is None or not landmark_occupancy
-        ):
-            raise ValueError(
-                "landmark_order='radio' needs neighbours=K, landmark_neighbours=KL and landmark_occupancy=True: agents "
-                "exchange their auction tables with the teammates on their neighbour lists"
-            )
-        if landmark_occupancy and (self.neighbours is None or self.landmark_neighbours is None):
-            raise ValueError(
-                "landmark_occupancy needs neighbours=K and landmark_neighbours=KL: it is read off the agents' "
-                "cell grid for each listed landmark"
-            )
-        self.landmark_occupancy = landmark_occupancy
-        if not isinstance(landmark_order, str) or landmark_order not in LANDMARK_ORDERS:
-            raise ValueError(f"landmark_order must be one of {LANDMARK_ORDERS}, got {landmark_order!r}")
-        if landmark_order != "nearest" and not landmark_occupancy:
-            raise ValueError(
-                f"landmark_order={landmark_order!r} needs landmark_occupancy=True: a landmark is free when no other "
-                "agent is within success_threshold of it, which the occupancy pass finds"
-            )
-        self.landmark_order = landmark_order
-        if assignment is None:
-            assignment = "exact"
-        if assignment not in ASSIGNMENTS:
-            raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
-        if auction_rounds is not None:
-            if landmark_order != "radio":
-                raise ValueError(
-                    f"auction_rounds is the radio auction's message rounds a step: it needs landmark_order='radio', "
-                    f"got {landmark_order!r}"
-                )
-            auction_rounds = _check_int("auction_rounds", auction_rounds, 1, radio.MAX_ROUNDS)
-        elif landmark_order == "radio":  # the radio always has a budget: message rounds per step
-            auction_rounds = radio.DEFAULT_ROUNDS
-        self.auction_rounds = auction_rounds
-        # the bid increment, recorded so equal runs share a key (None: no auction)
-        self.auction_eps = None if auction_rounds is None else radio.ROUND_EPS
-        if landmark_order == "radio" and assignment != "free":
-            raise ValueError(
-                f"landmark_order='radio' needs assignment 'free', got {assignment!r}: its rewards and "
-                "success come from the threshold matching over the agents' grid"
-            )
-        if assignment == "free" and self.neighbours is None:
-            raise ValueError(
-                f"assignment={assignment!r} needs neighbours=K: it finds each target's nearest agent through the "
-                "agents' cell grid the neighbour lists build"
-            )
-        self.assignment_method = assignment
+        # spawn square half-width: sqrt(M / 10) keeps the agents per unit area of M = 10 in [-1, 1]^2
+        self.arena = (self.num_agents / DENSITY_TEAM) ** 0.5 if sim.scale == "density" else 1.0
         # compile-time M for small teams, else 0; with lists the kernels are the same code for
         # every M (cap 0: no stack arrays sized by M; the dense physics is not compiled)
         self._sm = static_team_size(self.num_agents) if self.neighbours is None else 0
@@ -273,20 +183,21 @@ class SwarmEnv:
         self._lists = (
             (kernels.AGENT_LISTS if self.neighbours is not None else 0)
             | (kernels.LANDMARK_LISTS if self.landmark_neighbours is not None else 0)
-            | (kernels.FREE if assignment == "free" else 0)
-            | (kernels.OCCUPANCY if landmark_occupancy else 0)
-            | (kernels.RADIO if landmark_order == "radio" else 0)
+            | (kernels.FREE if sim.assignment == "free" else 0)
+            | (kernels.OCCUPANCY if sim.landmark_occupancy else 0)
+            | (kernels.RADIO if sim.landmark_order == "radio" else 0)
         )
 
         self.arch = runtime.init(arch)
         if self.arch == "cuda" and array == "numpy":
-            raise ValueError("array='numpy' needs arch='cpu': CUDA buffers are torch tensors")
+            raise ConfigError("array", "array='numpy' needs arch='cpu': CUDA buffers are torch tensors")
         self.device = "cuda" if self.arch == "cuda" else "cpu"
         self._parallel = self.arch == "cuda" or self.num_envs * self.num_agents**2 >= SERIAL_BELOW_WORK
-        if agent_parallel not in (None, True, False):
-            raise ValueError(f"agent_parallel must be None, True or False, got {agent_parallel!r}")
+        one_of("agent_parallel", agent_parallel, (None, True, False))
         if agent_parallel and self.neighbours is None:
-            raise ValueError("agent_parallel needs neighbours (the dense layout's step is all pairs per team)")
+            raise ConfigError(
+                "agent_parallel", "agent_parallel needs neighbours (the dense layout's step is all pairs per team)"
+            )
         self._agent_parallel = self.neighbours is not None and (
             agent_parallel
             if agent_parallel is not None
@@ -304,37 +215,6 @@ class SwarmEnv:
         self._allocate()
         self._write_header()
         self._seeded = False
-
-    def _check_lists(self, spec, neighbours, landmark_neighbours, sense_radius, scale) -> None:
-        # lists take B x M x K slots: bounded before anything is allocated (no policy lists more)
-        self.neighbours = None if neighbours is None else _check_int("neighbours", neighbours, 1, MAX_LIST)
-        if landmark_neighbours is not None:
-            if not spec.landmark_lists:
-                raise ValueError(
-                    f"landmark_neighbours is for tasks with a landmark per agent; {spec.name!r} keeps its "
-                    "landmarks global"
-                )
-            if sense_radius is None:
-                raise ValueError("landmark_neighbours needs sense_radius (how far an agent senses landmarks)")
-            landmark_neighbours = _check_int("landmark_neighbours", landmark_neighbours, 1, MAX_LIST)
-            sense_radius = _check_float("sense_radius", sense_radius, 0.0)
-            if sense_radius == 0.0:  # (as the CLI: a radius of 0 senses nothing)
-                raise ValueError("sense_radius must be > 0, got 0.0")
-        elif sense_radius is not None:
-            raise ValueError("sense_radius is only used with landmark_neighbours")
-        self.landmark_neighbours, self.sense_radius = landmark_neighbours, sense_radius
-        if scale not in SCALES:
-            raise ValueError(f"scale must be one of {SCALES}, got {scale!r}")
-        if scale == "density" and not spec.density_scale:
-            raise ValueError(f"scale='density' is not implemented for task {spec.name!r}")
-        if landmark_neighbours is not None and spec.listed_landmarks is not None and scale != "density":
-            raise ValueError(
-                f"{spec.name}'s listed landmarks are the points of its density-scaled lattice: "
-                "landmark_neighbours needs scale='density'"
-            )
-        self.scale = scale
-        # spawn square half-width: sqrt(M / 10) keeps the agents per unit area of M = 10 in [-1, 1]^2
-        self.arena = (self.num_agents / DENSITY_TEAM) ** 0.5 if scale == "density" else 1.0
 
     def _list_dims(self) -> dict:
         """The layout's named dimensions (layout.DIMS) for the lists this env keeps."""
@@ -483,7 +363,7 @@ class SwarmEnv:
         the ``seed`` given to ``make`` on the first reset.
         """
         if seed is not None:
-            seed = _check_int("seed", seed, 0)
+            seed = check_int("seed", seed, 0)
         if seed is not None or not self._seeded:
             states = rng.seed_states(seed if seed is not None else self._seed, self.num_envs)
             self._put(self._i, self.layout.blocks["rng"].offset, states)
@@ -780,5 +660,31 @@ def _to_numpy(value, name: str) -> np.ndarray:
         raise ValueError(f"{name} must be array-like") from exc
 
 
-# the gym-style entry point: taichi_swarm.make("coverage", 1024, 3) builds a SwarmEnv
-make = SwarmEnv
+def make(
+    task: Sim | str,
+    num_envs: int,
+    num_agents: int | None = None,
+    *,
+    arch: str = "cpu",
+    seed: int | None = None,
+    array: str = "torch",
+    agent_parallel: bool | None = None,
+    **options,
+) -> SwarmEnv:
+    """The gym-style entry point: ``make(sim, num_envs)`` builds a ``SwarmEnv`` for a ``Sim``;
+    ``make("coverage", 1024, 3, comm="rc", ...)`` builds the Sim from the task, the team size and
+    its options first. The other keywords are the task's parameters (max_steps, success_threshold,
+    formation_radius, line_length)."""
+    setting = {k: options.pop(k) for k in list(options) if k in FIELDS}
+    if isinstance(task, Sim):
+        if num_agents is not None or setting:
+            given = ["num_agents"] if num_agents is not None else sorted(setting)
+            raise ConfigError(given[0], f"make(sim, ...) takes the setting from the Sim: {given} belong in it")
+        sim = task
+    else:
+        if "agents" in setting:
+            raise ConfigError("agents", "make() takes the team size as num_agents")
+        if num_agents is None:
+            raise ConfigError("agents", "make() needs num_agents (or a Sim)")
+        sim = Sim(task, num_agents, **setting)
+    return SwarmEnv(sim, num_envs, arch=arch, seed=seed, array=array, agent_parallel=agent_parallel, **options)

@@ -120,13 +120,11 @@ def measure_policy(name: str, B: int, M: int, seconds: float, comm_radius: float
 
     import taichi_swarm
     from trainer.checkpoint import load_policy
-    from trainer.evaluate import swarm_options
     from trainer.model import policy_inputs
 
     torch.set_num_threads(1)
     policy, _ = load_policy(name)
-    swarm = swarm_options(**policy.trained_swarm)
-    env = taichi_swarm.make("coverage", B, M, comm="rc", comm_radius=comm_radius, seed=0, **swarm)
+    env = taichi_swarm.make(policy.sim.override(agents=M, comm="rc", comm_radius=comm_radius), B, seed=0)
     obs = env.reset()
     rng = np.random.default_rng(0)
     for _ in range(3):

@@ -12,7 +12,6 @@ import zipfile
 
 import torch
 
-import taichi_swarm
 from taichi_swarm.files import (  # noqa: F401
     MAX_CHECKPOINT_BYTES,
     InputFileError,
@@ -367,19 +366,32 @@ def load_weights(policy: SwarmPolicy, state_dict: dict) -> None:
     policy.load_state_dict(state_dict)
 
 
+def recorded_sim(payload: dict, what: str = "the checkpoint"):
+    """The ``taichi_swarm.Sim`` a payload records (None: it records no task)."""
+    from taichi_swarm.sim import Sim
+
+    if not (payload.get("task") or {}).get("task"):
+        return None
+    swarm = payload.get("swarm") or {}
+    if not isinstance(swarm, dict):
+        raise CheckpointError(f"{what}'s swarm setting is not a dict: {swarm!r}")
+    return Sim.from_record(payload["task"], swarm, what)
+
+
 def load_policy(
     path: str, device="cpu", *, trust_unsigned: bool = False, expected_sha256: str | None = None
 ) -> tuple[SwarmPolicy, dict]:
     """(policy in eval mode, payload) from a checkpoint file, run directory or zoo name
     (``load``'s checks); ``device`` one this machine has. The policy carries the simulator
-    setting it was trained on (``policy.trained_swarm``, the payload's "swarm"), which
-    ``evaluate`` uses unless told otherwise."""
+    setting it was trained on (``policy.sim``, a ``taichi_swarm.Sim`` from the payload's "task"
+    and "swarm" records; None where it records no task), which ``evaluate`` uses unless told
+    otherwise."""
     _check_arguments(path, trust_unsigned, expected_sha256)
     check_device(device)  # before the file is read: a wrong device is no reason to read 100 MB
     payload = load(path, trust_unsigned=trust_unsigned, expected_sha256=expected_sha256)
     policy = policy_from_payload(payload, device)
     policy.eval()
-    policy.trained_swarm = dict(payload.get("swarm") or {})
+    policy.sim = recorded_sim(payload, path)
     return policy, payload
 
 
@@ -531,8 +543,8 @@ def save_checkpoint(run: rundir.RunDir, state, cfg) -> None:
     payload = {
         "model_config": state.policy.config.to_dict(),
         "model": state.policy.state_dict(),
-        "task": taichi_swarm.TaskSetting(cfg.task, cfg.agents, cfg.comm, cfg.comm_radius).to_dict(),
-        "swarm": cfg.swarm_options(),  # the neighbour lists / density scaling it trained on ({}: dense)
+        "task": cfg.sim.task_record(),
+        "swarm": cfg.sim.swarm_record(),  # the neighbour lists / density scaling it trained on ({}: dense)
         "counters": dict(state.counters),
         "evals": list(state.evals),
         "optimizer": state.optimizer.state_dict(),

@@ -13,8 +13,8 @@ import os
 from dataclasses import dataclass, field
 from typing import Literal
 
-from taichi_swarm import COMMS, NUM_ACTIONS, TASK_SPECS, TASKS, num_actions
-from trainer.evaluate import swarm_options
+from taichi_swarm import NUM_ACTIONS, TASK_SPECS, num_actions
+from taichi_swarm.sim import Sim
 from trainer.model import ENTITY_MODES, MAX_HIDDEN, MAX_ROUNDS, ModelConfig
 
 # Options of experiments that lost, with the value that meant "off": a stored run that set one
@@ -286,17 +286,16 @@ class TrainConfig:
         return cls(preset=preset, ppo=dataclasses.replace(PRESETS[preset], **(ppo or {})), **options)
 
     def validate(self) -> None:
-        if self.task not in TASKS:
-            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
-        if self.comm not in COMMS:
-            raise ValueError(f"comm must be one of {COMMS}, got {self.comm!r}")
+        sim = self.sim  # the setting's own checks (taichi_swarm.Sim)
+        if sim.action_space not in ("discrete", "fine"):
+            raise ValueError(f"action_space must be discrete or fine for a policy, got {sim.action_space!r}")
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
         if self.reward not in ("team", "agent"):
             raise ValueError(f"reward must be 'team' or 'agent', got {self.reward!r}")
         if self.model.entity_mode not in ENTITY_MODES:
             raise ValueError(f"model.entity_mode must be one of {ENTITY_MODES}")
-        for name in ("agents", "updates", "eval_every", "eval_episodes", "checkpoint_every"):
+        for name in ("updates", "eval_every", "eval_episodes", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         smallest = TASK_SPECS[self.task].min_agents
@@ -337,8 +336,6 @@ class TrainConfig:
             raise ValueError(f"transfer_offsets must be small team-size offsets, got {self.transfer_offsets}")
         if len(set(self.transfer_offsets)) != len(self.transfer_offsets):
             raise ValueError(f"transfer_offsets has a repeated offset: {self.transfer_offsets}")
-        if not math.isfinite(self.comm_radius):
-            raise ValueError(f"comm_radius must be finite, got {self.comm_radius}")
         if not 0 <= self.min_updates <= self.updates:
             raise ValueError(f"min_updates must be in [0, updates={self.updates}], got {self.min_updates}")
         if not 0 <= self.message_drop < 1:
@@ -347,14 +344,11 @@ class TrainConfig:
             raise ValueError("drop_per_round draws losses per round: set message_drop > 0 with it")
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
-        if self.comm_radius < 0:
-            raise ValueError(f"comm_radius must be >= 0, got {self.comm_radius}")
         if self.model.landmark_occupancy and not self.landmark_occupancy:
             raise ValueError("model.landmark_occupancy follows landmark_occupancy (the simulator's): set that instead")
         if self.model.num_actions not in (NUM_ACTIONS, num_actions(self.action_space)):
             raise ValueError("model.num_actions follows action_space (the simulator's): set that instead")
         self.ppo.validate()
-        self.swarm_options()
         self.validate_memory()
 
     def validate_memory(self) -> None:
@@ -376,12 +370,18 @@ class TrainConfig:
                 f"this machine has {have / 2**30:.1f} GiB: lower ppo.num_steps or ppo.num_envs"
             )
 
-    def swarm_options(self) -> dict:
-        """The simulator's neighbour-list, density and action-set options that are set (``make()`` keywords)."""
-        return swarm_options(
-            self.neighbours, self.landmark_neighbours, self.sense_radius, self.scale, self.assignment,
-            self.landmark_occupancy, self.action_space, self.landmark_order, self.auction_rounds,
+    @property
+    def sim(self) -> Sim:
+        """The simulated setting this run trains in, as every layer takes it (checked there)."""
+        return Sim(
+            self.task, self.agents, self.comm, self.comm_radius, self.action_space, self.neighbours,
+            self.landmark_neighbours, self.sense_radius, self.landmark_occupancy, self.landmark_order,
+            self.auction_rounds, self.scale, self.assignment or "exact",
         )  # fmt: skip
+
+    def sim_at(self, agents: int) -> Sim:
+        """``sim`` at another team size (team_sizes, transfer evaluations)."""
+        return dataclasses.replace(self.sim, agents=agents)
 
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""

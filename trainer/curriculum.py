@@ -36,12 +36,19 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
     ``episodes`` fresh greedy episodes from ``seed``, in the setting the policy was trained
     in (its own task, team size, comm and radius, whatever this command says); kept in
     ``stage_dir/fresh-eval.json`` and reused while policy, setting, episodes and seed match."""
-    from taichi_swarm import TaskSetting
-
-    policy, payload = checkpoint.load_policy(os.path.join(stage_dir, POLICY))
-    setting = TaskSetting.from_dict(payload.get("task"), f"{stage_dir}/{POLICY}")
-    swarm = cfg.swarm_options()  # the neighbour lists / density scaling the run trained on
-    key = {"update": update, "episodes": episodes, "seed": seed, "arch": cfg.arch, **setting.to_dict(), **swarm}
+    policy, _ = checkpoint.load_policy(os.path.join(stage_dir, POLICY))
+    sim = policy.sim
+    if sim is None:
+        raise checkpoint.CheckpointError(f"{stage_dir}/{POLICY} does not say its task")
+    sim.team_size(f"{stage_dir}/{POLICY}")
+    key = {
+        "update": update,
+        "episodes": episodes,
+        "seed": seed,
+        "arch": cfg.arch,
+        **sim.task_record(),
+        **sim.swarm_record(),
+    }
     path = os.path.join(stage_dir, FRESH_EVAL)
     if os.path.exists(path):
         with open(path) as f:
@@ -50,11 +57,7 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
             return saved
     device = resolve_device(cfg.device)
     policy.to(device)
-    agents = setting.team_size(f"{stage_dir}/{POLICY}")
-    result = evaluate(
-        policy, setting.task, agents, setting.comm, setting.comm_radius, episodes, seed, arch=cfg.arch, device=device,
-        swarm=swarm,
-    )  # fmt: skip
+    result = evaluate(policy, sim, episodes, seed, arch=cfg.arch, device=device)
     fresh = {**key, **{k: result[k] for k in ("success_rate", "mean_length", "dist")}}
     checkpoint.atomic_write_json(path, fresh)
     return fresh

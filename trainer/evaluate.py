@@ -2,100 +2,31 @@
 
 from __future__ import annotations
 
-import numbers
-
 import torch
 
 import taichi_swarm
-from taichi_swarm.env import ASSIGNMENTS, LANDMARK_ORDERS
 from taichi_swarm.metrics import format_results, result_header, run_first_episodes
+from taichi_swarm.sim import ConfigError, Sim
 from trainer.model import lists_to_dense, neighbour_slots, policy_inputs
 
 ACTION_MODES = ("greedy", "sampled")
-SWARM_KEYS = (
-    "neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_occupancy", "action_space",
-    "landmark_order", "auction_rounds",
-)  # fmt: skip
 # the simulator's discrete action spaces, those a policy (a head of logits) can be trained on
 ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swarm.num_actions(space))
-
-
-def swarm_options(
-    neighbours=None, landmark_neighbours=None, sense_radius=None, scale=None, assignment=None, landmark_occupancy=None,
-    action_space=None, landmark_order=None, auction_rounds=None,
-) -> dict:  # fmt: skip
-    """The simulator's neighbour-list, scaling, assignment, occupancy, landmark-order, radio-round
-    and action-set options that are set, as ``make()`` keywords (none set: the dense layout, the
-    paper's geometry, the exact assignment, the paper's 5 actions)."""
-    given = dict(
-        neighbours=neighbours, landmark_neighbours=landmark_neighbours, sense_radius=sense_radius, scale=scale,
-        assignment=assignment, landmark_occupancy=landmark_occupancy, action_space=action_space,
-        landmark_order=landmark_order, auction_rounds=auction_rounds,
-    )  # fmt: skip
-    for key in ("neighbours", "landmark_neighbours"):
-        v = given[key]
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-            raise ValueError(f"{key} must be an integer >= 1, got {v!r}")
-    r = given["sense_radius"]
-    if r is not None and not (isinstance(r, int | float) and 0 < r < float("inf")):
-        raise ValueError(f"sense_radius must be a positive finite number, got {r!r}")
-    if scale is not None and scale != "density":
-        raise ValueError(f"scale must be 'density' (or unset: the paper's geometry), got {scale!r}")
-    if assignment is not None and assignment not in ASSIGNMENTS:
-        raise ValueError(f"assignment must be one of {ASSIGNMENTS}, got {assignment!r}")
-    if assignment == "free" and neighbours is None:
-        raise ValueError(f"assignment {assignment!r} needs neighbour lists: set neighbours (--neighbours K)")
-    if assignment == "exact":  # the default: recorded as unset, so the exact runs' records stay as they were
-        given["assignment"] = None
-    if landmark_occupancy not in (None, False, True):
-        raise ValueError(f"landmark_occupancy must be true or false, got {landmark_occupancy!r}")
-    if landmark_occupancy and (neighbours is None or landmark_neighbours is None):
-        raise ValueError(
-            "landmark_occupancy needs neighbour and landmark lists: set neighbours and landmark_neighbours"
-        )
-    if not landmark_occupancy:  # off: recorded as unset, like the exact assignment
-        given["landmark_occupancy"] = None
-    if landmark_order is not None and landmark_order not in LANDMARK_ORDERS:
-        raise ValueError(f"landmark_order must be one of {LANDMARK_ORDERS}, got {landmark_order!r}")
-    if landmark_order not in (None, "nearest") and not landmark_occupancy:
-        raise ValueError(
-            f"landmark_order {landmark_order!r} needs landmark occupancy: a policy trained with landmark_occupancy "
-            "(--landmark-occupancy)"
-        )
-    if auction_rounds is not None:
-        if isinstance(auction_rounds, bool) or not isinstance(auction_rounds, numbers.Integral) or auction_rounds < 1:
-            raise ValueError(f"auction_rounds must be an integer >= 1, got {auction_rounds!r}")
-        if landmark_order != "radio":
-            raise ValueError(
-                f"auction_rounds is the radio auction's message rounds a step: it needs landmark_order 'radio' "
-                f"(--landmark-order), got {landmark_order!r}"
-            )
-    if landmark_order == "nearest":  # the default: recorded as unset
-        given["landmark_order"] = None
-    if action_space is not None and action_space not in ACTION_SETS:
-        raise ValueError(f"action_space must be one of {ACTION_SETS}, got {action_space!r}")
-    if action_space == "discrete":  # the paper's: recorded as unset
-        given["action_space"] = None
-    return {k: v for k, v in given.items() if v is not None}
 
 
 @torch.no_grad()
 def evaluate(
     policy,
-    task: str,
-    agents: int,
-    comm: str = "uc",
-    comm_radius: float = 1.0,
+    sim: Sim | None = None,
     episodes: int = 100,
     seed: int = 777,
     arch: str = "cpu",
     device="cpu",
     recorder=None,
     actions: str = "greedy",
-    swarm: dict | None = None,
     progress: bool = False,
 ) -> dict:
-    """Run ``episodes`` episodes in parallel, one per environment, with argmax actions
+    """Run ``episodes`` episodes of ``sim`` in parallel, one per environment, with argmax actions
     (``actions="sampled"``: drawn from the policy's distribution instead, from a generator
     seeded with ``seed``; a diagnostic, the paper's numbers are greedy).
 
@@ -105,33 +36,34 @@ def evaluate(
     coverage), covered (the mean fraction of landmarks covered at the end, where the
     simulator reports it) and per-episode arrays.
 
-    ``swarm``: ``swarm_options(...)``, the simulator's neighbour lists and density
-    scaling; None: the setting the policy was trained on (``load_policy`` records it), else
-    the dense layout; {}: the dense layout. ``progress``: a progress bar of the steps on stderr
-    (the first use of a setting also compiles the simulator's kernels, which can take minutes).
+    ``sim``: the setting (None: the one the policy was trained on, ``policy.sim``, which
+    ``load_policy`` records; ``policy.sim.override(agents=1000)`` runs it at another size).
+    ``progress``: a progress bar of the steps on stderr (the first use of a setting also
+    compiles the simulator's kernels, which can take minutes).
     """
     if actions not in ACTION_MODES:
         raise ValueError(f"actions must be one of {ACTION_MODES}, got {actions!r}")
-    if swarm is None:
-        swarm = getattr(policy, "trained_swarm", None)
-    swarm = swarm_options(**(swarm or {}))
+    sim = sim if sim is not None else getattr(policy, "sim", None)
+    if not isinstance(sim, Sim):
+        raise ConfigError("sim", f"evaluate() needs a taichi_swarm.Sim (load_policy records the policy's), got {sim!r}")
+    if sim.action_space not in ACTION_SETS:
+        raise ConfigError(
+            "action_space", f"action_space must be one of {ACTION_SETS} for a policy, got {sim.action_space!r}"
+        )
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small batched forwards: more threads stall on a busy 2-core machine
     try:
-        return _evaluate(
-            policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm, progress
-        )
+        return _evaluate(policy, sim, episodes, seed, arch, device, recorder, actions, progress)
     finally:
         torch.set_num_threads(threads)
 
 
-def _evaluate(
-    policy, task, agents, comm, comm_radius, episodes, seed, arch, device, recorder, actions, swarm, progress
-) -> dict:
+def _evaluate(policy, sim, episodes, seed, arch, device, recorder, actions, progress) -> dict:
     from tqdm import tqdm
 
-    env = taichi_swarm.make(task, episodes, agents, comm=comm, comm_radius=comm_radius, arch=arch, seed=seed, **swarm)
-    desc = f"{task} M={agents} {comm}, {episodes} episodes (compiling on first use)"
+    env = taichi_swarm.make(sim, episodes, arch=arch, seed=seed)
+    task, agents = sim.task, sim.agents
+    desc = f"{task} M={agents} {sim.comm}, {episodes} episodes (compiling on first use)"
     # (disable=None: tqdm draws only on a terminal, so a log file gets no bar)
     bar = tqdm(total=env.params["max_steps"], desc=desc, unit="step", leave=False, disable=None if progress else True)
     fused = policy.fused_weights()  # computed once: the weights do not change here
@@ -166,12 +98,12 @@ def _evaluate(
         tally = run_first_episodes(env, decide, recorder)
     finally:
         bar.close()
-    header = result_header(task, agents, comm, comm_radius, episodes, seed)
+    header = result_header(task, agents, sim.comm, sim.comm_radius, episodes, seed)
     on_air = {}
     if radio:
         messages, nbytes = (sum(x) / len(radio) for x in zip(*radio, strict=True))
         on_air = {"messages_per_agent_step": messages, "bytes_per_agent_step": nbytes}
-    return {**header, **swarm, "actions": actions, **tally.summary(task), **on_air}
+    return {**header, **sim.swarm_record(), "actions": actions, **tally.summary(task), **on_air}
 
 
 def format_table(rows: list[dict]) -> str:
@@ -213,4 +145,4 @@ def parse_sizes(spec: list[str]) -> list[int]:
     return list(dict.fromkeys(sizes))
 
 
-__all__ = ["ACTION_MODES", "ACTION_SETS", "SWARM_KEYS", "evaluate", "format_table", "parse_sizes", "swarm_options"]
+__all__ = ["ACTION_MODES", "ACTION_SETS", "evaluate", "format_table", "parse_sizes"]

@@ -24,7 +24,7 @@ import os
 
 import torch
 
-from taichi_swarm import TaskSetting
+from taichi_swarm import Sim
 from taichi_swarm.files import MAX_CHECKPOINT_BYTES, InputFileError, check_input
 from trainer.checkpoint import CheckpointError, save
 from trainer.model import SELF_DIM, ModelConfig, SwarmPolicy
@@ -124,7 +124,7 @@ def import_published(path: str, task: str | None = None, comm: str = "uc", comm_
     return {
         "model_config": config.to_dict(),
         "model": state,
-        "task": TaskSetting(task, len(models), comm, comm_radius).to_dict(),
+        "task": Sim(task, len(models), comm, comm_radius).task_record(),
         "counters": {"update": 0, "env_steps": 0, "wall_time": 0.0},
         "evals": [],
         "source": {"published": os.path.abspath(path)},

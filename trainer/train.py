@@ -116,16 +116,13 @@ def evaluate_during_training(policy, cfg: TrainConfig, update: int, device) -> d
     """Greedy S%, T, DIST at the training size; S% at the transfer sizes (``transfer``)."""
     policy.eval()
     seed = EVAL_SEED_BASE + update
-    common = dict(comm=cfg.comm, comm_radius=cfg.comm_radius, seed=seed, arch=cfg.arch, device=device)
-    common["swarm"] = cfg.swarm_options()
-    result = evaluate(policy, cfg.task, cfg.agents, episodes=cfg.eval_episodes, **common)
+    common = dict(episodes=cfg.eval_episodes, seed=seed, arch=cfg.arch, device=device)
+    result = evaluate(policy, cfg.sim, **common)
     out = {k: result[k] for k in ("success_rate", "mean_length", "dist")}
     out["update"] = update
     sizes = transfer_sizes(cfg)
     if sizes:
-        out["transfer"] = {
-            str(M): evaluate(policy, cfg.task, M, episodes=cfg.eval_episodes, **common)["success_rate"] for M in sizes
-        }
+        out["transfer"] = {str(M): evaluate(policy, cfg.sim_at(M), **common)["success_rate"] for M in sizes}
     return out
 
 
@@ -168,15 +165,7 @@ def build_state(cfg: TrainConfig, payload: dict | None, device: str) -> Training
     E = p.num_envs // len(sizes)  # validate() checks that the sizes share num_envs evenly
     groups = []
     for size in sizes:
-        env = taichi_swarm.make(
-            cfg.task,
-            E,
-            size,
-            comm=cfg.comm,
-            comm_radius=cfg.comm_radius,
-            arch=cfg.arch,
-            **cfg.swarm_options(),
-        )
+        env = taichi_swarm.make(cfg.sim_at(size), E, arch=cfg.arch)
         # one running return per agent slot when each agent is rewarded on its own terms
         scaler = RewardScaler(
             scaler_slots(cfg, E, size), p.gamma, p.reward_clip, p.reward_scale, p.reset_return, device=device

@@ -434,12 +434,13 @@ def test_executor_runs_without_torch(emp, tmp_path):
 def test_execute_equals_swarm_eval(emp):
     """Whole loop: decentralised ONNX agents give the same episodes as `swarm eval` (same seed)."""
     from deploy.executor import resolve_settings, run_episodes
+    from taichi_swarm import Sim
     from trainer.evaluate import evaluate
 
     policy, directory = emp
     model = ExportedModel(directory)
     got = run_episodes(model, resolve_settings(model, "coverage", 3, "rc", 0.6, episodes=4, seed=7))
-    want = evaluate(policy, "coverage", 3, "rc", 0.6, episodes=4, seed=7)
+    want = evaluate(policy, Sim("coverage", 3, "rc", 0.6), episodes=4, seed=7)
     assert got["per_episode"]["success"] == want["per_episode"]["success"]
     assert got["per_episode"]["length"] == want["per_episode"]["length"]
     np.testing.assert_allclose(got["per_episode"]["dist"], want["per_episode"]["dist"], atol=1e-4)

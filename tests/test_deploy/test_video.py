@@ -52,13 +52,14 @@ def test_record_and_video_come_from_one_trajectory_record(tmp_path, capsys):
 
     from deploy.trajectory import Trajectory, TrajectoryRecorder
     from deploy.video import frames
+    from taichi_swarm import Sim
     from trainer.evaluate import evaluate
     from trainer.model import ModelConfig, SwarmPolicy
 
     torch.manual_seed(0)
     policy = SwarmPolicy(ModelConfig(hidden=16, rounds=1)).eval()
     rec = TrajectoryRecorder("coverage", 5, 3, 3)
-    evaluate(policy, "coverage", 3, episodes=5, seed=3, recorder=rec)
+    evaluate(policy, Sim("coverage", 3), episodes=5, seed=3, recorder=rec)
     live = rec.trajectory()
     path, gif = str(tmp_path / "r.npz"), str(tmp_path / "r.gif")
     live.save(path)

@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from taichi_swarm import Sim
 from trainer.evaluate import evaluate
 
 
@@ -21,7 +22,7 @@ class FixedPolicy:
 
 
 def run(policy, actions, seed=5):
-    return evaluate(policy, "coverage", 3, episodes=16, seed=seed, actions=actions)
+    return evaluate(policy, Sim("coverage", 3), episodes=16, seed=seed, actions=actions)
 
 
 def test_sampled_equals_greedy_when_the_policy_is_certain():

@@ -9,9 +9,11 @@ import os
 import pytest
 import torch
 
+from taichi_swarm import Sim
+from taichi_swarm.sim import ConfigError
 from trainer import checkpoint
 from trainer.config import PRESETS, TrainConfig
-from trainer.evaluate import evaluate, swarm_options
+from trainer.evaluate import evaluate
 from trainer.model import ModelConfig, SwarmPolicy, policy_inputs
 from trainer.train import FINE_START_GAP, build_state, grow_actions, train
 
@@ -62,7 +64,8 @@ def test_a_fine_run_records_its_action_set_and_everything_downstream_takes_it(tm
     policy, payload = checkpoint.load_policy(os.path.join(cfg.run_dir, "policy.pt"))
     assert policy.config.num_actions == 9 and payload["swarm"] == {"action_space": "fine"}
     assert json.load(open(os.path.join(cfg.run_dir, "config.json")))["action_space"] == "fine"
-    result = evaluate(policy, "formation", 3, episodes=3, swarm=payload["swarm"])  # a 5-action env refuses 5..8
+    assert policy.sim.action_space == "fine"
+    result = evaluate(policy, episodes=3)  # its own setting: a 5-action env would refuse 5..8
     assert result["action_space"] == "fine"
 
     from deploy.executor import ExecuteSettings, ExportedModel, run_episodes
@@ -74,14 +77,15 @@ def test_a_fine_run_records_its_action_set_and_everything_downstream_takes_it(tm
     assert manifest["num_actions"] == 9 and len(manifest["action_meanings"]) == 9
     assert manifest["contract"]["swarm"] == {"action_space": "fine"}
     model = ExportedModel(out)
-    s = ExecuteSettings(task="formation", agents=3, episodes=3, seed=4, swarm={"action_space": "fine"})
+    s = ExecuteSettings(Sim("formation", 3, action_space="fine"), episodes=3, seed=4)
     assert 0 <= run_episodes(model, s)["success_rate"] <= 1
 
 
 def test_fine_runs_refuse_what_they_cannot_take(tmp_path):
-    with pytest.raises(ValueError, match="action_space must be one of"):
-        swarm_options(action_space="continuous")
-    assert swarm_options(action_space="discrete") == {}  # the paper's: recorded as unset
+    with pytest.raises(ConfigError) as refused:
+        evaluate(None, Sim("formation", 3, action_space="continuous"))
+    assert refused.value.field == "action_space"
+    assert Sim("formation", 3, action_space="discrete").swarm_record() == {}  # the paper's: recorded as unset
     with pytest.raises(ValueError, match="num_actions must be 5 or 9"):
         ModelConfig(num_actions=7)
     with pytest.raises(ValueError, match="model.num_actions follows action_space"):

@@ -265,7 +265,7 @@ def test_a_committed_policy_scores_on_full_lists_what_it_scores_dense(monkeypatc
 
     payload = checkpoint.load("coverage-uc-m3")
     policy = checkpoint.policy_from_payload(payload).eval()
-    common = dict(task="coverage", agents=M, comm=comm, comm_radius=0.8, episodes=12, seed=4321)
+    common = dict(sim=taichi_swarm.Sim("coverage", M, comm, 0.8), episodes=12, seed=4321)
     dense = evaluate.evaluate(policy, **common)
     make = taichi_swarm.make
     monkeypatch.setattr(taichi_swarm, "make", lambda *a, **k: ListsFromAdj(make(*a, **k), M + 1))
@@ -278,12 +278,12 @@ def test_a_committed_policy_scores_on_full_lists_what_it_scores_dense(monkeypatc
 @pytest.mark.parametrize("comm", ["uc", "rc"])
 def test_the_zoo_policy_scores_on_the_simulators_full_lists_what_it_scores_dense(comm):
     """make(..., neighbours=M - 1): the simulator's own lists, everyone listed."""
+    from taichi_swarm import Sim
     from trainer import checkpoint, evaluate
 
     policy = checkpoint.policy_from_payload(checkpoint.load("coverage-rc-m5")).eval()
-    common = dict(task="coverage", agents=5, comm=comm, comm_radius=0.8, episodes=16, seed=777)
-    dense = evaluate.evaluate(policy, **common)
-    lists = evaluate.evaluate(policy, **common, swarm={"neighbours": 4})
+    dense = evaluate.evaluate(policy, Sim("coverage", 5, comm, 0.8), episodes=16, seed=777)
+    lists = evaluate.evaluate(policy, Sim("coverage", 5, comm, 0.8, neighbours=4), episodes=16, seed=777)
     assert lists["neighbours"] == 4 and "neighbours" not in dense
     assert lists["per_episode"] == dense["per_episode"]
     assert lists["success_rate"] > 0.5

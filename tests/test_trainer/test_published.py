@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from swarm_cli.main import main as swarm
+from taichi_swarm import Sim
 from trainer.checkpoint import CheckpointError, load_policy
 from trainer.evaluate import evaluate
 from trainer.model import ModelConfig, SwarmPolicy
@@ -97,7 +98,7 @@ def test_published_coverage_m3_succeeds():
     config, state = ModelConfig(**payload["model_config"]), payload["model"]
     policy = SwarmPolicy(config).eval()
     policy.load_state_dict(state)
-    result = evaluate(policy, "coverage", 3, episodes=500, seed=777)
+    result = evaluate(policy, Sim("coverage", 3), episodes=500, seed=777)
     assert result["success_rate"] >= 0.95
 
 
@@ -109,5 +110,5 @@ def test_published_coverage_m5_zero_shot_row(M, readme):
     payload = import_published(os.path.join(PUBLISHED, "ss", "na5_uc.pt"))
     policy = SwarmPolicy(ModelConfig(**payload["model_config"])).eval()
     policy.load_state_dict(payload["model"])
-    result = evaluate(policy, "coverage", M, episodes=500, seed=2024 + M)
+    result = evaluate(policy, Sim("coverage", M), episodes=500, seed=2024 + M)
     assert abs(result["success_rate"] - readme) <= 0.04

@@ -90,12 +90,13 @@ def test_models_names_the_entry_to_use_for_a_team_size(capsys):
 
 def test_a_large_team_policy_evaluates_in_its_own_setting_as_loaded():
     """README's Python use: load_policy(NAME) then evaluate(...) runs a large-team policy on the
-    lists it was trained on, with no setting passed; {} asks for the dense layout it cannot take."""
+    lists it was trained on, with no setting passed; the dense layout is one it cannot take."""
+    from taichi_swarm import Sim
     from trainer.evaluate import evaluate
 
     policy, payload = load_policy("coverage-rc-m100-radio")
-    assert policy.trained_swarm == payload["swarm"] and payload["swarm"]["auction_rounds"] == 8
-    out = evaluate(policy, "coverage", 12, "rc", 1.0, episodes=2, seed=777)
-    assert 0 <= out["success_rate"] <= 1
+    assert policy.sim.swarm_record() == payload["swarm"] and policy.sim.auction_rounds == 8
+    out = evaluate(policy, policy.sim.override(agents=12), episodes=2, seed=777)
+    assert 0 <= out["success_rate"] <= 1 and out["agents"] == 12
     with pytest.raises(ValueError, match="entities"):
-        evaluate(policy, "coverage", 12, "rc", 1.0, episodes=2, seed=777, swarm={})
+        evaluate(policy, Sim("coverage", 12, "rc", 1.0), episodes=2, seed=777)
