@@ -292,28 +292,23 @@ LATER_MODEL_FIELDS = {
 }
 
 
-def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:
-    """The graph in ``data`` takes and gives what the manifest says, every static dimension the
-    one the manifest implies, and (where it carries them) was exported with the manifest's
-    model config and task."""
-    import onnx
-
-    try:
-        model = onnx.load_from_string(data)
-    except Exception as exc:  # noqa: BLE001 - random bytes, truncated protobuf
-        raise ManifestError(f"{where} is not a readable ONNX model ({type(exc).__name__})") from None
+def check_onnx(manifest: dict, name: str, session, where: str) -> None:
+    """The graph of ``session`` (an onnxruntime InferenceSession of the piece: read with the
+    runtime the agents run, not the ``onnx`` package, which would cost an agent process 12 MB)
+    takes and gives what the manifest says, every static dimension the one the manifest
+    implies, and (where it carries them) was exported with the manifest's model config and task."""
     entry = manifest["files"][name]
-    inputs = [i.name for i in model.graph.input]
-    outputs = [o.name for o in model.graph.output]
+    inputs = [i.name for i in session.get_inputs()]
+    outputs = [o.name for o in session.get_outputs()]
     if inputs != entry["inputs"] or outputs != entry["outputs"]:
         raise ManifestError(
             f"{where} takes {inputs} and gives {outputs}; the manifest lists {entry['inputs']} -> {entry['outputs']}"
         )
     want = expected_shapes(manifest)
-    for value in list(model.graph.input) + list(model.graph.output):
-        if value.name not in want or not value.type.tensor_type.HasField("shape"):
+    for value in list(session.get_inputs()) + list(session.get_outputs()):
+        if value.name not in want or value.shape is None:
             continue
-        dims = [d.dim_value if d.HasField("dim_value") else None for d in value.type.tensor_type.shape.dim]
+        dims = [d if isinstance(d, int) else None for d in value.shape]  # (a named or unknown dimension: None)
         shape = want[value.name]
         if len(dims) != len(shape) or any(d != s for d, s in zip(dims, shape, strict=True) if None not in (d, s)):
             shown, implied = (["?" if d is None else d for d in x] for x in (dims, shape))
@@ -321,7 +316,7 @@ def check_onnx(manifest: dict, name: str, data: bytes, where: str) -> None:
                 f"{where}: {value.name} has shape {shown}, the manifest implies {implied} "
                 f"(hidden {manifest['hidden']}, num_actions {manifest['num_actions']})"
             )
-    props = {p.key: p.value for p in model.metadata_props}
+    props = dict(session.get_modelmeta().custom_metadata_map)
     for key, field in ((META_MODEL, "model_config"), (META_TASK, "task")):
         if key not in props:  # (an export from before the metadata: its shapes are all there is)
             continue

@@ -54,6 +54,7 @@ class ExportedModel:
         self.edge_position: str = edge_position(manifest)
         self.task: dict = manifest["task"]
         self.models: dict[str, bytes] = {}
+        self.sessions: dict = {}  # what the pieces run, on one thread
         files = {name: os.path.join(directory, entry["file"]) for name, entry in manifest["files"].items()}
         missing = [f for f in files.values() if not os.path.exists(f)]
         if missing:
@@ -70,10 +71,22 @@ class ExportedModel:
                     "was changed after export; export again"
                 )
             try:
-                check_onnx(manifest, name, data, file)
+                session = new_session(data)
+            except Exception as exc:  # noqa: BLE001 - random bytes, truncated protobuf
+                raise DeployError(f"{file} is not a readable ONNX model ({type(exc).__name__})") from None
+            try:
+                check_onnx(manifest, name, session, file)
             except ManifestError as exc:
                 raise DeployError(str(exc)) from None
             self.models[name] = data
+            if name in self.pieces():  # kept for Pieces (one thread); the others were checked only
+                self.sessions[name] = session
+            del session
+
+    def pieces(self) -> tuple[str, ...]:
+        """The ONNX pieces this network runs: encode, a round for each round before the last, then
+        the last round with the heads (no rounds: the heads alone)."""
+        return ("encode", *(("round",) if self.rounds > 1 else ()), "round_heads" if self.rounds >= 1 else "heads")
 
     def check_landmarks(self, task: str, num_landmarks: int) -> None:
         """Raise DeployError if this network cannot take ``num_landmarks`` landmark offsets."""
@@ -87,6 +100,10 @@ class ExportedModel:
                 f"this model holds at most {self.manifest['max_landmarks']} landmarks "
                 f"(entity_mode 'padded'); task {task!r} has {num_landmarks}"
             )
+
+
+def new_session(data: bytes, threads: int = 1) -> ort.InferenceSession:
+    return ort.InferenceSession(data, session_options(threads), providers=["CPUExecutionProvider"])
 
 
 def session_options(threads: int = 1) -> ort.SessionOptions:
@@ -108,10 +125,9 @@ class Pieces:
     def __init__(self, model: ExportedModel, threads: int = 1):
         self.rounds = model.rounds
         self.relative = model.edge_position == "relative"
-        opts = session_options(threads)
 
         def session(name):
-            return ort.InferenceSession(model.models[name], opts, providers=["CPUExecutionProvider"])
+            return model.sessions[name] if threads == 1 else new_session(model.models[name], threads)
 
         self._encode = session("encode")
         self._round = session("round") if self.rounds > 1 else None

@@ -150,8 +150,10 @@ def test_one_session_per_piece_for_every_agent(emp, monkeypatch):
 
     monkeypatch.setattr(onnxruntime, "InferenceSession", counting)
     _, directory = emp
-    Executor(ExportedModel(directory), num_envs=50, num_agents=10)
-    assert len(opened) == 3  # encode, round, round_heads (K = 3)
+    model = ExportedModel(directory)  # every piece read by the runtime and checked (heads too)
+    assert len(opened) == 4 and sorted(model.sessions) == ["encode", "round", "round_heads"]  # K = 3
+    Executor(model, num_envs=50, num_agents=10)
+    assert len(opened) == 4  # the executor runs the model's sessions: none more
 
 
 def test_all_messages_dropped_equals_hearing_only_itself(emp):
