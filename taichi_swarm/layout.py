@@ -132,6 +132,8 @@ BLOCKS = (
     BlockSpec("radio_next_holder", "i32", ("RM", "KL")),
     BlockSpec("radio_count", "i32", ("RM",)),
     BlockSpec("radio_won", "i32", ("RM",)),
+    # whether an agent's table changed since its teammates last merged it (radio.rounds)
+    BlockSpec("radio_changed", "i32", ("RM",)),
     BlockSpec("in_range", "i32", ("N",)),  # how many agents each agent hears
     BlockSpec("dropped", "i32"),  # heard but cut from the lists (more than K), summed over agents
     BlockSpec("grid_start", "i32", ("G1",)),  # agents' cell grid: bucket g holds items[start[g]:start[g+1]]

@@ -23,6 +23,11 @@ A step (``rebuild`` per agent, then ``rounds``):
     c. outbid: if its landmark's entry now names another holder, it holds nothing (and bids in
        the next round); an entry naming it for another landmark (a stale claim heard back) it
        releases.
+    Within a step a table only grows in the order merging takes the max by (bids raise a price,
+    a release raises the epoch, a merge takes the greater entry), so a teammate's table that has
+    not changed since the round before is already within the agent's: merging it again changes
+    nothing and is skipped (``radio_changed``). The results are those of merging every table
+    every round, bit for bit, and the messages counted are still every heard table every round.
  3. The observation (kernels.agent_landmarks): a holder lists its landmark alone, read free; an
     agent holding nothing lists the landmarks its own table says another agent holds last,
     reading 0.
@@ -159,10 +164,10 @@ def _release(f: ti.template(), ib: ti.template(), T: ti.math.ivec4, s: ti.i32):
 
 
 @ti.func
-def _settle(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, T: ti.math.ivec4, n: ti.i32):
+def _settle(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, T: ti.math.ivec4, n: ti.i32) -> ti.i32:
     """2c: agent i outbid on its landmark holds nothing; an entry naming it for a landmark it does
     not hold (its own old claim, heard back from a teammate) it releases, else that landmark would
-    read held by nobody that holds it."""
+    read held by nobody that holds it. Returns whether it released any."""
     W = blocks.radio_won.env(ib, b) + i
     won = ib[W]
     if won >= 0:
@@ -170,9 +175,12 @@ def _settle(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, T: ti.mat
         if s < 0 or ib[T[3] + s] != i:
             ib[W] = -1
             won = -1
+    released = 0
     for s in range(n):
         if ib[T[3] + s] == i and ib[T[0] + s] != won:
             _release(f, ib, T, s)
+            released = 1
+    return released
 
 
 @ti.func
@@ -228,6 +236,7 @@ def _bid(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
             f[T[2] + s] = f[T[2] + s] + (w[1] - w[0]) + f[P_BID_EPS]
             ib[T[3] + s] = i
             ib[W] = ib[T[0] + s]
+            ib[blocks.radio_changed.env(ib, b) + i] = 1
 
 
 @ti.func
@@ -244,33 +253,40 @@ def _merge(
     nbr = blocks.term_nbr if ti.static(term) else blocks.nbr
     mask = blocks.term_nbr_mask if ti.static(term) else blocks.nbr_mask
     row, row_mask = nbr.row(ib, nbr.env(ib, b), i), mask.row(ib, mask.env(ib, b), i)
-    COUNT = blocks.radio_count.env(ib, b)
+    COUNT, CHANGED = blocks.radio_count.env(ib, b), blocks.radio_changed.env(ib, b)
     heard = ti.math.ivec2(0, 0)
     for k in range(ib[H_K]):
         if u8[row_mask + k] != 0:
             j = ib[row + k]
             J, m = _rows(ib, b, j, False), ib[COUNT + j]
             heard += ti.math.ivec2(1, ENTRY_BYTES * m)
-            t = 0
-            for s in range(n):
-                l = ib[N[0] + s]
-                while t < m and ib[J[0] + t] < l:
-                    t += 1
-                if t < m and ib[J[0] + t] == l:
-                    e, p, h = ib[J[1] + t], f[J[2] + t], ib[J[3] + t]
-                    if _beats(e, p, h, ib[N[1] + s], f[N[2] + s], ib[N[3] + s]):
-                        ib[N[1] + s], f[N[2] + s], ib[N[3] + s] = e, p, h
+            if ib[CHANGED + j] != 0:  # (unchanged since merged: nothing in it is news)
+                t = 0
+                for s in range(n):
+                    l = ib[N[0] + s]
+                    while t < m and ib[J[0] + t] < l:
+                        t += 1
+                    if t < m and ib[J[0] + t] == l:
+                        e, p, h = ib[J[1] + t], f[J[2] + t], ib[J[3] + t]
+                        if _beats(e, p, h, ib[N[1] + s], f[N[2] + s], ib[N[3] + s]):
+                            ib[N[1] + s], f[N[2] + s], ib[N[3] + s] = e, p, h
     return heard
 
 
 @ti.func
 def _commit(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32):
-    """The merged table becomes agent i's own; then 2c."""
+    """The merged table becomes agent i's own; then 2c. Whether it changed is kept for the next
+    round's merges."""
     T, N = _rows(ib, b, i, False), _rows(ib, b, i, True)
     n = ib[blocks.radio_count.env(ib, b) + i]
+    changed = 0
     for s in range(n):
+        changed |= ti.cast(
+            ib[T[1] + s] != ib[N[1] + s] or f[T[2] + s] != f[N[2] + s] or ib[T[3] + s] != ib[N[3] + s], ti.i32
+        )
         ib[T[1] + s], f[T[2] + s], ib[T[3] + s] = ib[N[1] + s], f[N[2] + s], ib[N[3] + s]
-    _settle(f, ib, b, i, T, n)
+    changed |= _settle(f, ib, b, i, T, n)
+    ib[blocks.radio_changed.env(ib, b) + i] = changed
 
 
 @ti.func
@@ -279,6 +295,8 @@ def rounds(f: ti.template(), ib: ti.template(), u8: ti.template(), b: ti.i32, M:
     reading only the round's tables, one of commits); then the step's messages and bytes
     received per agent. ``term``: the lists of the terminal observation being written."""
     heard = ti.math.ivec2(0, 0)
+    for i in range(M):  # every table was rebuilt this step: the first round merges them all
+        ib[blocks.radio_changed.env(ib, b) + i] = 1
     for _ in range(ib[H_ROUNDS]):
         for i in range(M):
             _bid(f, ib, b, i)
