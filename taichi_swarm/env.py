@@ -21,8 +21,9 @@ Shapes: B environments, M agents, L landmarks.
     actions          int64   [B, M]        discrete (default): 0..4, see ``step``
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
-    info["agent_reward"] float32 [B, M]    each agent's own reward terms (their mean: reward,
-                                           except with assignment="free")
+    info["agent_reward"] float32 [B, M]    each agent's own reward terms summed (their mean:
+                                           reward, except with assignment="free")
+    info["reward_terms"] {name: float32 [B, M]}  each of the task's named terms (tasks/base.py)
     done             bool    [B]           the episode ended at this step
 Every returned array is a zero-copy view of the env's preallocated buffers and
 is overwritten by the next ``step``/``reset``: copy what you keep.
@@ -203,7 +204,10 @@ class SwarmEnv:
             if agent_parallel is not None
             else self.arch == "cuda" or self.num_envs * self.num_agents >= WIDE_CPU_AGENTS
         )
-        self.layout = Layout(self.num_envs, self.num_agents, self.num_landmarks, **self._list_dims())
+        self.reward_terms = spec.reward_terms
+        self.layout = Layout(
+            self.num_envs, self.num_agents, self.num_landmarks, RT=len(spec.reward_terms), **self._list_dims()
+        )
         if self.neighbours is None and self.num_agents >= LARGE_TEAM and self._cap not in _ANNOUNCED_CAPACITIES:
             _ANNOUNCED_CAPACITIES.add(self._cap)
             print(
@@ -290,8 +294,10 @@ class SwarmEnv:
             },
             "terminal_obs": term,
             # [B, M] each agent's own reward for the step just taken: the task's named
-            # per-agent terms (Task.reward_terms); the team reward is their mean
+            # per-agent terms (Task.reward_terms) summed; the team reward is their mean
             "agent_reward": v("agent_reward"),
+            # {term: [B, M]} each of those terms by name (views of one [B, M, T] block)
+            "reward_terms": {name: v("reward_terms")[..., k] for k, name in enumerate(self.reward_terms)},
         }
         if self.neighbours is not None:
             # of the lists in ``obs`` (after an auto-reset: the new episode's first)

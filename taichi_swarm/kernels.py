@@ -354,8 +354,12 @@ def target_dist(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i3
 def clear_agent_rewards(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32):
     """A reset's rewards are 0, the team's and each agent's."""
     M = team_size(sm, ib)
+    RT = blocks.reward_terms.row_width(ib)
     for i in range(M):
         f[blocks.agent_reward.at(ib, b, i)] = 0.0
+        row = blocks.reward_terms.at(ib, b, i)
+        for k in range(RT):
+            f[row + k] = 0.0
 
 
 @ti.func
@@ -440,15 +444,22 @@ def physics_step(
             a = physics.action_force(ib[blocks.actions.row(ib, A0, i)])
             force[2 * i] = a[0]
             force[2 * i + 1] = a[1]
+    C = blocks.contacts.env(ib, b)
+    for i in range(M):
+        f[C + i] = 0.0
     for i in range(M):  # contact forces from the old positions, each pair once (equal and
         # opposite; every agent still sums its contacts in increasing j, as MPE does)
         p = pos.get2(f, ib, P0, i)
         for j in range(i + 1, M):
-            fc = physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
+            q = pos.get2(f, ib, P0, j)
+            fc = physics.contact_force(p, q, dist_min)
             force[2 * i] += fc[0]
             force[2 * i + 1] += fc[1]
             force[2 * j] -= fc[0]
             force[2 * j + 1] -= fc[1]
+            if (p - q).norm_sqr() < dist_min * dist_min:  # touching (the reward terms' contacts)
+                f[C + i] = f[C + i] + 1.0
+                f[C + j] = f[C + j] + 1.0
     for i in range(M):
         v = physics.integrate_velocity(vel.get2(f, ib, V0, i), ti.math.vec2(force[2 * i], force[2 * i + 1]))
         vel.set2(f, ib, V0, i, v)
@@ -488,7 +499,7 @@ def grid_velocity(
     # one pass over the cells that meet the reach's disc keeps the CONTACT_SLOTS smallest touching indices,
     # sorted; past that many (a pile-up) the rest are walked in increasing index
     touching = ti.Vector([M] * CONTACT_SLOTS, dt=ti.i32)
-    count = 0
+    count, touched = 0, 0.0
     rp = neighbours.padded(reach)
     span_y = neighbours.rows(p[1], rp, h)
     for qy in range(span_y[0], span_y[1] + 1):
@@ -499,6 +510,8 @@ def grid_velocity(
             if j >= 0 and j != i:
                 d = pos.get2(f, ib, P0, j) - p
                 d2 = d[0] * d[0] + d[1] * d[1]
+                if d2 < dist_min * dist_min:  # touching (the reward terms' contacts; itself excluded)
+                    touched += 1.0
                 if d2 > 0.0 and d2 < reach * reach:
                     count += 1
                     if j < touching[CONTACT_SLOTS - 1]:
@@ -516,6 +529,7 @@ def grid_velocity(
             force += physics.contact_force(p, pos.get2(f, ib, P0, j), dist_min)
             j = neighbours.next_contact(f, ib, i, j, P0, reach * reach, h, G, GS, GI, GC, M)
     vel.set2(f, ib, V0, i, physics.integrate_velocity(vel.get2(f, ib, V0, i), force))
+    f[blocks.contacts.at(ib, b, i)] = touched
 
 
 @ti.func
@@ -560,6 +574,12 @@ def step_env(
 
 
 @ti.func
+def context(f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, d: ti.f32) -> tasks.Context:
+    """What agent i's reward terms see of it (tasks.Context)."""
+    return tasks.Context(d=d, pos=blocks.pos.load(f, ib, b, i), contacts=f[blocks.contacts.at(ib, b, i)])
+
+
+@ti.func
 def settle(
     task: ti.template(),
     cap: ti.template(),
@@ -588,7 +608,7 @@ def settle(
     if ti.static(lists & FREE):  # d_t per target; agent i's own d: its matched or nearest free target (lap_dist)
         MD, ND, A = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b), blocks.assignment.env(ib, b)
         for i in range(M):
-            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f, f[ND + i])
+            tasks.agent_reward(task, f, ib, b, i, context(f, ib, b, i, f[ND + i]))
             covered += ti.cast(ib[A + i] >= 0, ti.i32)  # the threshold matching's size
             d = f[MD + i]
             sum_d += d
@@ -597,7 +617,7 @@ def settle(
     else:
         for i in range(M):
             d = f[blocks.matched_dist.at(ib, b, i)]
-            f[blocks.agent_reward.at(ib, b, i)] = tasks.agent_reward(task, f, d)
+            tasks.agent_reward(task, f, ib, b, i, context(f, ib, b, i, d))
             sum_d += d
             sum_clipped += ti.math.clamp(d, 0.0, 2.0)
             within = d < f[P_SUCCESS]

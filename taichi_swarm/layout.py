@@ -63,6 +63,7 @@ def dense_dims(M: int, L: int) -> dict:
         "LO": 0,
         "BM": 0,
         "RM": 0,
+        "RT": 1,
     }
 
 
@@ -80,7 +81,9 @@ BLOCKS = (
     # LE: L, or KL with landmark lists; EF: 2 (the offset), 3 with landmark occupancy
     BlockSpec("obs_entities", "f32", ("M", "LE", "EF")),
     BlockSpec("reward", "f32"),
-    BlockSpec("agent_reward", "f32", ("M",)),  # each agent's own terms (the team reward is their mean)
+    BlockSpec("agent_reward", "f32", ("M",)),  # each agent's own terms summed (the team reward is their mean)
+    BlockSpec("reward_terms", "f32", ("M", "RT")),  # ... each of the task's RT named terms
+    BlockSpec("contacts", "f32", ("M",)),  # the teammates each agent touched this step (the terms' context)
     BlockSpec("matched_dist", "f32", ("M",)),
     BlockSpec("ep_matched_dist", "f32", ("M",)),
     BlockSpec("ep_dist", "f32"),

@@ -16,10 +16,11 @@ import taichi as ti
 from .. import rng
 from ..layout import P_ARENA, blocks, team_size
 from . import coverage, formation, line
-from .base import COMMON_PARAMS, Task
+from .base import COMMON_PARAMS, Context, Task
 
 TASK_SPECS: dict[str, Task] = {}
 _FUNCS_BY_ID: dict[int, object] = {}
+_TERMS_BY_ID: dict[int, tuple] = {}  # each task's per-agent reward terms, as Taichi functions
 
 
 def register(task: Task) -> Task:
@@ -30,13 +31,14 @@ def register(task: Task) -> Task:
         raise ValueError(f"task id {task.task_id} is taken (by {_name_of(task.task_id)!r})")
     TASK_SPECS[task.name] = task
     _FUNCS_BY_ID[task.task_id] = task.funcs
+    _TERMS_BY_ID[task.task_id] = tuple(getattr(task.funcs, name) for name in task.reward_terms)
     return task
 
 
 def unregister(name: str) -> None:
     """Remove a task registered at run time (tests)."""
     task = TASK_SPECS.pop(name)
-    del _FUNCS_BY_ID[task.task_id]
+    del _FUNCS_BY_ID[task.task_id], _TERMS_BY_ID[task.task_id]
 
 
 def _name_of(task_id: int) -> str:
@@ -83,14 +85,22 @@ def reward(task: ti.template(), mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f3
 
 
 @ti.func
-def agent_reward(task: ti.template(), f: ti.template(), d: ti.f32) -> ti.f32:
-    """Agent i's own reward from its matched distance d*_i (the task's named terms, summed)."""
-    return _FUNCS_BY_ID[task].agent_reward(f, d)
+def agent_reward(task: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, ctx: Context):
+    """Agent i's own reward: the task's named terms of its context, each written by name
+    (reward_terms [B, M, T], info["reward_terms"]), and their sum (agent_reward [B, M])."""
+    row = blocks.reward_terms.at(ib, b, i)
+    total = 0.0
+    for k in ti.static(range(len(_TERMS_BY_ID[task]))):
+        value = _TERMS_BY_ID[task][k](f, ctx)
+        f[row + k] = value
+        total += value
+    f[blocks.agent_reward.at(ib, b, i)] = total
 
 
 __all__ = [
     "COMMON_PARAMS",
     "COVERAGE",
+    "Context",
     "FORMATION",
     "LINE",
     "TASKS",

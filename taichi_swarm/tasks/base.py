@@ -11,12 +11,12 @@ A task module (coverage.py, formation.py, line.py) defines
                                         (the agents are spawned by the caller first)
     ``place_targets(sm, f, ib, b)``     the M targets of env b from its current state
     ``reward(mean_d, mean_clipped_d)``  the team reward from the matched distances
-    ``agent_reward(f, d) -> f32``       agent i's own reward from its matched distance
-                                        d*_i: the sum of the task's named per-agent
-                                        terms (``Task.reward_terms``, one ti.func
-                                        ``term(f, d)`` each; f, the float buffer, holds
-                                        the env's parameters), so a new term (a collision
-                                        penalty, say) is a change in the task module alone
+    and one Taichi function ``term(f, ctx) -> f32`` per named per-agent reward term
+    (``Task.reward_terms``): ``ctx`` is the agent's ``Context`` (its matched distance, its
+    position, how many teammates it touched this step) and ``f``, the float buffer, holds the
+    env's parameters. An agent's own reward is the sum of its terms, each reported by name in
+    ``info["reward_terms"]``, so a new term (a collision penalty, say) is a change in the task
+    module alone.
 - and ``TASK = Task(...)``, registered in tasks/__init__.py.
 
 Success is the same rule for every task (every matched distance below
@@ -31,7 +31,11 @@ import taichi as ti
 
 # Overridable parameters every task has (``taichi_swarm.make(..., max_steps=...)``).
 COMMON_PARAMS = {"max_steps": 50}
-FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward", "agent_reward")
+FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward")
+# What a per-agent reward term sees of its agent (kernels.settle builds it): its matched distance
+# d*_i (with assignment "free": to its matched or nearest free target), its position, and the
+# teammates it touched this step (closer than the two radii, as the contact force sees them).
+Context = ti.types.struct(d=ti.f32, pos=ti.math.vec2, contacts=ti.f32)
 
 
 @dataclass(frozen=True)
@@ -64,8 +68,8 @@ class Task:
     """L for M agents when the landmarks are sensed as lists, where that differs from
     ``landmarks`` (formation: its M lattice points, which only ``scale="density"`` has)."""
     reward_terms: tuple[str, ...] = ()
-    """The named per-agent reward terms ``agent_reward`` sums, each a Taichi function of
-    the module, ``term(f, d) -> f32`` (d: the agent's matched distance d*_i)."""
+    """The named per-agent reward terms an agent's reward sums, each a Taichi function of the
+    module, ``term(f, ctx) -> f32`` (ctx: the agent's ``Context``)."""
     doc: str = ""
 
     def __post_init__(self):
@@ -96,7 +100,7 @@ class Task:
 
 
 @ti.func
-def clipped_matched_distance(f: ti.template(), d: ti.f32) -> ti.f32:
+def clipped_matched_distance(f: ti.template(), ctx: Context) -> ti.f32:
     """-clip(d*_i, 0, 2): a per-agent term whose mean is the team reward -mean_clipped_d
     (formation's and line's ``matched_distance``)."""
-    return -ti.math.clamp(d, 0.0, 2.0)
+    return -ti.math.clamp(ctx.d, 0.0, 2.0)

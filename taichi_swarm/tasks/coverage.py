@@ -17,7 +17,7 @@ import taichi as ti
 
 from .. import rng
 from ..layout import P_ARENA, blocks, team_size
-from .base import Task
+from .base import Context, Task
 
 
 @dataclass(frozen=True)
@@ -55,15 +55,10 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
 
 
 @ti.func
-def matched_distance(f: ti.template(), d: ti.f32) -> ti.f32:
+def matched_distance(f: ti.template(), ctx: Context) -> ti.f32:
     """-d*_i: the agent's share of the team reward, whose mean it is (the clip at 15 binds
     only in arenas far larger than the paper's)."""
-    return ti.math.clamp(-d, -15.0, 15.0)
-
-
-@ti.func
-def agent_reward(f: ti.template(), d: ti.f32) -> ti.f32:
-    return matched_distance(f, d)
+    return ti.math.clamp(-ctx.d, -15.0, 15.0)
 
 
 TASK = Task(

@@ -30,7 +30,7 @@ import taichi as ti
 from .. import rng
 from ..layout import H_DENSITY, H_L, P_TASK_PARAM, blocks, team_size
 from .base import Task
-from .base import clipped_matched_distance as matched_distance  # the reward term line and formation share
+from .base import clipped_matched_distance as matched_distance  # noqa: F401 - the reward term (reward_terms) line and formation share
 
 
 @dataclass(frozen=True)
@@ -134,11 +134,6 @@ def place_ring(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
 @ti.func
 def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
     return -mean_clipped_d
-
-
-@ti.func
-def agent_reward(f: ti.template(), d: ti.f32) -> ti.f32:
-    return matched_distance(f, d)
 
 
 TASK = Task(

@@ -1,5 +1,6 @@
 """Adding a task is one module and a register() call (docs/ARCHITECTURE.md, "How to add
-a task"): done here for a toy task, "gather", whose M agents all go to one landmark.
+a task"): done here for a toy task, "gather", whose M agents all go to one landmark, paid by
+two named per-agent terms: their distance and, as VMAS's scenarios do, a collision penalty.
 
 (No ``from __future__ import annotations`` here: Taichi reads the annotations.)"""
 
@@ -13,7 +14,7 @@ import taichi as ti
 import taichi_swarm
 from taichi_swarm import rng, tasks
 from taichi_swarm.layout import P_TASK_PARAM, blocks, team_size
-from taichi_swarm.tasks.base import Task
+from taichi_swarm.tasks.base import Context, Task
 
 
 # --- the toy task: what a task module holds ---------------------------------------------
@@ -49,13 +50,13 @@ def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
 
 
 @ti.func
-def distance(f: ti.template(), d: ti.f32) -> ti.f32:  # the one named per-agent term
-    return -2.0 * d
+def distance(f: ti.template(), ctx: Context) -> ti.f32:  # the named per-agent terms: their sum pays the agent
+    return -2.0 * ctx.d
 
 
 @ti.func
-def agent_reward(f: ti.template(), d: ti.f32) -> ti.f32:
-    return distance(f, d)
+def collision(f: ti.template(), ctx: Context) -> ti.f32:
+    return -1.0 * ctx.contacts  # every teammate it touched this step
 
 
 GATHER = Task(
@@ -68,7 +69,7 @@ GATHER = Task(
     landmarks=lambda num_agents: 1,
     funcs=sys.modules[__name__],
     kernel_param="spread",
-    reward_terms=("distance",),
+    reward_terms=("distance", "collision"),
     doc="M agents gather round one landmark (a test task).",
 )
 
@@ -95,13 +96,33 @@ def test_a_new_task_is_one_module_and_a_register_call(gather):
     assert done.all() and info["episode"]["success"].all()  # every d < 0.4
     d = info["episode"]["matched_dist"]  # [B, M] at the end
     np.testing.assert_allclose(reward, -2.0 * d.mean(-1), rtol=1e-5)
-    np.testing.assert_allclose(info["agent_reward"], -2.0 * d, rtol=1e-5)  # its named term
+    np.testing.assert_allclose(info["agent_reward"], -2.0 * d, rtol=1e-5)  # its named terms: nobody touched
+    np.testing.assert_allclose(info["reward_terms"]["distance"], -2.0 * d, rtol=1e-5)
+    assert set(info["reward_terms"]) == {"distance", "collision"} and (info["reward_terms"]["collision"] == 0).all()
     # too far: no success; the time limit ends the episode
     env.reset()
     far = (env.get_state()["landmarks"] + np.array([[0.9, 0.0]] * M, np.float32)[None]).astype(np.float32)
     env.set_state(pos=far, vel=np.zeros_like(far))
     _, _, done, _ = env.step(np.zeros((B, M), np.int64))
     assert not done.any()
+
+
+@pytest.mark.parametrize("lists", [False, True])
+def test_a_collision_penalty_is_a_term_of_the_task_alone(gather, lists):
+    """Agents 0 and 1 start on top of each other, agent 2 apart: the penalty pays 0 and 1 for one
+    contact each, in the dense layout and through the neighbour lists' grid alike."""
+    B, M = 2, 3
+    env = taichi_swarm.make("gather", B, M, seed=1, array="numpy", **(dict(neighbours=2) if lists else {}))
+    env.reset()
+    lmk = env.get_state()["landmarks"]
+    offsets = np.array([[0.3, 0.0], [0.33, 0.0], [-0.3, 0.0]], np.float32)  # 0.03 < the two radii, 0.1
+    pos = (lmk + offsets[None]).astype(np.float32)
+    env.set_state(pos=pos, vel=np.zeros_like(pos))
+    _, reward, _, info = env.step(np.zeros((B, M), np.int64))
+    terms = info["reward_terms"]
+    np.testing.assert_array_equal(terms["collision"], [[-1.0, -1.0, 0.0]] * B)
+    np.testing.assert_allclose(info["agent_reward"], terms["distance"] + terms["collision"], rtol=1e-6)
+    np.testing.assert_allclose(terms["distance"], -2.0 * env.matched_dist, rtol=1e-5)  # (exact: d*_i per agent)
 
 
 def test_registry_errors():
