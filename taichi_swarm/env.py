@@ -22,7 +22,7 @@ Shapes: B environments, M agents, L landmarks.
                      float32 [B, M, 2]     action_space="continuous": force 5 clip(u, -1, 1)
     reward           float32 [B]           team reward of the step just taken
     info["agent_reward"] float32 [B, M]    each agent's own reward terms summed (their mean:
-                                           reward, except with assignment="free")
+                                           reward)
     info["reward_terms"] {name: float32 [B, M]}  each of the task's named terms (tasks/base.py)
     done             bool    [B]           the episode ended at this step
 Every returned array is a zero-copy view of the env's preallocated buffers and
@@ -118,11 +118,11 @@ class SwarmEnv:
     sqrt(M / 10), keeping the agents per unit area of M = 10). See docs/SWARM.md.
     assignment: "exact" (Jonker-Volgenant on the M x M costs, warm-started) or "free" (needs
     neighbours; no M x M block, which M = 10,000 needs; every per-step quantity local and exact:
-    the team reward from each target's nearest-agent distance d_t, as in MPE's simple_spread, in
-    matched_dist [B, M] per target; success and covered from a maximum matching within
-    success_threshold, in assignment [B, M], -1 where unmatched; each agent's reward from the
-    target the matching gives it or, where it has none, from the nearest target the matching
-    leaves free: a duplicate is paid for crossing to a free target. nearest.py, docs/SWARM.md).
+    each target's nearest-agent distance d_t (DIST), in matched_dist [B, M] per target; success
+    and covered from a maximum matching within success_threshold, in assignment [B, M], -1 where
+    unmatched; each agent's reward from the target the matching gives it or, where it has none,
+    from the nearest target the matching leaves free: a duplicate is paid for crossing to a free
+    target; the team reward is their mean, as in every mode. nearest.py, docs/SWARM.md).
     agent_parallel (with neighbours): step every agent of every environment in parallel
     (kernels.step_wide_kernel), not one environment per thread; the same results bit for bit.
     None (default): on CUDA, where one thread per environment leaves the GPU idle at small B,

@@ -604,26 +604,26 @@ def settle(
             nearest.agent_free(f, ib, b, i)
     else:
         match(task, cap, sm, lists, f, ib, b)
-    sum_d, sum_clipped, success, covered = 0.0, 0.0, True, 0
+    # the team reward: the mean of the agents' own (each the sum of the task's named terms)
+    sum_d, sum_r, success, covered = 0.0, 0.0, True, 0
+    R = blocks.agent_reward.env(ib, b)
     if ti.static(lists & FREE):  # d_t per target; agent i's own d: its matched or nearest free target (lap_dist)
         MD, ND, A = blocks.matched_dist.env(ib, b), blocks.lap_dist.env(ib, b), blocks.assignment.env(ib, b)
         for i in range(M):
             tasks.agent_reward(task, f, ib, b, i, context(f, ib, b, i, f[ND + i]))
+            sum_r += f[R + i]
             covered += ti.cast(ib[A + i] >= 0, ti.i32)  # the threshold matching's size
-            d = f[MD + i]
-            sum_d += d
-            sum_clipped += ti.math.clamp(d, 0.0, 2.0)
+            sum_d += f[MD + i]
         success = covered == M
     else:
         for i in range(M):
             d = f[blocks.matched_dist.at(ib, b, i)]
             tasks.agent_reward(task, f, ib, b, i, context(f, ib, b, i, d))
-            sum_d += d
-            sum_clipped += ti.math.clamp(d, 0.0, 2.0)
+            sum_r += f[R + i]
             within = d < f[P_SUCCESS]
             success = success and within
             covered += ti.cast(within, ti.i32)
-    r = tasks.reward(task, sum_d / M, sum_clipped / M)
+    r = sum_r / M
     f[blocks.reward.env(ib, b)] = r
     ret = f[blocks.return_acc.env(ib, b)] + r
     f[blocks.return_acc.env(ib, b)] = ret

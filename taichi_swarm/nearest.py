@@ -4,7 +4,7 @@ The min-sum assignment behind the exact reward is not local (the W1 dual
 potential has slope 1 along transport rays, so no bounded search settles it). This mode
 computes instead, per env and step, only quantities that are local and exact:
 
-- d_t = min_i |p_i - t_t|, the distance from each target to its nearest agent (MPE
+- d_t = min_i |p_i - t_t|, the distance from each target to its nearest agent (DIST; MPE
   simple_spread's reward), found through the agents' cell grid (neighbours.py, side h):
   rings of cells round the target's cell, stopping once the nearest found is no farther
   than the nearest point of the next ring; past RING_LIMIT rings (or below SCAN_BELOW

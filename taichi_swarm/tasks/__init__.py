@@ -79,12 +79,6 @@ def place_targets(task: ti.template(), sm: ti.template(), f: ti.template(), ib: 
 
 
 @ti.func
-def reward(task: ti.template(), mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
-    """Team reward from the mean matched distance (and its clip(d, 0, 2) mean)."""
-    return _FUNCS_BY_ID[task].reward(mean_d, mean_clipped_d)
-
-
-@ti.func
 def agent_reward(task: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32, i: ti.i32, ctx: Context):
     """Agent i's own reward: the task's named terms of its context, each written by name
     (reward_terms [B, M, T], info["reward_terms"]), and their sum (agent_reward [B, M])."""

@@ -1,4 +1,4 @@
-"""What a task is, for the simulator: one ``Task`` record and four Taichi functions.
+"""What a task is, for the simulator: one ``Task`` record, three Taichi functions and its reward terms.
 
 A task module (coverage.py, formation.py, line.py) defines
 
@@ -10,13 +10,12 @@ A task module (coverage.py, formation.py, line.py) defines
     ``spawn_landmarks(sm, f, ib, b)``   the landmarks of a fresh episode of env b
                                         (the agents are spawned by the caller first)
     ``place_targets(sm, f, ib, b)``     the M targets of env b from its current state
-    ``reward(mean_d, mean_clipped_d)``  the team reward from the matched distances
-    and one Taichi function ``term(f, ctx) -> f32`` per named per-agent reward term
-    (``Task.reward_terms``): ``ctx`` is the agent's ``Context`` (its matched distance, its
-    position, how many teammates it touched this step) and ``f``, the float buffer, holds the
-    env's parameters. An agent's own reward is the sum of its terms, each reported by name in
-    ``info["reward_terms"]``, so a new term (a collision penalty, say) is a change in the task
-    module alone.
+- one Taichi function ``term(f, ctx) -> f32`` per named per-agent reward term
+  (``Task.reward_terms``): ``ctx`` is the agent's ``Context`` (its matched distance, its
+  position, how many teammates it touched this step) and ``f``, the float buffer, holds the
+  env's parameters. An agent's own reward is the sum of its terms, each reported by name in
+  ``info["reward_terms"]``, and the team reward is the mean of the agents', so a new term (a
+  collision penalty, say) is a change in the task module alone.
 - and ``TASK = Task(...)``, registered in tasks/__init__.py.
 
 Success is the same rule for every task (every matched distance below
@@ -31,7 +30,7 @@ import taichi as ti
 
 # Overridable parameters every task has (``taichi_swarm.make(..., max_steps=...)``).
 COMMON_PARAMS = {"max_steps": 50}
-FUNCS = ("landmark_count", "spawn_landmarks", "place_targets", "reward")
+FUNCS = ("landmark_count", "spawn_landmarks", "place_targets")
 # What a per-agent reward term sees of its agent (kernels.settle builds it): its matched distance
 # d*_i (with assignment "free": to its matched or nearest free target), its position, and the
 # teammates it touched this step (closer than the two radii, as the contact force sees them).

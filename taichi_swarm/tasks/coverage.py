@@ -50,11 +50,6 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
 
 
 @ti.func
-def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
-    return ti.math.clamp(-mean_d, -15.0, 15.0)
-
-
-@ti.func
 def matched_distance(f: ti.template(), ctx: Context) -> ti.f32:
     """-d*_i: the agent's share of the team reward, whose mean it is (the clip at 15 binds
     only in arenas far larger than the paper's)."""

@@ -131,11 +131,6 @@ def place_ring(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.i32
         blocks.targets.set2(f, ib, tgt, k, centre + radius * ti.math.vec2(ti.cos(ang), ti.sin(ang)))
 
 
-@ti.func
-def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
-    return -mean_clipped_d
-
-
 TASK = Task(
     name="formation",
     task_id=1,

@@ -135,11 +135,6 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
             blocks.targets.set2(f, ib, tgt, k, l0 + (l1 - l0) * (k / (M - 1)))
 
 
-@ti.func
-def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
-    return -mean_clipped_d
-
-
 TASK = Task(
     name="line",
     task_id=2,

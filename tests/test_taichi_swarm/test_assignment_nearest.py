@@ -74,7 +74,7 @@ def _check_step(env, pos, targets):
         d_i = _free_reference(pos[b], targets[b], env.assignment[b])
         np.testing.assert_allclose(env.matched_dist[b], d_t, rtol=1e-5, atol=1e-5)
         np.testing.assert_allclose(env.info["agent_reward"][b], np.clip(-d_i, -15, 15), rtol=1e-5, atol=1e-5)
-        assert env.reward[b] == pytest.approx(np.clip(-d_t.mean(), -15, 15), rel=1e-5, abs=1e-5)
+        assert env.reward[b] == pytest.approx(np.clip(-d_i, -15, 15).mean(), rel=1e-5, abs=1e-5)  # their mean
         assert _check_matching(env, b, pos[b], targets[b]) == size
 
 
@@ -229,7 +229,7 @@ def test_line_targets():
             if env.done[b]:
                 continue  # rewards of the old episode, state of the new
             np.testing.assert_allclose(env.info["agent_reward"][b], -np.clip(d_i, 0, 2), rtol=1e-5, atol=1e-5)
-            assert env.reward[b] == pytest.approx(-np.clip(d_t, 0, 2).mean(), rel=1e-5, abs=1e-5)
+            assert env.reward[b] == pytest.approx(-np.clip(d_i, 0, 2).mean(), rel=1e-5, abs=1e-5)
             assert _check_matching(env, b, s["pos"][b], env.targets[b]) == size
 
 

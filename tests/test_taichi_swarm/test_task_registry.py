@@ -45,11 +45,6 @@ def place_targets(sm: ti.template(), f: ti.template(), ib: ti.template(), b: ti.
 
 
 @ti.func
-def reward(mean_d: ti.f32, mean_clipped_d: ti.f32) -> ti.f32:
-    return -2.0 * mean_d
-
-
-@ti.func
 def distance(f: ti.template(), ctx: Context) -> ti.f32:  # the named per-agent terms: their sum pays the agent
     return -2.0 * ctx.d
 
