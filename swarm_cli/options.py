@@ -102,11 +102,30 @@ def fail(prog: str, exc: BaseException | str) -> int:
     """One error line for a refused input found after parsing (a missing file, a bad
     checkpoint); returns the exit status 2. A refused setting (taichi_swarm.ConfigError) names
     its field as the command line spells it."""
+    print(f"{prog}: error: {option_text(exc)}", file=sys.stderr)
+    return 2
+
+
+def option_text(exc: BaseException | str) -> str:
+    """A refusal's message, a setting's field (taichi_swarm.ConfigError) named as its option."""
     text, field = str(exc), getattr(exc, "field", None)
     if field and text.startswith(field):
         text = f"--{field.replace('_', '-')}{text[len(field) :]}"
-    print(f"{prog}: error: {text}", file=sys.stderr)
-    return 2
+    return text
+
+
+def check_setting(options: dict) -> dict:
+    """The setting's options set, each through its own check (taichi_swarm.sim.CHECKS, the one
+    validator of that key; no Taichi is imported), refused as the option; returns them."""
+    from taichi_swarm.sim import ConfigError, check_value
+
+    given = {k: v for k, v in options.items() if v is not None}
+    for name, value in given.items():
+        try:
+            check_value(name, value)
+        except ConfigError as exc:
+            raise OptionError(option_text(exc)) from None
+    return given
 
 
 def at_least(value, low, name: str) -> None:
@@ -140,7 +159,7 @@ class SettingOptions:
     """rc radius"""
 
     def __post_init__(self):
-        at_least(self.comm_radius, 0, "comm-radius")
+        check_setting({"comm": self.comm, "comm_radius": self.comm_radius})
 
     def setting_options(self) -> dict:
         """The options set, as ``Sim.override`` keywords over the policy's own."""
@@ -175,26 +194,13 @@ class SwarmOptions:
     """with --landmark-order radio: R message rounds a step (unset: 4)"""
 
     def __post_init__(self):
-        at_least(self.neighbours, 1, "neighbours")
-        at_least(self.auction_rounds, 1, "auction-rounds")
-        at_least(self.landmark_neighbours, 1, "landmark-neighbours")
-        positive(self.sense_radius, "sense-radius")
+        self.swarm_kwargs()
 
     def swarm_kwargs(self) -> dict:
-        """The options set, as ``Sim.override`` keywords over the policy's own."""
-        return {
-            k: v
-            for k, v in (
-                ("neighbours", self.neighbours),
-                ("landmark_neighbours", self.landmark_neighbours),
-                ("sense_radius", self.sense_radius),
-                ("scale", self.scale),
-                ("assignment", self.assignment),
-                ("landmark_order", self.landmark_order),
-                ("auction_rounds", self.auction_rounds),
-            )
-            if v is not None
-        }
+        """The options set, as ``Sim.override`` keywords over the policy's own (each checked)."""
+        names = ("neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_order",
+                 "auction_rounds")  # fmt: skip
+        return check_setting({name: getattr(self, name) for name in names})
 
 
 @dataclass(kw_only=True)
@@ -271,7 +277,7 @@ class EvalOptions(EvaluationOptions, OutputOptions):
     def __post_init__(self):
         EvaluationOptions.__post_init__(self)
         OutputOptions.__post_init__(self)
-        at_least(self.agents, 1, "agents")
+        check_setting({"agents": self.agents})
 
 
 @dataclass(kw_only=True)
@@ -324,15 +330,7 @@ class ImportOptions:
     """rc radius"""
 
     def __post_init__(self):
-        at_least(self.comm_radius, 0, "comm-radius")
-
-    def setting_options(self) -> dict:
-        """The options set, as ``Sim.override`` keywords over the policy's own."""
-        return {
-            k: v
-            for k, v in (("task", self.task), ("comm", self.comm), ("comm_radius", self.comm_radius))
-            if v is not None
-        }
+        check_setting({"comm": self.comm, "comm_radius": self.comm_radius})
 
 
 # ----------------------------------------------------------------------------- deploy commands
@@ -352,7 +350,7 @@ class ExportOptions(SettingOptions):
 
     def __post_init__(self):
         SettingOptions.__post_init__(self)
-        at_least(self.agents, 1, "agents")
+        check_setting({"agents": self.agents})
 
 
 @dataclass(kw_only=True)

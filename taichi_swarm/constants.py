@@ -9,6 +9,9 @@ SENSITIVITY = 5.0  # MPE's agent.accel default (discrete and continuous actions 
 NUM_ACTIONS = 5  # the paper's discrete actions
 NUM_FINE_ACTIONS = 9  # action_space "fine": the paper's five and four quarter pushes (physics.FINE)
 COMMS = ("uc", "rc")
+ACTION_SPACES = ("discrete", "continuous", "fine")  # physics.py
+DEFAULT_ROUNDS = 4  # the radio auction's message rounds per control step, unset (radio.py)
+MAX_ROUNDS = 64
 # how the network takes the landmark inputs (trainer.model.ModelConfig.entity_mode; deploy/ and
 # reproduce/ read it here, without torch): EMP, concatenated (fixed L), or 10 zero-padded slots
 ENTITY_MODES = ("emp", "concat", "padded")

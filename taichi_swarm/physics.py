@@ -9,7 +9,7 @@ pairwise contact forces between agents, then semi-implicit Euler
 
 import taichi as ti
 
-from .constants import DAMPING, DT, MASS, NUM_ACTIONS, NUM_FINE_ACTIONS, SENSITIVITY
+from .constants import ACTION_SPACES, DAMPING, DT, MASS, NUM_ACTIONS, NUM_FINE_ACTIONS, SENSITIVITY  # noqa: F401
 
 CONTACT_FORCE = 100.0
 CONTACT_MARGIN = 1e-3
@@ -21,7 +21,6 @@ CONTACT_MARGIN = 1e-3
 # so it can park within 0.035 of any point, inside formation's 0.05.
 FINE = 0.25
 ACTION_DIM = 2  # continuous actions: one force command u per axis
-ACTION_SPACES = ("discrete", "continuous", "fine")
 CUTOFF_MARGINS = 20.0  # contact force treated as 0 beyond dist_min + 20 contact margins
 ACTION_MEANINGS = ("noop", "-x", "+x", "-y", "+y", "-x/4", "+x/4", "-y/4", "+y/4")  # "discrete": the first 5
 

@@ -57,12 +57,11 @@ step's messages and bytes received per agent (radio_messages, radio_bytes [B];
 
 import taichi as ti
 
+from .constants import DEFAULT_ROUNDS, MAX_ROUNDS  # noqa: F401 - radio.DEFAULT_ROUNDS, as before
 from .layout import H_GL, H_K, H_KL, H_ROUNDS, P_BID_EPS, P_LCELL, P_SENSE, blocks
 from .neighbours import by_distance, nearest_in_grid
 
 ENTRY_BYTES = 10  # one table entry on the air: u16 landmark id + u16 epoch + f32 price + u16 holder
-DEFAULT_ROUNDS = 4  # auction_rounds=None: message rounds per control step
-MAX_ROUNDS = 64
 OUT = 2.0  # staying out costs this many sense radii: more than any sensed landmark's distance
 # Each bid raises a price by at least the increment ROUND_EPS (header P_BID_EPS). A bidding war's
 # rounds grow as the prices it must climb over the increment, and a policy needs its landmark

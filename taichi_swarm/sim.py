@@ -22,10 +22,9 @@ from typing import Literal
 
 import numpy as np
 
-from .constants import COMMS
-from .physics import ACTION_SPACES
-from .radio import DEFAULT_ROUNDS, MAX_ROUNDS
-from .tasks import TASK_SPECS
+# (no Taichi here: the command line checks its options with CHECKS before anything compiles;
+# the task registry, which is Taichi code, is read when a Sim is made)
+from .constants import ACTION_SPACES, COMMS, DEFAULT_ROUNDS, MAX_ROUNDS
 
 SCALES = (None, "density")
 ASSIGNMENTS = ("exact", "free")
@@ -71,9 +70,43 @@ def check_float(field: str, value, minimum: float, strict: bool = False) -> floa
     return float(value)
 
 
-def one_of(field: str, value, choices: tuple) -> None:
+def one_of(field: str, value, choices: tuple):
     if value not in choices:
         raise ConfigError(field, f"{field} must be one of {choices}, got {value!r}")
+    return value
+
+
+def _bool(field: str, value) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(field, f"{field} must be True or False, got {value!r}")
+    return value
+
+
+# Each field's own check (its type and bounds), the one validator of that key: Sim.__post_init__
+# runs it on every value it is given, and the command line on every option it parses (a refusal
+# before any file is read); the checks between fields follow in __post_init__.
+CHECKS = {
+    "agents": lambda v: check_int("agents", v, 1, MAX_AGENTS),
+    "comm": lambda v: one_of("comm", v, COMMS),
+    "comm_radius": lambda v: check_float("comm_radius", v, 0.0),
+    "action_space": lambda v: one_of("action_space", v, ACTION_SPACES),
+    "neighbours": lambda v: check_int("neighbours", v, 1, MAX_LIST),
+    "landmark_neighbours": lambda v: check_int("landmark_neighbours", v, 1, MAX_LIST),
+    "sense_radius": lambda v: check_float("sense_radius", v, 0.0, strict=True),
+    "landmark_occupancy": lambda v: _bool("landmark_occupancy", v),
+    "landmark_order": lambda v: one_of("landmark_order", v, LANDMARK_ORDERS),
+    "auction_rounds": lambda v: check_int("auction_rounds", v, 1, MAX_ROUNDS),
+    "scale": lambda v: one_of("scale", v, SCALES),
+    "assignment": lambda v: one_of("assignment", v, ASSIGNMENTS),
+}
+
+
+NULLABLE = ("agents", "neighbours", "landmark_neighbours", "sense_radius", "auction_rounds", "scale")
+
+
+def check_value(field: str, value):
+    """``value`` of ``field`` as its own check takes it (None: unset, taken as is)."""
+    return value if value is None else CHECKS[field](value)
 
 
 @dataclass(frozen=True)
@@ -111,17 +144,15 @@ class Sim:
     threshold matching, no M x M block (nearest.py)."""
 
     def __post_init__(self):
+        from .tasks import TASK_SPECS
+
         one_of("task", self.task, tuple(TASK_SPECS))
         spec = TASK_SPECS[self.task]
-        if self.agents is not None:
-            check_int("agents", self.agents, 1, MAX_AGENTS)
-            if self.agents < spec.min_agents:
-                raise ConfigError("agents", f"agents must be >= {spec.min_agents} for {self.task}, got {self.agents}")
-        one_of("comm", self.comm, COMMS)
-        object.__setattr__(self, "comm_radius", check_float("comm_radius", self.comm_radius, 0.0))
-        one_of("action_space", self.action_space, ACTION_SPACES)
-        if self.neighbours is not None:
-            check_int("neighbours", self.neighbours, 1, MAX_LIST)
+        for name in CHECKS:  # each field's own check (None only where it means unset), then those between fields
+            value = getattr(self, name)
+            object.__setattr__(self, name, check_value(name, value) if name in NULLABLE else CHECKS[name](value))
+        if self.agents is not None and self.agents < spec.min_agents:
+            raise ConfigError("agents", f"agents must be >= {spec.min_agents} for {self.task}, got {self.agents}")
         if self.landmark_neighbours is not None:
             if not spec.landmark_lists:
                 raise ConfigError(
@@ -129,15 +160,12 @@ class Sim:
                     f"landmark_neighbours is for tasks with a landmark per agent; {spec.name!r} keeps its landmarks "
                     "global",
                 )
-            check_int("landmark_neighbours", self.landmark_neighbours, 1, MAX_LIST)
             if self.sense_radius is None:
                 raise ConfigError(
                     "sense_radius", "landmark_neighbours needs sense_radius (how far an agent senses landmarks)"
                 )
-            object.__setattr__(self, "sense_radius", check_float("sense_radius", self.sense_radius, 0.0, strict=True))
         elif self.sense_radius is not None:
             raise ConfigError("sense_radius", "sense_radius is only used with landmark_neighbours")
-        one_of("scale", self.scale, SCALES)
         if self.scale == "density" and not spec.density_scale:
             raise ConfigError("scale", f"scale='density' is not implemented for task {spec.name!r}")
         if self.landmark_neighbours is not None and spec.listed_landmarks is not None and self.scale != "density":
@@ -146,16 +174,11 @@ class Sim:
                 f"{spec.name}'s listed landmarks are the points of its density-scaled lattice: landmark_neighbours "
                 "needs scale='density'",
             )
-        one_of("assignment", self.assignment, ASSIGNMENTS)
         if self.assignment == "free" and self.neighbours is None:
             raise ConfigError(
                 "assignment",
                 "assignment='free' needs neighbours=K: it finds each target's nearest agent through the agents' "
                 "cell grid the neighbour lists build",
-            )
-        if not isinstance(self.landmark_occupancy, bool):
-            raise ConfigError(
-                "landmark_occupancy", f"landmark_occupancy must be True or False, got {self.landmark_occupancy!r}"
             )
         if self.landmark_occupancy and (self.neighbours is None or self.landmark_neighbours is None):
             raise ConfigError(
@@ -163,7 +186,6 @@ class Sim:
                 "landmark_occupancy needs neighbours=K and landmark_neighbours=KL: it is read off the agents' cell "
                 "grid for each listed landmark",
             )
-        one_of("landmark_order", self.landmark_order, LANDMARK_ORDERS)
         if self.landmark_order == "radio":
             if not self.landmark_occupancy:
                 raise ConfigError(
@@ -184,7 +206,6 @@ class Sim:
                     f"auction_rounds is the radio auction's message rounds a step: it needs landmark_order 'radio', "
                     f"got {self.landmark_order!r}",
                 )
-            check_int("auction_rounds", self.auction_rounds, 1, MAX_ROUNDS)
 
     # ------------------------------------------------------------------ derived
     @property
@@ -239,6 +260,8 @@ class Sim:
     def override(self, what: str = "the checkpoint", /, **options) -> Sim:
         """This setting with the options a command sets over it (None: keep this one's). A policy
         runs only its own task; a landmark order other than radio drops the radio's rounds."""
+        from .tasks import TASK_SPECS
+
         given = {k: v for k, v in options.items() if v is not None}
         unknown = sorted(set(given) - set(FIELDS))
         if unknown:
