@@ -273,7 +273,9 @@ def world_main(argv: list[str]) -> int:
         world.wait_for_agents(present)
         row = world.run_episodes(recorder, env)
         if procs is not None:
-            row["agent_rss_mb"] = {str(i): mb for i, mb in sorted(procs.peak_rss_mb().items())}
+            memory = {"agent_rss_mb": ("status", "VmHWM:"), "agent_pss_mb": ("smaps_rollup", "Pss:")}
+            for key, (file, line) in memory.items():
+                row[key] = {str(i): mb for i, mb in sorted(procs.memory_mb(file, line).items())}
     except SpawnError as exc:
         failed = exc
         if recorder is not None:

@@ -409,10 +409,11 @@ def format_net(row: dict) -> str:
         p50 = np.median([r["decision_ms_p50"] for r in decided])
         p99 = max(r["decision_ms_p99"] for r in decided)
         lines.append(f"decision latency: p50 {p50:.0f} ms (median over agents), p99 {p99:.0f} ms (worst agent)")
-    if row.get("agent_rss_mb"):
-        rss = list(row["agent_rss_mb"].values())
-        mb = f"median {np.median(rss):.0f} MB, max {max(rss):.0f} MB"
-        lines.append(f"agent process peak RSS: {mb} ({len(rss)} agents)")
+    for key, what in (("agent_rss_mb", "peak RSS"), ("agent_pss_mb", "PSS at the end (shared pages split)")):
+        if row.get(key):
+            mb = list(row[key].values())
+            spread = f"median {np.median(mb):.0f} MB, max {max(mb):.0f} MB"
+            lines.append(f"agent process {what}: {spread} ({len(mb)} agents)")
     lines.append(head)
     for i, r in enumerate(row["agents_report"]):
 
@@ -508,13 +509,16 @@ class AgentProcesses:
             p.kill()
             p.wait(timeout=10)
 
-    def peak_rss_mb(self) -> dict[int, float]:
-        """Each live agent process's peak resident memory in MB (Linux /proc; {} elsewhere)."""
+    def memory_mb(self, file: str, key: str) -> dict[int, float]:
+        """Each live agent process's ``key`` line of /proc/PID/``file`` in MB (Linux; {} elsewhere):
+        "status", "VmHWM:" its peak resident memory; "smaps_rollup", "Pss:" its proportional share
+        now, where a page that n processes map counts 1/n (the shared libraries of a team on one
+        machine counted once, not M times)."""
         out = {}
         for i, p in self.procs.items():
             try:
-                with open(f"/proc/{p.pid}/status") as f:
-                    kb = next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+                with open(f"/proc/{p.pid}/{file}") as f:
+                    kb = next(int(line.split()[1]) for line in f if line.startswith(key))
             except (OSError, StopIteration, ValueError):
                 continue
             out[i] = kb / 1024

@@ -7,6 +7,7 @@ for action, at M = 5 and M = 20; the manifest carries the auction's rules."""
 from __future__ import annotations
 
 import copy
+import os
 import secrets
 
 import numpy as np
@@ -132,10 +133,14 @@ def test_the_radio_team_as_processes_acts_as_execute(radio_export, agents):
         world.watch = procs.check
         assert world.wait_for_agents(range(agents)) == set(range(agents))
         row = world.run_episodes()
+        rss, pss = procs.memory_mb("status", "VmHWM:"), procs.memory_mb("smaps_rollup", "Pss:")
     finally:
         world.stop_agents()
         procs.stop(timeout=15)
         endpoint.close()
+    if os.path.exists("/proc/self/smaps_rollup"):  # (Linux): each agent's peak RSS, and its share of pages now
+        assert set(rss) == set(pss) == set(range(agents))
+        assert all(0 < pss[i] <= rss[i] for i in range(agents))  # shared pages split: never more than RSS
     assert row["missing_actions"] == 0
     assert all(r["missed"] == 0 and r["late"] == 0 for r in row["agents_report"])
     assert len(world.history) == len(reference)
