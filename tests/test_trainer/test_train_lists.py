@@ -135,7 +135,7 @@ def test_a_run_trains_and_evaluates_on_the_assignment_it_names(tmp_path):
         (dict(assignment="greedy"), "assignment must be one of"),
         (dict(assignment="auction"), "assignment must be one of"),
         (dict(assignment="nearest"), "assignment must be one of"),
-        (dict(assignment="free"), "needs neighbour lists"),
+        (dict(assignment="free"), "needs neighbours=K"),
     ],
 )
 def test_bad_assignments_are_refused(tmp_path, bad, match):
