@@ -328,7 +328,10 @@ def test_an_observation_reads_nothing_beyond_its_sensing_and_hearing():
         ({"landmark_order": "auction"}, "landmark_order"),
         ({"landmark_occupancy": True}, "landmark_occupancy"),  # (needs both lists)
         ({"landmark_occupancy": True, "neighbours": 4}, "landmark_occupancy"),
-        ({"landmark_occupancy": 1, "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5}, "landmark_occupancy"),  # noqa: E501
+        (
+            {"landmark_occupancy": 1, "neighbours": 4, "landmark_neighbours": 2, "sense_radius": 0.5},
+            "landmark_occupancy",
+        ),  # noqa: E501
     ],
 )
 def test_bad_occupancy_options_are_refused(kwargs, field):
