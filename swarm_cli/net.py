@@ -242,6 +242,7 @@ def world_main(argv: list[str]) -> int:
         if args.spawn_agents:
             check_faults(spec, model)  # (each agent would refuse it at start)
         env = make_env(model, s)  # (what the simulator refuses, before any agent starts)
+        env.warm_up()  # its kernels compiled before the agents start: 50 of them starve a compile for minutes
         recorder = open_recorders(args, s.task, s.episodes, s.agents, s.comm, s.comm_radius)
         session = open_session("router", [args.listen], [])
     except (DeployError, TransportError, ValueError, OSError) as exc:

@@ -379,6 +379,17 @@ class SwarmEnv:
         )
         return self.obs
 
+    def warm_up(self) -> None:
+        """Compile the kernels this env runs (a reset and a step) now rather than at their first
+        use, and leave the env as it was: a process that must not stall mid-run calls it first
+        (``swarm world``, before its agents start and take the CPU)."""
+        seeded, snap = self._seeded, self.snapshot()
+        self.reset()
+        B, M = self.num_envs, self.num_agents
+        self.step(np.zeros((B, M, self.action_dim), np.float32) if self.continuous else np.zeros((B, M), np.int64))
+        self.restore(snap)
+        self._seeded = seeded
+
     def reset_envs(self, mask):
         """Start a fresh episode in the environments where ``mask`` (bool [B], numpy
         or torch) is true; the others go on untouched. Returns ``obs``.

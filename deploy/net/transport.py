@@ -111,14 +111,21 @@ class Endpoint:
 
         self._subs.append(self.session.declare_subscriber(self.key(*parts), on_sample))
 
-    def publish(self, data: bytes, *parts) -> None:
-        key = self.key(*parts)
+    def _publisher(self, key: str):
         pub = self._pubs.get(key)
         if pub is None:
             zenoh = _zenoh()
             pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
             self._pubs[key] = pub
-        pub.put(data)
+        return pub
+
+    def matched(self, *parts) -> bool:
+        """Whether a subscriber of this key is known to this session's routes (Zenoh's matching
+        status): a packet put before one is, is dropped for want of a route, not lost on the way."""
+        return bool(self._publisher(self.key(*parts)).matching_status.matching)
+
+    def publish(self, data: bytes, *parts) -> None:
+        self._publisher(self.key(*parts)).put(data)
         self.sent += 1
         self.sent_bytes += len(data)
 

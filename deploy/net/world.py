@@ -258,16 +258,20 @@ class World:
 
     def wait_for_agents(self, expected) -> set[int]:
         """Wait up to start_timeout for the hello of every agent in ``expected``, each saying it has
-        heard every other's: a first step sent before the agents' routes to each other exist would
-        lose its messages (a busy machine takes seconds). Returns who was heard."""
+        heard every other's, and for a route to each one's observations (its subscription known
+        here): a first step sent before the routes exist would be dropped, and the team would
+        wait out its deadlines (a busy machine takes seconds). Returns who was heard."""
         expected = set(expected)
 
         def deaf() -> dict[int, list[int]]:  # agent -> the expected ones it has not heard yet
             gaps = {i: sorted(expected - {i} - self.peers.get(i, frozenset())) for i in expected & self.heard}
             return {i: g for i, g in gaps.items() if g}
 
+        def unrouted() -> list[int]:  # heard, but its subscription to its observations not yet routed here
+            return [i for i in sorted(expected & self.heard) if not self.ep.matched("obs", i)]
+
         until = time.perf_counter() + self.net.start_timeout
-        while not (expected <= self.heard and not deaf()) and time.perf_counter() < until:
+        while not (expected <= self.heard and not deaf() and not unrouted()) and time.perf_counter() < until:
             self._check()
             item = self.ep.get(min(until - time.perf_counter(), 0.25))
             if item is not None:
@@ -279,6 +283,8 @@ class World:
             self._say(
                 f"agent {i} has not heard agents {gap} within {self.net.start_timeout:g} s: it starts without them"
             )
+        if unrouted():
+            self._say(f"no route to the observations of agents {unrouted()} yet: they may miss the first steps")
         return set(self.heard)
 
     def decide(self, obs):

@@ -290,6 +290,11 @@ class _FakeEndpoint:
     def publish(self, data, *parts):
         self.published.append(("/".join(map(str, parts)), data))
 
+    unrouted: tuple = ()
+
+    def matched(self, *parts):  # (a route to every subscriber but the agents named unrouted)
+        return not (parts[0] == "obs" and parts[1] in self.unrouted)
+
     sent = sent_bytes = 0
 
     def get(self, timeout):
@@ -393,6 +398,13 @@ def test_world_starts_once_every_agent_has_heard_every_other(emp_dir, capsys):
     assert world.wait_for_agents({0, 1, 2}) == {0, 1, 2}
     err = capsys.readouterr().err
     assert "agent 0 has not heard agents [1, 2]" in err and "agent 1 has not heard agents [2]" in err
+    # every hello heard, but agent 1's subscription to its observations not routed yet: the world
+    # waits for the route (a first OBS put before it would be dropped), and names it at the timeout
+    ep = _QueuedEndpoint(packets)
+    ep.unrouted = (1,)
+    world = World(model, s, NetSettings(start_timeout=0.3), ep)
+    assert world.wait_for_agents({0, 1, 2}) == {0, 1, 2}
+    assert not ep.queue and "no route to the observations of agents [1] yet" in capsys.readouterr().err
 
 
 def test_hello_packet_round_trip_and_refusals():

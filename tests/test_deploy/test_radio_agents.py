@@ -161,6 +161,9 @@ class _Endpoint:
     def publish(self, data, *parts):
         pass
 
+    def matched(self, *parts):
+        return True
+
     def get(self, timeout):
         return None
 

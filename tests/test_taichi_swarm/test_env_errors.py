@@ -152,3 +152,17 @@ def test_reset_envs_rejects_bad_masks():
 def test_list_sizes_and_a_zero_sense_radius_are_refused_before_allocation(kw, says):
     with pytest.raises(ValueError, match=says):
         taichi_swarm.make("coverage", 2, 5, array="numpy", **kw)
+
+
+@pytest.mark.parametrize("kw", [{}, {"neighbours": 3}])
+def test_warm_up_compiles_and_leaves_the_env_as_made(kw):
+    """``warm_up`` (what swarm world calls before its agents start): the same episodes after it as
+    without it, from the first reset on."""
+    made = [taichi_swarm.make("coverage", 3, 4, seed=5, array="numpy", **kw) for _ in range(2)]
+    made[1].warm_up()
+    first = [env.reset() for env in made]
+    assert all(np.array_equal(first[0][k], first[1][k]) for k in first[0])
+    actions = np.random.default_rng(0).integers(0, 5, size=(4, 3, 4))
+    for a in actions:
+        steps = [env.step(a) for env in made]
+        assert np.array_equal(steps[0][1], steps[1][1]) and np.array_equal(steps[0][0]["self"], steps[1][0]["self"])
