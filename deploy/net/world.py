@@ -112,6 +112,11 @@ class AgentReport:
         return out
 
 
+# claimants of a bound id named in the log, each once, up to this many per id (a launcher gone wrong
+# can start a flood of them; every one is refused all the same)
+NAMED_CLAIMANTS = 8
+
+
 class World:
     """B parallel worlds of M agents whose decisions come over the network."""
 
@@ -132,7 +137,7 @@ class World:
         self.env = None
         self.refused: set[int] = set()  # ids only heard from agents of another export
         self.duplicates: set[int] = set()  # ids a second instance claimed while the first was live
-        self._named: dict[int, tuple[int, float]] = {}  # id -> (the claimant last named, when)
+        self._named: dict[int, set[int]] = {}  # id -> the claimants (nonces) named, up to NAMED_CLAIMANTS
         self._claims: dict[int, tuple[int, float]] = {}  # id -> (another instance claiming it, since when)
         self._told: dict[int, float] = {}  # id -> when a refused instance of it was last told
         self.heard: set[int] = set()  # the ids bound
@@ -225,9 +230,9 @@ class World:
             if self.last_heard[i] > claim[1]:
                 self.dropped["refused"] += 1
                 self.duplicates.add(i)
-                named, when = self._named.get(i, (None, -np.inf))
-                if named != h.nonce and t - when >= 1.0:  # (each claimant once; a flood of them a line a second)
-                    self._named[i] = (h.nonce, t)
+                named = self._named.setdefault(i, set())
+                if h.nonce not in named and len(named) < NAMED_CLAIMANTS:  # (each claimant once; a flood, a few)
+                    named.add(h.nonce)
                     self._say(f"a second agent claims --id {i}, which a live agent holds: the second is refused")
                 return self._tell(i, h.nonce, P.REFUSED_ID)
             silent = t - self.last_heard[i]
