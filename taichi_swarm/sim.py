@@ -101,9 +101,6 @@ CHECKS = {
 }
 
 
-NULLABLE = ("agents", "neighbours", "landmark_neighbours", "sense_radius", "auction_rounds", "scale")
-
-
 def check_value(field: str, value):
     """``value`` of ``field`` as its own check takes it (None: unset, taken as is)."""
     return value if value is None else CHECKS[field](value)
@@ -229,11 +226,10 @@ class Sim:
     def swarm_record(self) -> dict:
         """The "swarm" dict a checkpoint or manifest stores: the options that differ from the
         paper's setting (none: the dense layout, the paper's geometry and 5 actions)."""
-        defaults = Sim(self.task)
         return {
             f.name: getattr(self, f.name)
             for f in dataclasses.fields(self)
-            if f.name not in TASK_KEYS and getattr(self, f.name) != getattr(defaults, f.name)
+            if f.name not in TASK_KEYS and getattr(self, f.name) != f.default
         }
 
     @classmethod
@@ -279,3 +275,4 @@ class Sim:
 
 FIELDS = tuple(f.name for f in dataclasses.fields(Sim))
 SWARM_KEYS = tuple(k for k in FIELDS if k not in TASK_KEYS)
+NULLABLE = tuple(f.name for f in dataclasses.fields(Sim) if f.default is None)  # None: unset

@@ -15,6 +15,7 @@ from typing import Literal
 
 from taichi_swarm import NUM_ACTIONS, TASK_SPECS, num_actions
 from taichi_swarm.sim import Sim
+from trainer.evaluate import check_policy_actions
 from trainer.model import ENTITY_MODES, MAX_HIDDEN, MAX_ROUNDS, ModelConfig
 
 # Options of experiments that lost, with the value that meant "off": a stored run that set one
@@ -286,9 +287,7 @@ class TrainConfig:
         return cls(preset=preset, ppo=dataclasses.replace(PRESETS[preset], **(ppo or {})), **options)
 
     def validate(self) -> None:
-        sim = self.sim  # the setting's own checks (taichi_swarm.Sim)
-        if sim.action_space not in ("discrete", "fine"):
-            raise ValueError(f"action_space must be discrete or fine for a policy, got {sim.action_space!r}")
+        check_policy_actions(self.sim)  # (building the Sim runs the setting's own checks)
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
         if self.reward not in ("team", "agent"):

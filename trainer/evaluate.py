@@ -14,6 +14,14 @@ ACTION_MODES = ("greedy", "sampled")
 ACTION_SETS = tuple(space for space in taichi_swarm.ACTION_SPACES if taichi_swarm.num_actions(space))
 
 
+def check_policy_actions(sim: Sim) -> None:
+    """A policy (a head of logits) runs only a discrete action space (ACTION_SETS)."""
+    if sim.action_space not in ACTION_SETS:
+        raise ConfigError(
+            "action_space", f"action_space must be one of {ACTION_SETS} for a policy, got {sim.action_space!r}"
+        )
+
+
 @torch.no_grad()
 def evaluate(
     policy,
@@ -46,10 +54,7 @@ def evaluate(
     sim = sim if sim is not None else getattr(policy, "sim", None)
     if not isinstance(sim, Sim):
         raise ConfigError("sim", f"evaluate() needs a taichi_swarm.Sim (load_policy records the policy's), got {sim!r}")
-    if sim.action_space not in ACTION_SETS:
-        raise ConfigError(
-            "action_space", f"action_space must be one of {ACTION_SETS} for a policy, got {sim.action_space!r}"
-        )
+    check_policy_actions(sim)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small batched forwards: more threads stall on a busy 2-core machine
     try:

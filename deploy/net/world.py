@@ -288,8 +288,9 @@ class World:
             self._say(
                 f"agent {i} has not heard agents {gap} within {self.net.start_timeout:g} s: it starts without them"
             )
-        if unrouted():
-            self._say(f"no route to the observations of agents {unrouted()} yet: they may miss the first steps")
+        unreached = unrouted()
+        if unreached:
+            self._say(f"no route to the observations of agents {unreached} yet: they may miss the first steps")
         return set(self.heard)
 
     def decide(self, obs):
