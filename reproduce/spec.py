@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 from baselines.config import BaselineConfig
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from taichi_swarm.files import InputFileError, read_input_text
-from trainer.config import PRESETS, RETIRED, CurriculumConfig, TrainConfig
+from trainer.config import PRESETS, RETIRED, SIM_FIELDS, CurriculumConfig, TrainConfig, nest_sim, to_dict
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -121,15 +121,15 @@ class _FromCell(_Evaluated):
 
     @property
     def task(self) -> str:
-        return self.config.task
+        return self.config.sim.task
 
     @property
     def comm(self) -> str:
-        return self.config.comm
+        return self.config.sim.comm
 
     @property
     def comm_radius(self) -> float:
-        return self.config.comm_radius
+        return self.config.sim.comm_radius
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -143,7 +143,7 @@ class Train(_FromCell):
 
     def __post_init__(self):
         super().__post_init__()
-        _check_sizes("agents", [self.config.agents], self.task)
+        _check_sizes("agents", [self.agents], self.task)
         if self.config.team_sizes:
             _check_sizes("team_sizes", self.config.team_sizes, self.task)
         _check_counts(self.config, updates=self.config.updates, polish_updates=self.polish_updates)
@@ -155,7 +155,7 @@ class Train(_FromCell):
 
     @property
     def agents(self) -> int:
-        return self.config.agents
+        return self.config.sim.agents
 
     def budget_updates(self) -> int:
         return self.config.updates + self.polish_updates
@@ -172,13 +172,13 @@ class Curriculum(_FromCell):
 
         super().__post_init__()
         c = self.config
-        _check_sizes("sizes", c.sizes, c.task)
+        _check_sizes("sizes", c.sizes, self.task)
         _check_counts(c, max_updates_per_stage=c.max_updates_per_stage, polish_updates=c.polish_updates)
-        if c.model.entity_mode == "concat" and c.task == "coverage":
+        if c.model.entity_mode == "concat" and self.task == "coverage":
             raise ValueError(
                 "entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size"
             )
-        c.agents, c.updates = c.sizes[0], c.max_updates_per_stage  # (the stages set them: the first stage's)
+        c.sim, c.updates = c.sim_at(c.sizes[0]), c.max_updates_per_stage  # (the stages set them: the first stage's)
         check_curriculum(
             c.train_config(), c.sizes, c.threshold, c.max_updates_per_stage, c.min_updates_per_stage,
             c.fresh_eval_episodes, c.fresh_eval_seed, c.polish_updates, c.polish_lr,
@@ -282,7 +282,7 @@ class Cell:
     def definition(self) -> dict:
         """Everything that decides what is run: the run's config (not the paper's numbers,
         the label, the table or the transfer offsets), as JSON holds it."""
-        return _as_json({"schema": SCHEMA_VERSION, "kind": self.kind, **dataclasses.asdict(self.run)})
+        return _as_json({"schema": SCHEMA_VERSION, "kind": self.kind, **_flat(self.run)})
 
     def digest(self) -> str:
         return hashlib.sha256(json.dumps(self.definition(), sort_keys=True).encode()).hexdigest()[:16]
@@ -365,7 +365,17 @@ def canonical(stored: dict) -> dict:
     d = _without_retired(migrate(stored, stored.get("schema", 1)))
     run = RUNS[d["kind"]]
     values = {k: v for k, v in d.items() if k not in ("schema", "kind")}
-    return _as_json({"schema": SCHEMA_VERSION, "kind": d["kind"], **dataclasses.asdict(convert(run, values))})
+    if "config" in values and d["kind"] in ("train", "curriculum"):
+        values["config"] = nest_sim(values["config"])
+    return _as_json({"schema": SCHEMA_VERSION, "kind": d["kind"], **_flat(convert(run, values))})
+
+
+def _flat(run) -> dict:
+    """``asdict(run)`` with a train or curriculum config as ``to_dict`` stores it (the Sim's fields
+    among the others, as a spec names them)."""
+    if isinstance(run, (Train, Curriculum)):
+        return {**dataclasses.asdict(run), "config": to_dict(run.config)}
+    return dataclasses.asdict(run)
 
 
 # --- TOML values into the dataclasses ---------------------------------------------------
@@ -409,7 +419,7 @@ def _value(tp, value, name: str):
             raise SpecError(f"{name} must be a list of {_TYPE_NAMES[item].split(' ', 1)[1]}s, got {value!r}")
         return tuple(value)
     if dataclasses.is_dataclass(tp):
-        return convert(tp, value, "" if name == "config" else name + ".")  # (a run's config: its own names)
+        return convert(tp, value, "" if name in ("config", "sim") else name + ".")  # (a run's config: its own names)
     want = origin or tp
     if want in _TYPE_NAMES and not _is(want, value):
         raise SpecError(f"{name} must be {_TYPE_NAMES[want]}, got {value!r}")
@@ -436,6 +446,7 @@ def _keys(kind: str) -> set[str]:
     if kind == "baseline":
         return ({f.name for f in dataclasses.fields(BaselineConfig)} - set(BASELINE_SET)) | {"final_episodes"}
     config = {f.name for f in dataclasses.fields(CurriculumConfig if kind == "curriculum" else TrainConfig)}
+    config = config - {"sim"} | set(SIM_FIELDS)  # (a spec names the Sim's fields as its own keys)
     return own | (config - set(SET_BY_REPRODUCE) - (set(STAGE_SET) if kind == "curriculum" else set()))
 
 
@@ -460,7 +471,7 @@ def _nest(kind: str, entry: dict) -> dict:
     if unknown:
         raise SpecError(f"ppo has unknown options {unknown}")
     config["ppo"] = {**dataclasses.asdict(copy.deepcopy(PRESETS[preset])), **overrides}
-    return {**{k: v for k, v in entry.items() if k in own}, "config": {**config, **_set_by_reproduce(kind)}}
+    return {**{k: v for k, v in entry.items() if k in own}, "config": nest_sim({**config, **_set_by_reproduce(kind)})}
 
 
 def _set_by_reproduce(kind: str) -> dict:

@@ -23,6 +23,7 @@ import math
 import os
 import re
 import sys
+import typing
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
@@ -170,37 +171,45 @@ class SettingOptions:
         }
 
 
-@dataclass(kw_only=True)
-class SwarmOptions:
-    """The simulator's neighbour lists and density scaling (all unset: the dense layout and
-    the paper's geometry)."""
+def _run_time_options() -> list:
+    """SwarmOptions' fields: every field of taichi_swarm.Sim that a command may set over a
+    policy's own (sim.RUN_TIME_KEYS), with the Sim's docstring as its --help, unset by default."""
+    from tyro.constructors import ConstructorRegistry, StructTypeInfo
 
-    neighbours: Annotated[int | None, Default("dense", "K")] = None
-    """each agent hears its K nearest (within --comm-radius under rc) as lists, not the dense graph"""
-    landmark_neighbours: Annotated[int | None, Default("every landmark", "KL")] = None
-    """each agent senses its KL nearest landmarks within --sense-radius"""
-    sense_radius: Annotated[float | None, Default("the simulator's", "R")] = None
-    """landmark sensing radius of --landmark-neighbours"""
-    scale: Annotated[Literal["density"] | None, Default("the paper's geometry")] = None
-    """density: the arena and shapes grow with M so agents per unit area stay as at M = 10"""
-    assignment: Annotated[Literal["exact", "free"] | None, Default(OWN)] = None
-    """targets to agents: exact (min-sum) or free (local, covered by a max matching, each agent
-    paid by its matched or nearest free target; needs --neighbours)"""
-    landmark_order: Annotated[Literal["nearest", "radio"] | None, Default(OWN)] = None
-    """landmark lists: the nearest, or only the landmark the agent holds in the agents' own
-    auction by messages to the teammates they hear (radio; with --assignment free); needs the
-    policy's occupancy input"""
-    auction_rounds: Annotated[int | None, Default(OWN, "R")] = None
-    """with --landmark-order radio: R message rounds a step (unset: 4)"""
+    from taichi_swarm.sim import RUN_TIME_KEYS, Sim
 
-    def __post_init__(self):
-        self.swarm_kwargs()
+    spec = ConstructorRegistry.get_struct_spec(StructTypeInfo.make(Sim, tyro.MISSING_NONPROP, False))
+    docs = {f.name: f.helptext() if callable(f.helptext) else f.helptext for f in spec.fields}
+    out = []
+    for f in dataclasses.fields(Sim):
+        if f.name in RUN_TIME_KEYS:
+            typ = typing.get_type_hints(Sim)[f.name]
+            metavar = None if typing.Literal in map(typing.get_origin, (typ, *typing.get_args(typ))) else "N"
+            typ = typ | None
+            arg = tyro.conf.arg(help=docs[f.name], metavar=metavar, help_behavior_hint=f"(default: {OWN})")
+            out.append((f.name, Annotated[typ, arg], dataclasses.field(default=None)))
+    return out
 
-    def swarm_kwargs(self) -> dict:
-        """The options set, as ``Sim.override`` keywords over the policy's own (each checked)."""
-        names = ("neighbours", "landmark_neighbours", "sense_radius", "scale", "assignment", "landmark_order",
-                 "auction_rounds")  # fmt: skip
-        return check_setting({name: getattr(self, name) for name in names})
+
+def _swarm_post_init(self):
+    self.swarm_kwargs()
+
+
+def _swarm_kwargs(self) -> dict:
+    """The options set, as ``Sim.override`` keywords over the policy's own (each checked)."""
+    from taichi_swarm.sim import RUN_TIME_KEYS
+
+    return check_setting({name: getattr(self, name) for name in RUN_TIME_KEYS})
+
+
+# The simulator's options a command runs a policy on (all unset: the policy's own): made from the
+# Sim's fields, so a field added there is an option of eval, zero-shot and execute too.
+SwarmOptions = dataclasses.make_dataclass(
+    "SwarmOptions",
+    _run_time_options(),
+    kw_only=True,
+    namespace={"__post_init__": _swarm_post_init, "swarm_kwargs": _swarm_kwargs, "__module__": __name__},
+)
 
 
 @dataclass(kw_only=True)

@@ -6,12 +6,15 @@ import dataclasses
 import json
 import os
 import sys
+import types
+import typing
 from typing import Annotated, Literal, TypedDict
 
 import tyro
 from tyro.constructors import ConstructorRegistry, StructTypeInfo
 
 from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ZeroShotOptions, at_least, cli, fail, parse
+from taichi_swarm.sim import FIELDS as SIM_FIELDS
 from trainer.checkpoint import CheckpointError, atomic_write_json, ensure_writable
 from trainer.rundir import POLICY
 
@@ -20,7 +23,9 @@ USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, CheckpointError)
 
 # `swarm train --help` / `swarm curriculum --help` lists the options a run is most often changed
 # by first, then the rest in groups by what they are about; a group's flags keep their plain
-# names (--neighbours, not --large-teams.neighbours). A field of the config in no group here is
+# names (--neighbours, not --large-teams.neighbours). The simulated setting's fields (taichi_swarm.Sim,
+# the config's ``sim``) are options of their own; those no other group names are "large teams",
+# so a field added to the Sim is an option there. A field of the config in no group here is
 # listed under "other" (a test keeps that group empty).
 GROUPS = {
     "": ("", "task agents comm comm_radius preset updates seed run_dir device"),
@@ -29,10 +34,7 @@ GROUPS = {
         "sizes threshold max_updates_per_stage min_updates_per_stage fresh_eval_episodes fresh_eval_seed "
         "polish_updates polish_lr",
     ),
-    "large teams": (
-        "neighbour lists and density scaling (docs/SWARM.md)",
-        "neighbours landmark_neighbours sense_radius landmark_occupancy landmark_order auction_rounds scale assignment",
-    ),
+    "large teams": ("neighbour lists and density scaling (docs/SWARM.md)", "*"),  # (*: the Sim's other fields)
     "faults": ("a lossy radio in training (evaluations are fault-free)", "message_drop drop_per_round"),
     "training": (
         "what the run learns from",
@@ -58,17 +60,28 @@ def _text(value) -> str:
     return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
 
+def _fields(cls):
+    return ConstructorRegistry.get_struct_spec(StructTypeInfo.make(cls, tyro.MISSING_NONPROP, False)).fields
+
+
 def _options(cls, values) -> dict:
     """The fields of dataclass ``cls`` as options tyro leaves out of its result unless given (a
     TypedDict's, total=False), each with its docstring and "(default: ...)": ``values(name)``, the
-    field's value under each preset, shown as the default preset's and the others' that differ."""
+    field's value under each preset, shown as the default preset's and the others' that differ.
+    The config's ``sim`` gives its fields as options of their own."""
+    from taichi_swarm.sim import Sim
     from trainer.config import DEFAULT_PRESET, PRESETS
 
     out = {}
-    for f in ConstructorRegistry.get_struct_spec(StructTypeInfo.make(cls, tyro.MISSING_NONPROP, False)).fields:
+    for f in _fields(cls):
+        if f.name == "sim":
+            out.update(_options(Sim, lambda name: {p: getattr(s, name) for p, s in values("sim").items()}))
+            continue
         typ, by_preset = f.type, values(f.name)
         if f.name == "preset":  # a choice: tyro refuses another naming the presets
             typ, by_preset = Literal[tuple(PRESETS)], {DEFAULT_PRESET: DEFAULT_PRESET}
+        elif None not in by_preset.values() and typing.get_origin(typ) in (typing.Union, types.UnionType):
+            typ = typing.Union[tuple(a for a in typing.get_args(typ) if a is not type(None))]  # (never None here)
         default = by_preset[DEFAULT_PRESET]
         others = ", ".join(f"{p}: {_text(v)}" for p, v in by_preset.items() if v != default)
         hint = f"(default: {_text(default)}" + (f"; --preset {others})" if others else ")")
@@ -92,8 +105,10 @@ def _schema(config_type, brief: bool = False):
     fields = _options(config_type, lambda name: {p: getattr(c, name) for p, c in configs.items()})
     if not hasattr(config_type, "sizes"):  # (a curriculum resumes by its own command)
         fields["resume"] = RESUME
-    top = {}
+    top, named = {}, {name for _, names in GROUPS.values() for name in names.split()}
     for title, (about, names) in [*GROUPS.items(), ("other", ("", " ".join(fields)))]:
+        if names == "*":
+            names = " ".join(name for name in SIM_FIELDS if name not in named)
         group = {name: fields.pop(name) for name in names.split() if name in fields and name not in ("model", "ppo")}
         if not title:
             top = group

@@ -113,32 +113,41 @@ class Sim:
     task: str
     """coverage | formation | line."""
     agents: int | None = None
-    """Team size M (None: not recorded, as in a manifest exported without one; ``make`` needs it)."""
+    """Team size M (None only in a manifest exported without one)."""
     comm: Literal["uc", "rc"] = "uc"
-    """uc: every agent hears every agent; rc: only those within comm_radius."""
+    """uc (everyone hears everyone) | rc (only within comm_radius)."""
     comm_radius: float = 1.0
-    """The radius of rc."""
+    """Communication radius of "rc"."""
     action_space: Literal["discrete", "fine", "continuous"] = "discrete"
-    """discrete: the paper's 5 actions; fine: those and four quarter pushes (physics.FINE);
-    continuous: MPE's continuous mode."""
+    """discrete: the paper's 5 actions; fine: 9, the paper's and four pushes at a quarter of the
+    force, with which an agent at rest can park within 0.035 of any point (physics.FINE;
+    ``--init-from`` a 5-action policy starts the new four as copies of the full pushes, less
+    likely); continuous: MPE's continuous mode (no policy here trains on it)."""
     neighbours: int | None = None
-    """K: each agent's K nearest heard agents as index lists, not the M x M graph (None: dense)."""
+    """K: each agent hears its K nearest (within comm_radius under rc) as neighbour lists, not the
+    dense M x M graph; the network's cost per agent then depends on K, not M (None: dense)."""
     landmark_neighbours: int | None = None
-    """KL: each agent's KL nearest landmarks within sense_radius (None: every landmark)."""
+    """KL: each agent senses its KL nearest landmarks within sense_radius (None: every landmark)."""
     sense_radius: float | None = None
-    """How far an agent senses landmarks (with landmark_neighbours)."""
+    """Landmark sensing radius of ``landmark_neighbours``."""
     landmark_occupancy: bool = False
-    """Each listed landmark also reads its distance to the nearest other agent, capped at sense_radius."""
+    """With neighbours and landmark_neighbours: each sensed landmark also carries its distance to
+    the nearest other agent (capped at sense_radius), as a range sensor at the landmark would
+    report it; the network takes it as a third landmark input (docs/SWARM.md)."""
     landmark_order: Literal["nearest", "radio"] = "nearest"
-    """nearest: the KL nearest listed landmarks; radio: the one landmark the agent holds in the
-    auction the agents run by messages to the teammates they hear (radio.py)."""
+    """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; radio
+    (with assignment free), only the landmark the agent holds in an auction the agents run by
+    messages to the teammates they hear, each over the landmarks it senses: a planner picks the
+    landmark, the network drives (radio.py, docs/SWARM.md)."""
     auction_rounds: int | None = None
-    """With landmark_order radio: R message rounds a step (None: radio.DEFAULT_ROUNDS)."""
+    """With landmark_order radio: R message rounds a step (None: 4)."""
     scale: Literal["density"] | None = None
-    """density: the arena grows with M, keeping the agents per unit area of M = 10."""
+    """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
+    (None: the paper's geometry)."""
     assignment: Literal["exact", "free"] = "exact"
-    """exact: the paper's min-sum matching; free (with neighbours): local rewards and a
-    threshold matching, no M x M block (nearest.py)."""
+    """How targets are matched to agents for the reward: exact, the paper's min-sum matching; free
+    (with neighbours), each agent paid by its matched target or, unmatched, the nearest free one,
+    success from a maximum matching within the threshold: local, no M x M block (nearest.py)."""
 
     def __post_init__(self):
         from .tasks import TASK_SPECS
@@ -275,4 +284,7 @@ class Sim:
 
 FIELDS = tuple(f.name for f in dataclasses.fields(Sim))
 SWARM_KEYS = tuple(k for k in FIELDS if k not in TASK_KEYS)
+# what a command may set over a stored policy's setting: not its task's keys (their own options),
+# nor the network's inputs and outputs (its occupancy input, its action set)
+RUN_TIME_KEYS = tuple(k for k in SWARM_KEYS if k not in ("action_space", "landmark_occupancy"))
 NULLABLE = tuple(f.name for f in dataclasses.fields(Sim) if f.default is None)  # None: unset

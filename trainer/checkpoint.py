@@ -495,7 +495,7 @@ def open_run(cfg, resume: str | None, overrides: dict | None = None):
         os.makedirs(run.path, exist_ok=True)
         cfg.validate()
         run.truncate_metrics(0)  # lines a run killed before its first checkpoint left behind
-        run.write_config(cfg)
+        run.write_config(to_dict(cfg))
         return run, cfg, None
     run = rundir.RunDir(resume)
     clean_leftovers(run.path)  # a kill during a write leaves a .tmp-* file
@@ -518,7 +518,7 @@ def open_run(cfg, resume: str | None, overrides: dict | None = None):
     cfg = dataclasses.replace(cfg, **(overrides or {}))
     run.truncate_metrics(payload["counters"]["update"])
     cfg.validate()
-    run.write_config(cfg)
+    run.write_config(to_dict(cfg))
     return run, cfg, payload
 
 

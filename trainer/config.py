@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from taichi_swarm import NUM_ACTIONS, TASK_SPECS, num_actions
-from taichi_swarm.sim import Sim
+from taichi_swarm.sim import FIELDS as SIM_FIELDS
+from taichi_swarm.sim import NULLABLE, Sim
 from trainer.evaluate import check_policy_actions
 from trainer.model import ENTITY_MODES, MAX_HIDDEN, MAX_ROUNDS, ModelConfig
 
@@ -152,53 +153,17 @@ PRESETS["gpu"] = dataclasses.replace(PRESETS["fast"], num_envs=4096, num_steps=1
 # steps; fast's 2200 of 2048 (the same 4.5 M env steps); gpu's 300 of 65536.
 PRESET_UPDATES = {"paper": 1100, "fast": 2200, "gpu": 300}
 DEFAULT_PRESET = "fast"  # what `swarm train` and `swarm curriculum` start from
+DEFAULT_SIM = Sim("coverage", 3)  # a run's setting where it names none: the paper's smallest team
 
 
 @dataclass
 class TrainConfig:
     """``swarm train``: one task, one team size, PPO from scratch or from a checkpoint."""
 
-    task: str = "coverage"
-    """coverage | formation | line."""
-    agents: int = 3
-    """Team size M."""
-    comm: str = "uc"
-    """uc (everyone hears everyone) | rc (only within comm_radius)."""
-    comm_radius: float = 1.0
-    """Communication radius of "rc"."""
-    neighbours: int | None = None
-    """K: each agent hears its K nearest (within comm_radius under rc) as neighbour lists, not the
-    dense M x M graph; the network's cost per agent then depends on K, not M (None: dense)."""
-    landmark_neighbours: int | None = None
-    """KL: each agent senses its KL nearest landmarks within sense_radius (None: every landmark)."""
-    sense_radius: float | None = None
-    """Landmark sensing radius of ``landmark_neighbours`` (None: the simulator's)."""
-    landmark_occupancy: bool = False
-    """With neighbours and landmark_neighbours: each sensed landmark also carries its distance
-    to the nearest other agent (capped at sense_radius), whether a teammate already holds it;
-    the network takes it as a third landmark input (docs/SWARM.md)."""
-    landmark_order: Literal["nearest", "radio"] = "nearest"
-    """With landmark_occupancy: nearest, the KL nearest landmarks within sense_radius; radio
-    (with assignment free), only the landmark the agent holds in an auction the agents run by
-    messages to the teammates they hear, each over the landmarks it senses: a planner picks the
-    landmark, the network drives (taichi_swarm/radio.py, docs/SWARM.md)."""
-    auction_rounds: int | None = None
-    """With landmark_order radio: R message rounds a step (None: 4)."""
-    scale: Literal["density"] | None = None
-    """density: the arena and shapes grow with M so agents per unit area stay as at M = 10
-    (None: the paper's geometry)."""
-    assignment: Literal["exact", "free"] | None = None
-    """How targets are matched to agents for the reward: exact (the paper's min-sum matching,
-    the default) or free (with neighbour lists: the team reward from each target's nearest
-    agent, local and flat in cost per agent; success from a maximum matching within the
-    threshold; each agent's own reward from its matched target or, unmatched, the nearest free
-    one: a duplicate is paid to cross to a free target). docs/SWARM.md."""
-    action_space: Literal["discrete", "fine"] = "discrete"
-    """discrete: the paper's 5 actions; fine: 9, the paper's and four pushes at a quarter of the
-    force, with which an agent at rest can park within 0.035 of any point, where with the
-    paper's it parks only on a lattice of side 0.2 and holds a point in between by alternating
-    pushes (taichi_swarm.physics.FINE, docs/SWARM.md). The policy records it; ``--init-from`` a
-    5-action policy starts the four new actions as copies of the full pushes, less likely."""
+    sim: Sim = DEFAULT_SIM
+    """The simulated setting: the task, the team and how its agents hear and sense
+    (``taichi_swarm.Sim``, where each of its options is declared and checked). The command line
+    and the specs give its fields as options of their own (--task, --agents, --neighbours ...)."""
     message_drop: float = 0.0
     """Train through a lossy radio: every rollout draws, per environment, a drop rate uniformly
     from [0, message_drop], and every step drops each message (an edge of the communication
@@ -278,16 +243,27 @@ class TrainConfig:
     """PPO hyperparameters (those not given: the preset's)."""
 
     @classmethod
+    def of(cls, **options):
+        """This config from its options as the command line and the specs name them: the Sim's
+        fields (task, agents, neighbours ...) among the others, each set on the default Sim."""
+        sim = {k: options.pop(k) for k in list(options) if k in SIM_FIELDS}
+        if sim:
+            options["sim"] = dataclasses.replace(options.get("sim") or DEFAULT_SIM, **sim)
+        return cls(**options)
+
+    @classmethod
     def with_preset(cls, preset: str = DEFAULT_PRESET, ppo: dict | None = None, **options):
         """This config as ``preset`` makes it: the preset's PPO values and update budget, with the
-        ``ppo`` fields and ``options`` given over them (what ``swarm train`` parses into)."""
+        ``ppo`` fields and ``options`` (``of``'s) given over them (what ``swarm train`` parses into)."""
         if preset not in PRESETS:
             raise ValueError(f"--preset must be one of {tuple(PRESETS)}, got {preset!r}")
         options.setdefault("updates", PRESET_UPDATES[preset])
-        return cls(preset=preset, ppo=dataclasses.replace(PRESETS[preset], **(ppo or {})), **options)
+        return cls.of(preset=preset, ppo=dataclasses.replace(PRESETS[preset], **(ppo or {})), **options)
 
     def validate(self) -> None:
-        check_policy_actions(self.sim)  # (building the Sim runs the setting's own checks)
+        sim = self.sim
+        sim.team_size("the run")
+        check_policy_actions(sim)  # (the Sim checked itself when it was made)
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {tuple(PRESETS)}, got {self.preset!r}")
         if self.reward not in ("team", "agent"):
@@ -297,9 +273,9 @@ class TrainConfig:
         for name in ("updates", "eval_every", "eval_episodes", "checkpoint_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        smallest = TASK_SPECS[self.task].min_agents
+        smallest = TASK_SPECS[sim.task].min_agents
         if any(m < smallest for m in self.team_sizes):
-            raise ValueError(f"team_sizes must be >= {smallest} for {self.task}, got {self.team_sizes}")
+            raise ValueError(f"team_sizes must be >= {smallest} for {sim.task}, got {self.team_sizes}")
         if len(set(self.team_sizes)) != len(self.team_sizes):
             raise ValueError(f"team_sizes must not repeat a size, got {self.team_sizes}")
         if self.team_sizes and self.ppo.num_envs % len(self.team_sizes):
@@ -313,13 +289,13 @@ class TrainConfig:
                 f"({len(self.team_sizes)}): every minibatch holds one size"
             )
         if self.model.num_landmarks:  # the trainer sets it from the task; another value would be dropped silently
-            L = TASK_SPECS[self.task].num_landmarks(self.agents)
+            L = TASK_SPECS[sim.task].num_landmarks(sim.agents)
             if self.model.entity_mode != "concat" or self.model.num_landmarks != L:
                 raise ValueError(
-                    f"model.num_landmarks follows the task (concat: {self.task} at M = {self.agents} has {L}): "
+                    f"model.num_landmarks follows the task (concat: {sim.task} at M = {sim.agents} has {L}): "
                     "leave it unset"
                 )
-        if self.team_sizes and self.model.entity_mode == "concat" and self.task == "coverage":
+        if self.team_sizes and self.model.entity_mode == "concat" and sim.task == "coverage":
             raise ValueError("entity_mode='concat' has a fixed number of landmarks: coverage's L changes with M")
         if self.torch_threads < 1:
             raise ValueError(f"torch_threads must be >= 1, got {self.torch_threads}")
@@ -343,9 +319,9 @@ class TrainConfig:
             raise ValueError("drop_per_round draws losses per round: set message_drop > 0 with it")
         if not 0 <= self.target_success <= 1:
             raise ValueError(f"target_success must be in [0, 1], got {self.target_success}")
-        if self.model.landmark_occupancy and not self.landmark_occupancy:
+        if self.model.landmark_occupancy and not sim.landmark_occupancy:
             raise ValueError("model.landmark_occupancy follows landmark_occupancy (the simulator's): set that instead")
-        if self.model.num_actions not in (NUM_ACTIONS, num_actions(self.action_space)):
+        if self.model.num_actions not in (NUM_ACTIONS, num_actions(sim.action_space)):
             raise ValueError("model.num_actions follows action_space (the simulator's): set that instead")
         self.ppo.validate()
         self.validate_memory()
@@ -353,11 +329,14 @@ class TrainConfig:
     def validate_memory(self) -> None:
         """Refuse, before anything is allocated, a rollout larger than this machine's memory."""
         sizes = self.training_sizes()
-        spec = TASK_SPECS[self.task]
-        per_size = self.ppo.num_envs // len(sizes)
+        sim, per_size = self.sim, self.ppo.num_envs // len(sizes)
         need = sum(
             rollout_bytes(
-                self.ppo.num_steps, per_size, M, self.landmark_neighbours or spec.num_landmarks(M), self.neighbours
+                self.ppo.num_steps,
+                per_size,
+                M,
+                sim.landmark_neighbours or TASK_SPECS[sim.task].num_landmarks(M),
+                sim.neighbours,
             )
             for M in sizes
         )
@@ -369,25 +348,17 @@ class TrainConfig:
                 f"this machine has {have / 2**30:.1f} GiB: lower ppo.num_steps or ppo.num_envs"
             )
 
-    @property
-    def sim(self) -> Sim:
-        """The simulated setting this run trains in, as every layer takes it (checked there)."""
-        return Sim(
-            self.task, self.agents, self.comm, self.comm_radius, self.action_space, self.neighbours,
-            self.landmark_neighbours, self.sense_radius, self.landmark_occupancy, self.landmark_order,
-            self.auction_rounds, self.scale, self.assignment or "exact",
-        )  # fmt: skip
-
     def sim_at(self, agents: int) -> Sim:
         """``sim`` at another team size (team_sizes, transfer evaluations)."""
         return dataclasses.replace(self.sim, agents=agents)
 
     def training_sizes(self) -> list[int]:
         """The team sizes the rollouts use: ``team_sizes``, else ``agents``."""
-        return list(self.team_sizes) or [self.agents]
+        return list(self.team_sizes) or [self.sim.agents]
 
     def default_run_dir(self) -> str:
-        return self.run_dir or f"runs/{self.task}-m{self.agents}-{self.comm}-s{self.seed}"
+        s = self.sim
+        return self.run_dir or f"runs/{s.task}-m{s.agents}-{s.comm}-s{self.seed}"
 
 
 @dataclass
@@ -432,11 +403,25 @@ class CurriculumConfig(TrainConfig):
         return TrainConfig(**{name: getattr(self, name) for name in names})
 
     def default_run_dir(self) -> str:
-        return self.run_dir or f"runs/curriculum-{self.task}-{self.comm}-s{self.seed}"
+        return self.run_dir or f"runs/curriculum-{self.sim.task}-{self.sim.comm}-s{self.seed}"
 
 
 def to_dict(cfg) -> dict:
-    return dataclasses.asdict(cfg)
+    """The config as a checkpoint and a spec's definition store it: one flat dict, the Sim's
+    fields among the others, as the command line names them."""
+    d = dataclasses.asdict(cfg)
+    d.update(d.pop("sim"))
+    return d
+
+
+def nest_sim(d: dict) -> dict:
+    """``to_dict``'s flat dict with the Sim's fields as one "sim" dict: those it lacks, and None
+    where a stored config left the Sim's default (its assignment), are the default Sim's."""
+    d = dict(d)
+    sim = {k: d.pop(k) for k in SIM_FIELDS if k in d}
+    d["sim"] = {"task": DEFAULT_SIM.task, "agents": DEFAULT_SIM.agents}
+    d["sim"].update({k: v for k, v in sim.items() if v is not None or k in NULLABLE})
+    return d
 
 
 def train_config_from_dict(d: dict) -> TrainConfig:
@@ -458,4 +443,6 @@ def train_config_from_dict(d: dict) -> TrainConfig:
     ppo_dict = dict(d.pop("ppo"))
     ppo_dict.setdefault("reset_return", True)  # runs from before the option existed reset it
     ppo = PPOConfig(**ppo_dict)
-    return TrainConfig(**d, model=model, ppo=ppo)
+    d = nest_sim(d)
+    sim = Sim(**d.pop("sim"))
+    return TrainConfig(**d, sim=sim, model=model, ppo=ppo)

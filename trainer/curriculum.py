@@ -103,7 +103,7 @@ def check_curriculum(
     for M in sizes:  # every stage's config checked before the run directory is made
         dataclasses.replace(
             base,
-            agents=M,
+            sim=base.sim_at(M),
             updates=max_updates_per_stage,
             target_success=threshold,
             min_updates=min_updates_per_stage,
@@ -142,7 +142,7 @@ def run_curriculum(
                 )
         stage_cfg = dataclasses.replace(
             base,
-            agents=M,
+            sim=base.sim_at(M),
             run_dir=stage_dir,
             init_from=previous_ckpt,
             updates=max_updates_per_stage,
@@ -171,7 +171,7 @@ def run_curriculum(
             )
         stages.append(stage)
         checkpoint.atomic_write_json(
-            results_path, {"task": base.task, "comm": base.comm, "threshold": threshold, "stages": stages}
+            results_path, {"task": base.sim.task, "comm": base.sim.comm, "threshold": threshold, "stages": stages}
         )
         previous_ckpt = os.path.join(final_dir, CHECKPOINT)
         previous_update = stage["polish"]["updates"] if polish_updates else summary["update"]

@@ -25,7 +25,6 @@ that write files or checkpoints import what they need when called.
 
 from __future__ import annotations
 
-import dataclasses
 import fcntl
 import json
 import os
@@ -197,10 +196,11 @@ class RunDir:
 
         atomic_write_bytes(self.metrics, lambda f: f.write("".join(keep).encode()))
 
-    def write_config(self, cfg) -> None:
+    def write_config(self, config: dict) -> None:
+        """config.json: the run's config, as ``trainer.config.to_dict`` writes it."""
         from taichi_swarm.files import atomic_write_json
 
-        atomic_write_json(self.config, dataclasses.asdict(cfg))
+        atomic_write_json(self.config, config)
 
     def budget(self) -> int:
         """The update budget config.json holds."""

@@ -73,13 +73,13 @@ def check_arch(arch: str) -> str:
 def model_config_for(cfg: TrainConfig) -> ModelConfig:
     """The model config with the task's L filled in for the "concat" entity mode, the
     landmark inputs' occupancy feature where the simulator gives it, and the action set's logits."""
-    m = cfg.model
-    if cfg.landmark_occupancy != m.landmark_occupancy:
-        m = dataclasses.replace(m, landmark_occupancy=cfg.landmark_occupancy)
-    if taichi_swarm.num_actions(cfg.action_space) != m.num_actions:
-        m = dataclasses.replace(m, num_actions=taichi_swarm.num_actions(cfg.action_space))
+    m, sim = cfg.model, cfg.sim
+    if sim.landmark_occupancy != m.landmark_occupancy:
+        m = dataclasses.replace(m, landmark_occupancy=sim.landmark_occupancy)
+    if taichi_swarm.num_actions(sim.action_space) != m.num_actions:
+        m = dataclasses.replace(m, num_actions=taichi_swarm.num_actions(sim.action_space))
     if m.entity_mode == "concat":
-        L = taichi_swarm.TASK_SPECS[cfg.task].num_landmarks(cfg.agents)
+        L = taichi_swarm.TASK_SPECS[sim.task].num_landmarks(sim.agents)
         m = dataclasses.replace(m, num_landmarks=L)  # every other field as configured
     return m
 
@@ -107,8 +107,8 @@ def transfer_sizes(cfg: TrainConfig) -> list[int]:
     """The neighbouring team sizes evaluated beside the training size: those the task has
     and the network can take ("concat": the training size's number of landmarks; "padded":
     at most PADDED_SLOTS landmarks)."""
-    spec, model = taichi_swarm.TASK_SPECS[cfg.task], model_config_for(cfg)
-    sizes = [cfg.agents + d for d in cfg.transfer_offsets if d != 0 and cfg.agents + d >= spec.min_agents]
+    spec, model, M = taichi_swarm.TASK_SPECS[cfg.sim.task], model_config_for(cfg), cfg.sim.agents
+    sizes = [M + d for d in cfg.transfer_offsets if d != 0 and M + d >= spec.min_agents]
     return [M for M in sizes if not model.landmark_misfit(spec.num_landmarks(M))]
 
 
@@ -193,7 +193,7 @@ class Reporter:
             from tqdm import tqdm
 
             sizes = ",".join(map(str, cfg.training_sizes()))
-            desc = f"{cfg.task} M={sizes} {cfg.comm}"
+            desc = f"{cfg.sim.task} M={sizes} {cfg.sim.comm}"
             self.progress = tqdm(total=cfg.updates, initial=start, desc=desc, unit="upd", dynamic_ncols=True)
 
     def report(self, record: dict, last_eval: dict | None) -> None:

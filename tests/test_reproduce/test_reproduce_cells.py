@@ -544,7 +544,7 @@ def test_min_updates_holds_a_run_past_its_target(tmp_path, monkeypatch):
 
     monkeypatch.setattr(train_mod, "evaluate_during_training", perfect)
     ppo = PRESETS["fast"].__class__(**{**PRESETS["fast"].__dict__, "num_envs": 4, "num_steps": 8, "minibatches": 1})
-    cfg = TrainConfig(
+    cfg = TrainConfig.of(
         agents=2, updates=8, eval_every=2, target_success=0.5, min_updates=3, run_dir=str(tmp_path / "run"),
         compile=False, progress=False, transfer_offsets=(), ppo=ppo,
     )  # fmt: skip
@@ -571,7 +571,7 @@ def test_a_run_stopped_at_its_target_stays_stopped_after_a_kill(tmp_path, monkey
 
     monkeypatch.setattr(train_mod, "evaluate_during_training", perfect)
     ppo = PRESETS["fast"].__class__(**{**PRESETS["fast"].__dict__, "num_envs": 4, "num_steps": 8, "minibatches": 1})
-    cfg = TrainConfig(agents=2, updates=6, eval_every=2, target_success=0.5, run_dir=str(tmp_path / "run"),
+    cfg = TrainConfig.of(agents=2, updates=6, eval_every=2, target_success=0.5, run_dir=str(tmp_path / "run"),
                       compile=False, progress=False, transfer_offsets=(), ppo=ppo)  # fmt: skip
     assert train_mod.train(cfg)["update"] == 2
     os.unlink(tmp_path / "run" / "summary.json")  # the kill
@@ -593,7 +593,7 @@ def test_a_larger_budget_extends_a_run_that_ran_out_short_of_its_target(tmp_path
 
     monkeypatch.setattr(train_mod, "evaluate_during_training", evaluation)
     ppo = PRESETS["fast"].__class__(**{**PRESETS["fast"].__dict__, "num_envs": 4, "num_steps": 8, "minibatches": 1})
-    cfg = TrainConfig(agents=2, updates=4, eval_every=2, target_success=0.5, run_dir=str(tmp_path / "run"),
+    cfg = TrainConfig.of(agents=2, updates=4, eval_every=2, target_success=0.5, run_dir=str(tmp_path / "run"),
                       compile=False, progress=False, transfer_offsets=(), ppo=ppo)  # fmt: skip
     first = train_mod.train(cfg)
     assert first["update"] == 4 and not first["reached_target"]

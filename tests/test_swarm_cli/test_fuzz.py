@@ -240,7 +240,7 @@ def test_settings_that_would_run_wrongly_are_refused(tiny_policy, tmp_path):
 def test_a_rollout_larger_than_memory_is_refused_with_the_memory_it_needs(tmp_path):
     from trainer.config import PPOConfig, TrainConfig
 
-    cfg = TrainConfig(agents=5000, ppo=PPOConfig(num_envs=2**20, num_steps=2**16), run_dir=str(tmp_path / "r"))
+    cfg = TrainConfig.of(agents=5000, ppo=PPOConfig(num_envs=2**20, num_steps=2**16), run_dir=str(tmp_path / "r"))
     with pytest.raises(ValueError, match=r"needs \d[\d.]* GiB for its rollout, this machine has"):
         cfg.validate()
 

@@ -127,7 +127,7 @@ def test_a_run_that_fails_before_its_first_checkpoint_leaves_no_run_directory(tm
 
     monkeypatch.setattr(taichi_swarm, "make", make_fails)
     run_dir = tmp_path / "runs" / "r"
-    cfg = TrainConfig(
+    cfg = TrainConfig.of(
         agents=2, updates=1, run_dir=str(run_dir), progress=False, compile=False,
         model=ModelConfig(hidden=8, rounds=1), ppo=PPOConfig(num_envs=2, num_steps=4, epochs=1, minibatches=1),
     )  # fmt: skip

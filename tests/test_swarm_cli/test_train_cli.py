@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from swarm_cli.main import main as swarm_main
+from taichi_swarm.sim import Sim
 from trainer import checkpoint
 from trainer.config import PPOConfig, TrainConfig
 from trainer.model import ModelConfig
@@ -37,7 +38,7 @@ def tiny(tmp_path, **kw):
         ppo=TINY_PPO,
         compile=False,
     )
-    return TrainConfig(**(base | kw))
+    return TrainConfig.of(**(base | kw))
 
 
 def test_run_dir_resume_and_refusal_to_overwrite(tmp_path):
@@ -252,12 +253,14 @@ def test_transfer_sizes_are_evaluated_and_logged(tmp_path):
 
     assert transfer_sizes(line) == [2, 4]  # line needs M >= 2
     # sizes the network cannot take are left out (else the first evaluation raises, on every resume)
-    padded = dataclasses.replace(cfg, agents=10, transfer_offsets=(-1, 1, 2), model=ModelConfig(entity_mode="padded"))
+    padded = dataclasses.replace(
+        cfg, sim=cfg.sim_at(10), transfer_offsets=(-1, 1, 2), model=ModelConfig(entity_mode="padded")
+    )
     assert transfer_sizes(padded) == [9]  # coverage M = 11, 12: more landmarks than its 10 slots
     concat_model = ModelConfig(entity_mode="concat", num_landmarks=3)
     concat = dataclasses.replace(cfg, transfer_offsets=(-1, 1, 2), model=concat_model)
     assert transfer_sizes(concat) == []  # coverage's number of landmarks changes with M
-    assert transfer_sizes(dataclasses.replace(concat, task="formation")) == [2, 4, 5]  # formation's does not
+    assert transfer_sizes(dataclasses.replace(concat, sim=Sim("formation", 3))) == [2, 4, 5]  # formation's does not
 
 
 def test_non_finite_loss_never_reaches_the_weights(tmp_path):
@@ -624,7 +627,7 @@ def test_an_interrupted_curriculum_says_the_same_command_resumes_it(tmp_path, mo
     real = train_mod.one_update
 
     def interrupted(state, cfg, *args, **kwargs):  # Ctrl-C in the middle of stage M = 3's second update
-        if cfg.agents == 3 and state.counters["update"] == 1:
+        if cfg.sim.agents == 3 and state.counters["update"] == 1:
             raise KeyboardInterrupt
         return real(state, cfg, *args, **kwargs)
 

@@ -86,7 +86,7 @@ def test_cuda_training_end_to_end(tmp_path):
     from trainer.config import PPOConfig, TrainConfig
     from trainer.train import train
 
-    cfg = TrainConfig(
+    cfg = TrainConfig.of(
         agents=3,
         updates=2,
         eval_every=2,

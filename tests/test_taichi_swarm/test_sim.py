@@ -92,3 +92,26 @@ def test_records_and_overrides_are_checked_like_a_new_setting(recorded, swarm, o
 def test_team_size_must_be_recorded_or_given():
     with pytest.raises(ConfigError, match="the manifest does not say its team size: pass --agents"):
         Sim("coverage").team_size("the manifest")
+
+
+def test_each_field_is_an_option_of_every_surface_with_no_other_declaration():
+    """A field added to the Sim is, with no other change: a `swarm train` option (in its
+    "large teams" group unless another names it), an option of eval / zero-shot / execute (those
+    a command may set over a policy's own), a spec key, and stored and restored by a checkpoint."""
+    from reproduce.spec import _keys
+    from swarm_cli.options import EvaluationOptions, ExecuteOptions
+    from swarm_cli.train import config_from_argv
+    from taichi_swarm.sim import FIELDS, RUN_TIME_KEYS
+    from trainer.config import to_dict, train_config_from_dict
+
+    options = {"task": "line", "agents": 7, **RADIO}
+    argv = [a for k, v in options.items() for a in (f"--{k.replace('_', '-')}", str(v))]
+    argv = [a for a in argv if a != "True"]  # (a flag takes no value)
+    cfg = config_from_argv(argv, "swarm train")
+    assert cfg.sim == Sim(**options)
+    assert train_config_from_dict(to_dict(cfg)) == cfg and set(FIELDS) <= set(to_dict(cfg))
+    assert set(FIELDS) <= _keys("train")
+    assert set(RUN_TIME_KEYS) == set(FIELDS) - {"task", "agents", "comm", "comm_radius", "action_space",
+                                                "landmark_occupancy"}  # fmt: skip
+    for cls in (EvaluationOptions, ExecuteOptions):
+        assert set(RUN_TIME_KEYS) <= {f.name for f in dataclasses.fields(cls)}

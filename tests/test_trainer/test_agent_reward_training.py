@@ -50,7 +50,7 @@ def test_the_rollout_stores_each_agents_own_reward(per_agent):
 def test_a_run_on_agent_rewards_resumes(tmp_path):
     from trainer.train import train
 
-    cfg = TrainConfig(
+    cfg = TrainConfig.of(
         task="coverage",
         agents=3,
         updates=2,
@@ -70,4 +70,4 @@ def test_a_run_on_agent_rewards_resumes(tmp_path):
     assert summary["update"] == 2
     assert json.load(open(os.path.join(cfg.run_dir, "config.json")))["reward"] == "agent"
     with pytest.raises(ValueError, match="reward"):
-        TrainConfig(reward="own").validate()
+        TrainConfig.of(reward="own").validate()

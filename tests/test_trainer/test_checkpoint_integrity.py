@@ -33,7 +33,7 @@ def tiny(tmp_path, **kw):
         ppo=PPOConfig(num_envs=4, num_steps=8, epochs=1, minibatches=2),
         compile=False,
     )
-    return TrainConfig(**(base | kw))
+    return TrainConfig.of(**(base | kw))
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ def tiny_config(tmp_path, monkeypatch):
 
     monkeypatch.setattr(train_mod, "evaluate_during_training", perfect)
     ppo = dataclasses.replace(PRESETS["fast"], num_envs=4, num_steps=8, minibatches=1, epochs=1)
-    return TrainConfig(
+    return TrainConfig.of(
         agents=2, updates=4, eval_every=2, run_dir=str(tmp_path / "cur"), compile=False, progress=False,
         transfer_offsets=(), ppo=ppo, model=ModelConfig(hidden=16, rounds=1),
     )  # fmt: skip

@@ -19,7 +19,7 @@ from trainer.train import FINE_START_GAP, build_state, grow_actions, train
 
 
 def config(tmp_path, name, **kw):
-    return TrainConfig(
+    return TrainConfig.of(
         task="formation",
         agents=3,
         updates=1,
@@ -89,7 +89,7 @@ def test_fine_runs_refuse_what_they_cannot_take(tmp_path):
     with pytest.raises(ValueError, match="num_actions must be 5 or 9"):
         ModelConfig(num_actions=7)
     with pytest.raises(ValueError, match="model.num_actions follows action_space"):
-        TrainConfig(model=ModelConfig(num_actions=9)).validate()
+        TrainConfig.of(model=ModelConfig(num_actions=9)).validate()
     fine = config(tmp_path, "fine", action_space="fine")
     train(fine)
     back = config(tmp_path, "back", init_from=os.path.join(fine.run_dir, "policy.pt"))

@@ -11,7 +11,7 @@ from trainer.train import train
 
 @pytest.mark.slow  # 40 PPO updates and 200 evaluation episodes: a learning test
 def test_single_agent_coverage_learns(tmp_path):
-    cfg = TrainConfig(
+    cfg = TrainConfig.of(
         task="coverage",
         agents=1,
         updates=40,

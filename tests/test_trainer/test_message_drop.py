@@ -60,8 +60,8 @@ def test_the_rollout_stores_the_graph_the_agents_heard():
 
 def test_message_drop_is_checked():
     with pytest.raises(ValueError, match="message_drop must be in"):
-        TrainConfig(message_drop=1.0).validate()
-    TrainConfig(message_drop=0.5).validate()
+        TrainConfig.of(message_drop=1.0).validate()
+    TrainConfig.of(message_drop=0.5).validate()
 
 
 def test_drops_per_round_store_a_graph_per_round():
@@ -83,8 +83,8 @@ def test_drops_per_round_store_a_graph_per_round():
     assert 0.45 < buf.adj.float().mean().item() < 0.9
     assert (buf.adj[:, :, 0] != buf.adj[:, :, 1]).any()  # the rounds lost different messages
     with pytest.raises(ValueError, match="drop_per_round"):
-        TrainConfig(drop_per_round=True).validate()
-    TrainConfig(drop_per_round=True, message_drop=0.3).validate()
+        TrainConfig.of(drop_per_round=True).validate()
+    TrainConfig.of(drop_per_round=True, message_drop=0.3).validate()
 
 
 @pytest.mark.parametrize("lists", [False, True])

@@ -108,7 +108,7 @@ def test_parameter_count_is_the_papers_and_independent_of_team_size():
     from trainer.config import TrainConfig
     from trainer.train import model_config_for
 
-    cfg = TrainConfig(task="formation", agents=4, model=ModelConfig(entity_mode="concat"))
+    cfg = TrainConfig.of(task="formation", agents=4, model=ModelConfig(entity_mode="concat"))
     assert model_config_for(cfg).num_landmarks == 1
 
 

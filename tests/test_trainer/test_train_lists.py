@@ -34,7 +34,7 @@ def tiny(tmp_path, name, **kw):
         compile=False,
         transfer_offsets=(),
     )
-    return TrainConfig(**(base | kw))
+    return TrainConfig.of(**(base | kw))
 
 
 def weights(run_dir):
