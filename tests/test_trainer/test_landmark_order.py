@@ -34,7 +34,7 @@ def test_a_radio_run_carries_its_lists_to_evaluation_and_export(tmp_path, capsys
     manifest = json.load(open(tmp_path / "export" / "manifest.json"))
     assert manifest["contract"]["swarm"]["landmark_order"] == "radio"
     with pytest.raises(ConfigError) as refused:
-        dataclasses.replace(cfg, landmark_occupancy=False).validate()
+        dataclasses.replace(cfg.sim, landmark_occupancy=False)
     assert refused.value.field == "landmark_order"
     # another --landmark-order drops the trained rounds, on eval and execute alike
     from deploy.executor import ExportedModel, resolve_settings
