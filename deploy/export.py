@@ -24,7 +24,6 @@ agent attends to itself alone, as an isolated agent does in the batched policy).
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import warnings
@@ -33,7 +32,7 @@ import torch
 from torch import nn
 
 from deploy.manifest import FORMAT, MANIFEST, VERSION, ManifestError, integrator_contract, metadata, seal
-from taichi_swarm.files import atomic_write_bytes, atomic_write_json
+from taichi_swarm.files import atomic_write_json
 from taichi_swarm.physics import ACTION_MEANINGS
 from taichi_swarm.sim import Sim
 from trainer.checkpoint import CheckpointError, load_policy
@@ -364,10 +363,3 @@ def radio_contract(sim: Sim) -> dict:
         "success_threshold), else the sensed ones with those another holds last, reading 0",
     }
 
-
-def write_bytes(path: str, data: bytes) -> None:
-    atomic_write_bytes(path, lambda f: f.write(data))
-
-
-def manifest_text(manifest: dict) -> str:
-    return json.dumps(manifest, indent=2)
