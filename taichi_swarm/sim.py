@@ -112,8 +112,8 @@ class Sim:
 
     task: str
     """coverage | formation | line."""
-    agents: int | None = None
-    """Team size M (None only in a manifest exported without one)."""
+    agents: int | None = None  # (None: a manifest exported without one; make needs it)
+    """Team size M."""
     comm: Literal["uc", "rc"] = "uc"
     """uc (everyone hears everyone) | rc (only within comm_radius)."""
     comm_radius: float = 1.0
