@@ -362,4 +362,3 @@ def radio_contract(sim: Sim) -> dict:
         "cheaper by hold_slack increments. Its landmark rows: the held one alone (occupancy floored at "
         "success_threshold), else the sensed ones with those another holds last, reading 0",
     }
-

@@ -23,11 +23,14 @@ import math
 import os
 import re
 import sys
+import types
 import typing
 from dataclasses import dataclass
 from typing import Annotated, Literal
 
 import tyro
+
+from taichi_swarm.sim import RUN_TIME_KEYS
 
 Positional = tyro.conf.Positional
 
@@ -118,12 +121,13 @@ def option_text(exc: BaseException | str) -> str:
 def check_setting(options: dict) -> dict:
     """The setting's options set, each through its own check (taichi_swarm.sim.CHECKS, the one
     validator of that key; no Taichi is imported), refused as the option; returns them."""
-    from taichi_swarm.sim import ConfigError, check_value
+    from taichi_swarm.sim import CHECKS, ConfigError, check_value
 
     given = {k: v for k, v in options.items() if v is not None}
     for name, value in given.items():
         try:
-            check_value(name, value)
+            if name in CHECKS:  # (the task's name is checked against the registry, by the Sim)
+                check_value(name, value)
         except ConfigError as exc:
             raise OptionError(option_text(exc)) from None
     return given
@@ -148,68 +152,47 @@ Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtim
 
 
 # ----------------------------------------------------------------------------- shared pieces
-@dataclass(kw_only=True)
-class SettingOptions:
-    """The task setting to run a policy in; each unset field keeps the checkpoint's."""
-
-    task: Annotated[str | None, Default(OWN, "TASK")] = None
-    """coverage | formation | line"""
-    comm: Annotated[Comm | None, Default(OWN, "{uc,rc}")] = None
-    """communication graph: uc = all teammates, rc = within --comm-radius"""
-    comm_radius: Annotated[float | None, Default(OWN, "R")] = None
-    """rc radius"""
-
-    def __post_init__(self):
-        check_setting({"comm": self.comm, "comm_radius": self.comm_radius})
-
-    def setting_options(self) -> dict:
-        """The options set, as ``Sim.override`` keywords over the policy's own."""
-        return {
-            k: v
-            for k, v in (("task", self.task), ("comm", self.comm), ("comm_radius", self.comm_radius))
-            if v is not None
-        }
-
-
-def _run_time_options() -> list:
-    """SwarmOptions' fields: every field of taichi_swarm.Sim that a command may set over a
-    policy's own (sim.RUN_TIME_KEYS), with the Sim's docstring as its --help, unset by default."""
+def _sim_view(name: str, keys: tuple, method: str, about: str):
+    """A dataclass of the options a command sets over a stored policy's setting: the fields
+    ``keys`` of taichi_swarm.Sim, each with the Sim's docstring as its --help, unset (None: the
+    policy's own) by default, checked at parse time by the Sim's own check of that key. ``method``
+    returns those given, as ``Sim.override`` keywords."""
     from tyro.constructors import ConstructorRegistry, StructTypeInfo
 
-    from taichi_swarm.sim import RUN_TIME_KEYS, Sim
+    from taichi_swarm.sim import Sim
 
     spec = ConstructorRegistry.get_struct_spec(StructTypeInfo.make(Sim, tyro.MISSING_NONPROP, False))
     docs = {f.name: f.helptext() if callable(f.helptext) else f.helptext for f in spec.fields}
-    out = []
-    for f in dataclasses.fields(Sim):
-        if f.name in RUN_TIME_KEYS:
-            typ = typing.get_type_hints(Sim)[f.name]
-            metavar = None if typing.Literal in map(typing.get_origin, (typ, *typing.get_args(typ))) else "N"
-            typ = typ | None
-            arg = tyro.conf.arg(help=docs[f.name], metavar=metavar, help_behavior_hint=f"(default: {OWN})")
-            out.append((f.name, Annotated[typ, arg], dataclasses.field(default=None)))
-    return out
+    hints, fields = typing.get_type_hints(Sim), []
+    for key in keys:
+        typ = hints[key]
+        union = typing.get_origin(typ) in (typing.Union, types.UnionType)
+        base = next(a for a in (typing.get_args(typ) if union else (typ,)) if a is not type(None))
+        metavar = None if typing.get_origin(base) is typing.Literal else base.__name__.upper()
+        arg = tyro.conf.arg(help=docs[key], metavar=metavar, help_behavior_hint=f"(default: {OWN})")
+        fields.append((key, Annotated[typ | None, arg], dataclasses.field(default=None)))
+
+    def given(self) -> dict:
+        return check_setting({key: getattr(self, key) for key in keys})
+
+    def post_init(self):
+        given(self)
+
+    namespace = {"__post_init__": post_init, method: given, "__module__": __name__, "__doc__": about}
+    return dataclasses.make_dataclass(name, fields, kw_only=True, namespace=namespace)
 
 
-def _swarm_post_init(self):
-    self.swarm_kwargs()
-
-
-def _swarm_kwargs(self) -> dict:
-    """The options set, as ``Sim.override`` keywords over the policy's own (each checked)."""
-    from taichi_swarm.sim import RUN_TIME_KEYS
-
-    return check_setting({name: getattr(self, name) for name in RUN_TIME_KEYS})
-
-
-# The simulator's options a command runs a policy on (all unset: the policy's own): made from the
-# Sim's fields, so a field added there is an option of eval, zero-shot and execute too.
-SwarmOptions = dataclasses.make_dataclass(
-    "SwarmOptions",
-    _run_time_options(),
-    kw_only=True,
-    namespace={"__post_init__": _swarm_post_init, "swarm_kwargs": _swarm_kwargs, "__module__": __name__},
-)
+# The Sim's fields a command runs a stored policy on, made from the Sim, so a field added there is an
+# option of eval, zero-shot and execute too: the task's (SettingOptions; world and export take
+# those alone), and the simulator's (SwarmOptions: sim.RUN_TIME_KEYS).
+SettingOptions = _sim_view(
+    "SettingOptions", ("task", "comm", "comm_radius"), "setting_options",
+    "The task setting to run a policy in; each unset field keeps the checkpoint's.",
+)  # fmt: skip
+SwarmOptions = _sim_view(
+    "SwarmOptions", RUN_TIME_KEYS, "swarm_kwargs",
+    "The simulator's lists, sensing, auction and scaling to run a policy on; each unset keeps the policy's.",
+)  # fmt: skip
 
 
 @dataclass(kw_only=True)
