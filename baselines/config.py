@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from taichi_swarm import COMMS, TASKS
+from taichi_swarm.sim import Sim
 
 OBS_MODES = ("local", "full")
 ACTION_CHOICES = ("any", "discrete", "continuous")
@@ -61,19 +61,21 @@ class BaselineConfig:
     out: str = ""
     """Output directory: BenchMARL's experiment folder and results.json."""
 
+    @property
+    def sim(self) -> Sim:
+        """The setting the algorithm trains in (the paper's dense layout)."""
+        return Sim(self.task, self.agents, self.comm, self.comm_radius)
+
     def __post_init__(self):
         self.algorithm = self.algorithm.lower() if isinstance(self.algorithm, str) else self.algorithm
         if self.algorithm not in ALGORITHMS:
             raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}")
-        if self.task not in TASKS:
-            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
-        if self.comm not in COMMS:
-            raise ValueError(f"comm must be one of {COMMS}, got {self.comm!r}")
+        _ = self.sim  # the task, team and comm, checked by the Sim's own checks (taichi_swarm.sim)
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}")
         if self.actions not in ACTION_CHOICES:
             raise ValueError(f"actions (the task's action_space) must be one of {ACTION_CHOICES}, got {self.actions!r}")
-        for name in ("frames", "num_envs", "frames_per_batch", "eval_episodes", "agents", "max_steps"):
+        for name in ("frames", "num_envs", "frames_per_batch", "eval_episodes", "max_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.frames > MAX_FRAMES:
