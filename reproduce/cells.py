@@ -241,10 +241,7 @@ def _bring_to_result(
     elif cell.kind == "curriculum":
         from trainer.curriculum import run_curriculum
 
-        stages = run_curriculum(
-            cfg.train_config(), list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, directory,
-            cfg.min_updates_per_stage, cfg.fresh_eval_episodes, cfg.fresh_eval_seed, cfg.polish_updates, cfg.polish_lr,
-        )  # fmt: skip
+        stages = run_curriculum(cfg)  # (its run_dir: directory)
         rows = []
         for stage in stages:
             M = stage["agents"]

@@ -179,10 +179,7 @@ class Curriculum(_FromCell):
                 "entity_mode 'concat' has a fixed number of landmarks: coverage's changes with the team size"
             )
         c.sim, c.updates = c.sim_at(c.sizes[0]), c.max_updates_per_stage  # (the stages set them: the first stage's)
-        check_curriculum(
-            c.train_config(), c.sizes, c.threshold, c.max_updates_per_stage, c.min_updates_per_stage,
-            c.fresh_eval_episodes, c.fresh_eval_seed, c.polish_updates, c.polish_lr,
-        )  # fmt: skip
+        check_curriculum(c)
 
     sizes = property(lambda self: self.config.sizes)
     polish_updates = property(lambda self: self.config.polish_updates)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import sys
@@ -305,15 +304,7 @@ def curriculum_main(argv: list[str]) -> int:
     from trainer.curriculum import format_stages, run_curriculum
 
     try:
-        cfg = config_from_argv(argv, "swarm curriculum", CurriculumConfig)
-        if cfg.max_updates_per_stage < 1:
-            raise ValueError(f"--max-updates-per-stage must be >= 1, got {cfg.max_updates_per_stage}")
-        run_dir = cfg.default_run_dir()
-        base = dataclasses.replace(cfg.train_config(), run_dir=run_dir)
-        stages = run_curriculum(
-            base, list(cfg.sizes), cfg.threshold, cfg.max_updates_per_stage, run_dir, cfg.min_updates_per_stage,
-            cfg.fresh_eval_episodes, cfg.fresh_eval_seed, cfg.polish_updates, cfg.polish_lr,
-        )  # fmt: skip
+        stages = run_curriculum(config_from_argv(argv, "swarm curriculum", CurriculumConfig))
     except KeyboardInterrupt:
         # the stage said how to resume it alone; the curriculum resumes it and the stages after
         print("swarm curriculum: stopped; the same swarm curriculum command resumes it", file=sys.stderr)

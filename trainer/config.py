@@ -397,6 +397,12 @@ class CurriculumConfig(TrainConfig):
     polish_lr: float = 3e-5
     """Constant learning rate of the polish."""
 
+    @classmethod
+    def over(cls, base: TrainConfig, **options) -> CurriculumConfig:
+        """The curriculum whose stages share ``base``'s options, with ``options`` over them (its
+        sizes, threshold ...)."""
+        return cls(**{**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)}, **options})
+
     def train_config(self) -> TrainConfig:
         """The options every stage shares, as a TrainConfig."""
         names = [f.name for f in dataclasses.fields(TrainConfig)]

@@ -22,7 +22,7 @@ import json
 import os
 
 from trainer import checkpoint
-from trainer.config import TrainConfig
+from trainer.config import CurriculumConfig, TrainConfig
 from trainer.evaluate import evaluate
 from trainer.rundir import CHECKPOINT, FRESH_EVAL, POLICY, POLISH_OF, STARTED_FROM
 from trainer.train import resolve_device, train_or_resume
@@ -63,38 +63,31 @@ def fresh_evaluation(stage_dir: str, cfg: TrainConfig, update: int, episodes: in
     return fresh
 
 
-def check_curriculum(
-    base: TrainConfig,
-    sizes,
-    threshold: float,
-    max_updates_per_stage: int,
-    min_updates_per_stage: int = 0,
-    fresh_eval_episodes: int = 0,
-    fresh_eval_seed: int = 777,
-    polish_updates: int = 0,
-    polish_lr: float = 3e-5,
-) -> None:
+def check_curriculum(cfg: CurriculumConfig) -> None:
     """run_curriculum's checks of its options and of every stage's config, before anything is
     written (``swarm reproduce`` runs them when it loads a spec)."""
+    sizes, base = cfg.sizes, cfg.train_config()
     if not sizes:
         raise ValueError("--sizes must name at least one team size")
     if len(set(sizes)) != len(sizes):  # a repeated stage would train the same size twice, from itself
         raise ValueError(f"--sizes must not repeat a team size, got {list(sizes)}")
-    if not 0 < threshold <= 1:
-        raise ValueError(f"--threshold must be in (0, 1], got {threshold}")
-    if not 0 <= min_updates_per_stage <= max_updates_per_stage:
+    if not 0 < cfg.threshold <= 1:
+        raise ValueError(f"--threshold must be in (0, 1], got {cfg.threshold}")
+    if cfg.max_updates_per_stage < 1:
+        raise ValueError(f"--max-updates-per-stage must be >= 1, got {cfg.max_updates_per_stage}")
+    if not 0 <= cfg.min_updates_per_stage <= cfg.max_updates_per_stage:
         raise ValueError(
-            f"--min-updates-per-stage must be in [0, --max-updates-per-stage={max_updates_per_stage}], "
-            f"got {min_updates_per_stage}"
+            f"--min-updates-per-stage must be in [0, --max-updates-per-stage={cfg.max_updates_per_stage}], "
+            f"got {cfg.min_updates_per_stage}"
         )
-    if fresh_eval_episodes < 0:
-        raise ValueError(f"--fresh-eval-episodes must be >= 0, got {fresh_eval_episodes}")
-    if fresh_eval_seed < 0:
-        raise ValueError(f"--fresh-eval-seed must be >= 0, got {fresh_eval_seed}")
-    if polish_updates < 0:
-        raise ValueError(f"--polish-updates must be >= 0, got {polish_updates}")
-    if not 0 < polish_lr <= 1:  # (NaN and inf too: before stage 1 trains, not after it)
-        raise ValueError(f"--polish-lr must be in (0, 1], got {polish_lr}")
+    if cfg.fresh_eval_episodes < 0:
+        raise ValueError(f"--fresh-eval-episodes must be >= 0, got {cfg.fresh_eval_episodes}")
+    if cfg.fresh_eval_seed < 0:
+        raise ValueError(f"--fresh-eval-seed must be >= 0, got {cfg.fresh_eval_seed}")
+    if cfg.polish_updates < 0:
+        raise ValueError(f"--polish-updates must be >= 0, got {cfg.polish_updates}")
+    if not 0 < cfg.polish_lr <= 1:  # (NaN and inf too: before stage 1 trains, not after it)
+        raise ValueError(f"--polish-lr must be in (0, 1], got {cfg.polish_lr}")
     if base.team_sizes:  # every stage would train on them and be judged at its own size
         raise ValueError(
             f"--team-sizes {list(base.team_sizes)} cannot go with a curriculum: each stage trains on its "
@@ -104,28 +97,20 @@ def check_curriculum(
         dataclasses.replace(
             base,
             sim=base.sim_at(M),
-            updates=max_updates_per_stage,
-            target_success=threshold,
-            min_updates=min_updates_per_stage,
+            updates=cfg.max_updates_per_stage,
+            target_success=cfg.threshold,
+            min_updates=cfg.min_updates_per_stage,
         ).validate()
 
 
-def run_curriculum(
-    base: TrainConfig,
-    sizes: list[int],
-    threshold: float,
-    max_updates_per_stage: int,
-    run_dir: str,
-    min_updates_per_stage: int = 0,
-    fresh_eval_episodes: int = 0,
-    fresh_eval_seed: int = 777,
-    polish_updates: int = 0,
-    polish_lr: float = 3e-5,
-) -> list[dict]:
-    check_curriculum(
-        base, sizes, threshold, max_updates_per_stage, min_updates_per_stage, fresh_eval_episodes, fresh_eval_seed,
-        polish_updates, polish_lr,
-    )  # fmt: skip
+def run_curriculum(cfg: CurriculumConfig) -> list[dict]:
+    """Train the stages of ``cfg`` in its run directory (``default_run_dir``), or resume them."""
+    check_curriculum(cfg)
+    run_dir = cfg.default_run_dir()
+    base = dataclasses.replace(cfg.train_config(), run_dir=run_dir)
+    sizes, threshold, max_updates_per_stage = cfg.sizes, cfg.threshold, cfg.max_updates_per_stage
+    min_updates_per_stage, polish_updates, polish_lr = cfg.min_updates_per_stage, cfg.polish_updates, cfg.polish_lr
+    fresh_eval_episodes, fresh_eval_seed = cfg.fresh_eval_episodes, cfg.fresh_eval_seed
     os.makedirs(run_dir, exist_ok=True)
     results_path = os.path.join(run_dir, CURRICULUM)
     stages: list[dict] = []

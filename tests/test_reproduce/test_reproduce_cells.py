@@ -536,7 +536,7 @@ def test_min_updates_holds_a_run_past_its_target(tmp_path, monkeypatch):
     """With min_updates, a run (and a curriculum stage) that reaches its target early
     trains on to min_updates, then stops at the next evaluation."""
     import trainer.train as train_mod
-    from trainer.config import PRESETS, TrainConfig
+    from trainer.config import PRESETS, CurriculumConfig, TrainConfig
     from trainer.curriculum import run_curriculum
 
     def perfect(policy, cfg, update, device):
@@ -550,14 +550,18 @@ def test_min_updates_holds_a_run_past_its_target(tmp_path, monkeypatch):
     )  # fmt: skip
     summary = train_mod.train(cfg)
     assert summary["update"] == 4 and summary["reached_target"]  # evaluations at 2 (too early) and 4
-    stages = run_curriculum(
-        dataclasses.replace(cfg, run_dir=str(tmp_path / "cur"), min_updates=0), [2, 3], 0.5, 8, str(tmp_path / "cur"), 5
-    )
+    stages = run_curriculum(CurriculumConfig.over(
+        cfg, min_updates=0, sizes=(2, 3), threshold=0.5, max_updates_per_stage=8, run_dir=str(tmp_path / "cur"),
+        min_updates_per_stage=5,
+    ))  # fmt: skip
     assert [s["updates"] for s in stages] == [6, 6]
     with pytest.raises(ValueError, match="min_updates"):
         dataclasses.replace(cfg, min_updates=9).validate()
     with pytest.raises(ValueError, match="min-updates-per-stage"):
-        run_curriculum(cfg, [2], 0.5, 4, str(tmp_path / "bad"), 5)
+        run_curriculum(CurriculumConfig.over(
+            cfg, sizes=(2,), threshold=0.5, max_updates_per_stage=4, run_dir=str(tmp_path / "bad"),
+            min_updates_per_stage=5,
+        ))  # fmt: skip
 
 
 def test_a_run_stopped_at_its_target_stays_stopped_after_a_kill(tmp_path, monkeypatch):
