@@ -152,22 +152,36 @@ Arch = Literal["cpu", "cuda", "gpu", "auto"]  # Taichi arch (taichi_swarm.runtim
 
 
 # ----------------------------------------------------------------------------- shared pieces
+def struct_fields(cls) -> list:
+    """The fields of dataclass ``cls`` as tyro reads them (name, type, default, helptext)."""
+    from tyro.constructors import ConstructorRegistry, StructTypeInfo
+
+    return ConstructorRegistry.get_struct_spec(StructTypeInfo.make(cls, tyro.MISSING_NONPROP, False)).fields
+
+
+def helptext(f) -> str:
+    """A tyro struct field's --help text (its docstring)."""
+    return f.helptext() if callable(f.helptext) else f.helptext
+
+
+def without_none(typ):
+    """``typ`` less None (``int | None`` -> ``int``)."""
+    if typing.get_origin(typ) not in (typing.Union, types.UnionType):
+        return typ
+    return typing.Union[tuple(a for a in typing.get_args(typ) if a is not type(None))]
+
+
 def _sim_view(name: str, keys: tuple, method: str, about: str):
     """A dataclass of the options a command sets over a stored policy's setting: the fields
     ``keys`` of taichi_swarm.Sim, each with the Sim's docstring as its --help, unset (None: the
     policy's own) by default, checked at parse time by the Sim's own check of that key. ``method``
     returns those given, as ``Sim.override`` keywords."""
-    from tyro.constructors import ConstructorRegistry, StructTypeInfo
-
     from taichi_swarm.sim import Sim
 
-    spec = ConstructorRegistry.get_struct_spec(StructTypeInfo.make(Sim, tyro.MISSING_NONPROP, False))
-    docs = {f.name: f.helptext() if callable(f.helptext) else f.helptext for f in spec.fields}
+    docs = {f.name: helptext(f) for f in struct_fields(Sim)}
     hints, fields = typing.get_type_hints(Sim), []
     for key in keys:
-        typ = hints[key]
-        union = typing.get_origin(typ) in (typing.Union, types.UnionType)
-        base = next(a for a in (typing.get_args(typ) if union else (typ,)) if a is not type(None))
+        typ, base = hints[key], without_none(hints[key])
         metavar = None if typing.get_origin(base) is typing.Literal else base.__name__.upper()
         arg = tyro.conf.arg(help=docs[key], metavar=metavar, help_behavior_hint=f"(default: {OWN})")
         fields.append((key, Annotated[typ | None, arg], dataclasses.field(default=None)))

@@ -5,14 +5,23 @@ from __future__ import annotations
 import json
 import os
 import sys
-import types
-import typing
 from typing import Annotated, Literal, TypedDict
 
 import tyro
-from tyro.constructors import ConstructorRegistry, StructTypeInfo
 
-from swarm_cli.options import EvalOptions, ImportOptions, PlotOptions, ZeroShotOptions, at_least, cli, fail, parse
+from swarm_cli.options import (
+    EvalOptions,
+    ImportOptions,
+    PlotOptions,
+    ZeroShotOptions,
+    at_least,
+    cli,
+    fail,
+    helptext,
+    parse,
+    struct_fields,
+    without_none,
+)  # fmt: skip
 from taichi_swarm.sim import FIELDS as SIM_FIELDS
 from trainer.checkpoint import CheckpointError, atomic_write_json, ensure_writable
 from trainer.rundir import POLICY
@@ -59,10 +68,6 @@ def _text(value) -> str:
     return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
 
 
-def _fields(cls):
-    return ConstructorRegistry.get_struct_spec(StructTypeInfo.make(cls, tyro.MISSING_NONPROP, False)).fields
-
-
 def _options(cls, values) -> dict:
     """The fields of dataclass ``cls`` as options tyro leaves out of its result unless given (a
     TypedDict's, total=False), each with its docstring and "(default: ...)": ``values(name)``, the
@@ -72,20 +77,19 @@ def _options(cls, values) -> dict:
     from trainer.config import DEFAULT_PRESET, PRESETS
 
     out = {}
-    for f in _fields(cls):
+    for f in struct_fields(cls):
         if f.name == "sim":
             out.update(_options(Sim, lambda name: {p: getattr(s, name) for p, s in values("sim").items()}))
             continue
         typ, by_preset = f.type, values(f.name)
         if f.name == "preset":  # a choice: tyro refuses another naming the presets
             typ, by_preset = Literal[tuple(PRESETS)], {DEFAULT_PRESET: DEFAULT_PRESET}
-        elif None not in by_preset.values() and typing.get_origin(typ) in (typing.Union, types.UnionType):
-            typ = typing.Union[tuple(a for a in typing.get_args(typ) if a is not type(None))]  # (never None here)
+        elif None not in by_preset.values():
+            typ = without_none(typ)  # (never None here)
         default = by_preset[DEFAULT_PRESET]
         others = ", ".join(f"{p}: {_text(v)}" for p, v in by_preset.items() if v != default)
         hint = f"(default: {_text(default)}" + (f"; --preset {others})" if others else ")")
-        helptext = f.helptext() if callable(f.helptext) else f.helptext
-        out[f.name] = Annotated[typ, tyro.conf.arg(help=helptext, help_behavior_hint=hint)]
+        out[f.name] = Annotated[typ, tyro.conf.arg(help=helptext(f), help_behavior_hint=hint)]
     return out
 
 

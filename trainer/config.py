@@ -244,12 +244,10 @@ class TrainConfig:
 
     @classmethod
     def of(cls, **options):
-        """This config from its options as the command line and the specs name them: the Sim's
-        fields (task, agents, neighbours ...) among the others, each set on the default Sim."""
-        sim = {k: options.pop(k) for k in list(options) if k in SIM_FIELDS}
-        if sim:
-            options["sim"] = dataclasses.replace(options.get("sim") or DEFAULT_SIM, **sim)
-        return cls(**options)
+        """This config from its options as the command line, the specs and ``to_dict`` name them:
+        the Sim's fields (task, agents, neighbours ...) among the others (``nest_sim``)."""
+        d = nest_sim(options)
+        return cls(**{**d, "sim": Sim(**d["sim"])})
 
     @classmethod
     def with_preset(cls, preset: str = DEFAULT_PRESET, ppo: dict | None = None, **options):
@@ -449,6 +447,4 @@ def train_config_from_dict(d: dict) -> TrainConfig:
     ppo_dict = dict(d.pop("ppo"))
     ppo_dict.setdefault("reset_return", True)  # runs from before the option existed reset it
     ppo = PPOConfig(**ppo_dict)
-    d = nest_sim(d)
-    sim = Sim(**d.pop("sim"))
-    return TrainConfig(**d, sim=sim, model=model, ppo=ppo)
+    return TrainConfig.of(**d, model=model, ppo=ppo)
