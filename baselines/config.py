@@ -7,6 +7,7 @@ module imports neither torch nor BenchMARL (a spec with baseline cells loads wit
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 from taichi_swarm.sim import Sim
@@ -17,6 +18,9 @@ ACTION_CHOICES = ("any", "discrete", "continuous")
 ALGORITHMS = ("iddpg", "ippo", "iql", "isac", "maddpg", "mappo", "masac", "qmix", "vdn")
 MAX_FRAMES = 10**12
 MAX_ENVS = 2**20  # environments of one batch (trainer.config.MAX_NUM_ENVS)
+# The Sim's fields a baseline sets: the algorithms run the paper's dense layout (every entity
+# observed, no lists or auction), so the rest keep the Sim's defaults.
+SETTING = ("task", "agents", "comm", "comm_radius")
 
 
 @dataclass
@@ -26,12 +30,8 @@ class BaselineConfig:
 
     algorithm: str = "mappo"
     """A BenchMARL algorithm: mappo, ippo, maddpg, iql, ..."""
-    task: str = "coverage"
-    agents: int = 3
-    """Team size M."""
-    comm: str = "uc"
-    """uc or rc: the comm graph (local observations only)."""
-    comm_radius: float = 1.0
+    sim: Sim = Sim("coverage", 3)
+    """The setting (its task, agents, comm and comm_radius: ``SETTING``)."""
     obs_mode: str = "full"
     """full: the paper's baselines (everything observed, no communication); local: the paper's own observation."""
     actions: str = "any"
@@ -61,16 +61,25 @@ class BaselineConfig:
     out: str = ""
     """Output directory: BenchMARL's experiment folder and results.json."""
 
-    @property
-    def sim(self) -> Sim:
-        """The setting the algorithm trains in (the paper's dense layout)."""
-        return Sim(self.task, self.agents, self.comm, self.comm_radius)
+    @classmethod
+    def of(cls, **options) -> BaselineConfig:
+        """From flat options (a command line's, a spec cell's): task, agents, comm and
+        comm_radius set the Sim, checked by the Sim's own checks."""
+        d = nest(options)
+        return cls(**{**d, "sim": Sim(**d["sim"])})
+
+    def to_dict(self) -> dict:
+        """Flat, as a spec cell names it (``of``'s inverse)."""
+        d = dataclasses.asdict(self)
+        d.pop("sim")
+        return {**{k: getattr(self.sim, k) for k in SETTING}, **d}
 
     def __post_init__(self):
         self.algorithm = self.algorithm.lower() if isinstance(self.algorithm, str) else self.algorithm
         if self.algorithm not in ALGORITHMS:
             raise ValueError(f"algorithm must be one of {ALGORITHMS}, got {self.algorithm!r}")
-        _ = self.sim  # the task, team and comm, checked by the Sim's own checks (taichi_swarm.sim)
+        if not isinstance(self.sim, Sim) or self.sim != Sim(*(getattr(self.sim, k) for k in SETTING)):
+            raise ValueError(f"sim: a baseline runs the dense layout, set by {', '.join(SETTING)} alone")
         if self.obs_mode not in OBS_MODES:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}")
         if self.actions not in ACTION_CHOICES:
@@ -91,6 +100,13 @@ class BaselineConfig:
             raise ValueError(f"checkpoint_every must be >= 0, got {self.checkpoint_every}")
         if self.threads < 0:
             raise ValueError(f"threads must be >= 0, got {self.threads}")
+
+
+def nest(options: dict) -> dict:
+    """Flat options with the setting's keys as one "sim" dict (the default's where absent)."""
+    d = {k: v for k, v in options.items() if k not in SETTING}
+    d["sim"] = {k: options.get(k, getattr(BaselineConfig.sim, k)) for k in SETTING}
+    return d
 
 
 def parse_overrides(items: list[str]) -> dict:

@@ -35,7 +35,7 @@ from taichi_swarm.files import atomic_write_bytes, atomic_write_json, ensure_wri
 from taichi_swarm.metrics import FirstEpisodes
 
 from .benchmarl_tasks import SwarmTaskClass, get_task
-from .config import ACTION_CHOICES, OBS_MODES, BaselineConfig, parse_overrides
+from .config import ACTION_CHOICES, OBS_MODES, SETTING, BaselineConfig, parse_overrides
 
 EPISODE_STATS = ("success", "length", "dist", "covered")
 
@@ -318,7 +318,8 @@ def _count(text: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     """The command line over BaselineConfig: one option per field (its docstring's help, its
     default); ``--experiment KEY=VALUE`` repeated for the ``experiment`` overrides."""
-    d = {f.name: f.default for f in dataclasses.fields(BaselineConfig) if f.name != "experiment"}
+    d = {f.name: f.default for f in dataclasses.fields(BaselineConfig) if f.name not in ("experiment", "sim")}
+    d.update({k: getattr(BaselineConfig.sim, k) for k in SETTING})
     ap = argparse.ArgumentParser(
         prog="run_baselines.py",
         description="Train a BenchMARL algorithm on a taichi_swarm task, then evaluate it greedily "
@@ -368,7 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace) -> BaselineConfig:
     """The parsed command line as the run's BaselineConfig (a ValueError names a bad value)."""
-    return BaselineConfig(**{**vars(args), "experiment": parse_overrides(args.experiment)})
+    return BaselineConfig.of(**{**vars(args), "experiment": parse_overrides(args.experiment)})
 
 
 class TrainingDiverged(RuntimeError):
@@ -397,11 +398,11 @@ def run(cfg: BaselineConfig) -> dict:
         raise ValueError("out: the run needs an output directory")
     algorithm_config(cfg.algorithm)  # a bad name fails here, before any work
     task = get_task(
-        cfg.task,
+        cfg.sim.task,
         {
-            "num_agents": cfg.agents,
-            "comm": cfg.comm,
-            "comm_radius": cfg.comm_radius,
+            "num_agents": cfg.sim.agents,
+            "comm": cfg.sim.comm,
+            "comm_radius": cfg.sim.comm_radius,
             "obs_mode": cfg.obs_mode,
             "action_space": cfg.actions,
             "max_steps": cfg.max_steps,

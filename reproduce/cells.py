@@ -310,7 +310,7 @@ def run_baseline(cfg) -> dict:
     if summary is None:  # (a run killed after BenchMARL's results.json is not trained again)
         summary = run(cfg)
     return {
-        "agents": cfg.agents,
+        "agents": cfg.sim.agents,
         "success_rate": summary["success_rate"],
         "mean_length": summary["mean_length"],
         "dist": summary["dist"],
@@ -332,8 +332,8 @@ def _finished_baseline(cfg) -> dict | None:
         summary = json.load(f)
     same = (
         summary.get("algorithm") == cfg.algorithm
-        and summary.get("task") == cfg.task
-        and summary.get("agents") == cfg.agents
+        and summary.get("task") == cfg.sim.task
+        and summary.get("agents") == cfg.sim.agents
         and summary.get("obs_mode") == cfg.obs_mode
         and summary.get("train_seed") == cfg.seed
         and summary.get("frames", 0) >= cfg.frames

@@ -39,7 +39,9 @@ import types
 import typing
 from dataclasses import dataclass, field
 
-from baselines.config import BaselineConfig
+from baselines.config import SETTING as BASELINE_SETTING
+from baselines.config import BaselineConfig, parse_overrides
+from baselines.config import nest as nest_baseline
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from taichi_swarm.files import InputFileError, read_input_text
 from trainer.config import PRESETS, RETIRED, SIM_FIELDS, CurriculumConfig, TrainConfig, nest_sim, to_dict
@@ -223,12 +225,12 @@ class Baseline:
     config: BaselineConfig
 
     def __post_init__(self):
-        _check_sizes("agents", [self.config.agents], self.config.task)
+        _check_sizes("agents", [self.agents], self.task)
 
-    task = property(lambda self: self.config.task)
-    comm = property(lambda self: self.config.comm)
-    comm_radius = property(lambda self: self.config.comm_radius)
-    agents = property(lambda self: self.config.agents)
+    task = property(lambda self: self.config.sim.task)
+    comm = property(lambda self: self.config.sim.comm)
+    comm_radius = property(lambda self: self.config.sim.comm_radius)
+    agents = property(lambda self: self.config.sim.agents)
     eval_seed = property(lambda self: self.config.eval_seed)
 
     @property
@@ -327,8 +329,6 @@ def migrate(definition: dict, version: int) -> dict:
     if kind == "zero-shot":
         return {**head, **pick("task comm comm_radius source sizes source_agents"), **evaluation}
     if kind == "baseline":
-        from baselines.config import parse_overrides
-
         options = dict(d.get("baseline_options", {}))
         if "experiment" in options:
             items = options["experiment"]
@@ -364,6 +364,8 @@ def canonical(stored: dict) -> dict:
     values = {k: v for k, v in d.items() if k not in ("schema", "kind")}
     if "config" in values and d["kind"] in ("train", "curriculum"):
         values["config"] = nest_sim(values["config"])
+    elif "config" in values and d["kind"] == "baseline":
+        values["config"] = nest_baseline(values["config"])
     return _as_json({"schema": SCHEMA_VERSION, "kind": d["kind"], **_flat(convert(run, values))})
 
 
@@ -372,6 +374,8 @@ def _flat(run) -> dict:
     among the others, as a spec names them)."""
     if isinstance(run, (Train, Curriculum)):
         return {**dataclasses.asdict(run), "config": to_dict(run.config)}
+    if isinstance(run, Baseline):
+        return {**dataclasses.asdict(run), "config": run.config.to_dict()}
     return dataclasses.asdict(run)
 
 
@@ -441,7 +445,8 @@ def _keys(kind: str) -> set[str]:
     if kind == "zero-shot":
         return own
     if kind == "baseline":
-        return ({f.name for f in dataclasses.fields(BaselineConfig)} - set(BASELINE_SET)) | {"final_episodes"}
+        names = {f.name for f in dataclasses.fields(BaselineConfig)} - {"sim"} | set(BASELINE_SETTING)
+        return (names - set(BASELINE_SET)) | {"final_episodes"}
     config = {f.name for f in dataclasses.fields(CurriculumConfig if kind == "curriculum" else TrainConfig)}
     config = config - {"sim"} | set(SIM_FIELDS)  # (a spec names the Sim's fields as its own keys)
     return own | (config - set(SET_BY_REPRODUCE) - (set(STAGE_SET) if kind == "curriculum" else set()))
@@ -455,7 +460,7 @@ def _nest(kind: str, entry: dict) -> dict:
         config = {k: v for k, v in entry.items() if k != "final_episodes"}
         if "final_episodes" in entry:
             config["eval_episodes"] = entry["final_episodes"]
-        return {"config": config}
+        return {"config": nest_baseline(config)}
     own = {f.name for f in dataclasses.fields(RUNS[kind])}
     config = {k: v for k, v in entry.items() if k not in own}
     preset = config.get("preset", TrainConfig.preset)
