@@ -44,7 +44,7 @@ from baselines.config import BaselineConfig, parse_overrides
 from baselines.config import nest as nest_baseline
 from taichi_swarm import COMMS, TASK_SPECS, TASKS
 from taichi_swarm.files import InputFileError, read_input_text
-from trainer.config import PRESETS, RETIRED, SIM_FIELDS, CurriculumConfig, TrainConfig, nest_sim, to_dict
+from trainer.config import PRESETS, RETIRED, SIM_FIELDS, STAGE_SET, CurriculumConfig, TrainConfig, nest_sim, to_dict
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -66,7 +66,6 @@ SET_BY_REPRODUCE = {
     "device": "cpu", "torch_threads": 1, "progress": False, "transfer_offsets": (),
     "fresh_eval_episodes": 0, "fresh_eval_seed": 777,
 }  # fmt: skip
-STAGE_SET = ("agents", "updates", "target_success", "min_updates")  # a curriculum's stages set them
 BASELINE_SET = ("seed", "out", "device", "threads", "eval_episodes")  # (eval_episodes: final_episodes)
 
 

@@ -101,12 +101,15 @@ def _schema(config_type, brief: bool = False):
     """What tyro parses ``swarm train`` / ``swarm curriculum`` into: a dict of the options given,
     the groups of GROUPS nested in it (and model, ppo). ``brief``: without ADVANCED, for
     ``--help`` (those options are then neither listed nor parsed)."""
-    from trainer.config import PRESETS, PPOConfig
+    from trainer.config import PRESETS, STAGE_SET, PPOConfig
     from trainer.model import ModelConfig
 
     configs = {p: config_type.with_preset(p) for p in PRESETS}
     fields = _options(config_type, lambda name: {p: getattr(c, name) for p, c in configs.items()})
-    if not hasattr(config_type, "sizes"):  # (a curriculum resumes by its own command)
+    if hasattr(config_type, "sizes"):  # (a curriculum's stages set these; it resumes by its own command)
+        for name in (*STAGE_SET, "team_sizes"):
+            del fields[name]
+    else:
         fields["resume"] = RESUME
     top, named = {}, {name for _, names in GROUPS.values() for name in names.split()}
     for title, (about, names) in [*GROUPS.items(), ("other", ("", " ".join(fields)))]:
@@ -134,9 +137,10 @@ def given_options(argv: list[str], prog: str, config_type) -> dict:
     from trainer.config import DEFAULT_PRESET, PRESETS
 
     others = ", ".join(p for p in PRESETS if p != DEFAULT_PRESET)
+    staged = hasattr(config_type, "sizes")  # (a curriculum's stages set --updates)
     description = (
-        f"{prog}: --updates and the --ppo options not given take the preset's values (shown: --preset "
-        f"{DEFAULT_PRESET}'s, then {others} where they differ); an option given wins over the preset."
+        f"{prog}: {'' if staged else '--updates and '}the --ppo options not given take the preset's values "
+        f"(shown: --preset {DEFAULT_PRESET}'s, then {others} where they differ); an option given wins over the preset."
     )
     # --help shows the options a run is changed by first; --help-all every one (network, PPO, compute)
     brief = any(a in ("-h", "--help") for a in argv) and "--help-all" not in argv

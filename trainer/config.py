@@ -359,13 +359,19 @@ class TrainConfig:
         return self.run_dir or f"runs/{s.task}-m{s.agents}-{s.comm}-s{self.seed}"
 
 
+# What a curriculum's stages set (each stage's team size, budget and stopping rule): not options
+# of ``swarm curriculum`` or keys of a spec's curriculum cell; team_sizes, several sizes in one
+# stage, cannot go with one.
+STAGE_SET = ("agents", "updates", "target_success", "min_updates")
+
+
 @dataclass
 class CurriculumConfig(TrainConfig):
     """``swarm curriculum``: train stage by stage over team sizes, each stage from the last
     stage's weights (fresh optimiser and reward normaliser), moving on once a greedy
     evaluation of at least 200 episodes reaches ``threshold`` (docs/PAPER.md s.6). Every
-    option of ``swarm train`` applies to every stage, except ``agents``, ``updates`` and
-    ``target_success`` and ``min_updates``, which the stages set. The run directory (default
+    option of ``swarm train`` applies to every stage, except those the stages set (STAGE_SET)
+    and ``team_sizes``. The run directory (default
     runs/curriculum-<task>-<comm>-s<seed>) holds curriculum.json and one stage-m<M>/ run
     per stage; the same command again resumes where it stopped."""
 

@@ -205,7 +205,7 @@ def test_cli_train_eval_zero_shot_curriculum_plot(tmp_path):
         "cur",
         "--fresh-eval-episodes",
         "6",
-        *common,
+        *common[2:],  # (the stages set --updates)
     ]
     r = swarm(*curriculum, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
