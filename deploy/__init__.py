@@ -11,7 +11,7 @@
     swarm world --export DIR         such processes, over Zenoh (deploy/net/, docs/DEPLOY.md); a radio
                                      policy's agent runs its side of the auction (deploy/radio.py)
 
-(the commands live in swarm_cli/deploy.py; ``swarm bench deploy`` in swarm_cli/bench_deploy.py)
+(the commands live in swarm_cli/deploy.py; its latency benchmark in benchmarks/deploy.py)
 
 Nothing in this package imports torch at import time; only deploy.export does, and
 the commands import it lazily.

@@ -30,7 +30,6 @@ COMMANDS = {
     "replay": ("swarm_cli.deploy:replay_main", "play back or inspect a Rerun recording"),
     "agent": ("swarm_cli.net:agent_main", "run one agent of an export as its own process, over Zenoh"),
     "world": ("swarm_cli.net:world_main", "run the simulator as the world of agent processes (--spawn-agents)"),
-    "bench": ("swarm_cli.bench:main", "benchmarks: sim | train | deploy"),
 }
 
 
@@ -89,7 +88,7 @@ def dispatch(prog: str, commands: dict, argv: list[str]) -> int:
             where = f" ({exc.filename})" if exc.filename else ""
             print(f"{prog} {name}: error: {exc.strerror or exc}{where}", file=sys.stderr)
             code = 1
-        except ValueError as exc:  # a refused input a command did not catch itself (bench's): one line too
+        except ValueError as exc:  # a refused input a command did not catch itself: one line too
             print(f"{prog} {name}: error: {exc}", file=sys.stderr)
             code = 2
     if received:  # the command took the Ctrl-C path because of SIGTERM: the shell's 128 + 15

@@ -18,7 +18,6 @@ sys.path.insert(0, ROOT)
 
 DOC = os.path.join(ROOT, "docs", "CLI.md")
 WIDTH = "100"  # the terminal width the help texts are laid out for (tyro and argparse read COLUMNS)
-BENCH = ("sim", "train", "deploy")
 
 
 # every option of these (their --help shows the first screen only)
@@ -39,7 +38,6 @@ def help_text(argv: list[str]) -> str:
 def render() -> str:
     from swarm_cli.main import COMMANDS
 
-    commands = [[name] for name in COMMANDS if name != "bench"] + [["bench", b] for b in BENCH]
     parts = [
         "# Command reference",
         "",
@@ -49,11 +47,10 @@ def render() -> str:
         "`--ppo` options, then the other presets' where they differ.",
         "",
     ]
-    parts += [f"- [`swarm {' '.join(c)}`](#swarm-{'-'.join(c)})" for c in commands]
+    parts += [f"- [`swarm {name}`](#swarm-{name})" for name in COMMANDS]
     parts.append("")
-    for c in commands:
-        what = COMMANDS[c[0]][1] if len(c) == 1 else f"benchmark: {c[1]}"
-        parts += [f"## swarm {' '.join(c)}", "", what, "", "```text", help_text(c), "```", ""]
+    for name, (_, what) in COMMANDS.items():
+        parts += [f"## swarm {name}", "", what, "", "```text", help_text([name]), "```", ""]
     return "\n".join(parts)
 
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The prepared GPU check (issue: training throughput, GPU): in under 8 minutes on one
-# GPU, run the CUDA tests, `swarm bench train` on CUDA (env steps/s) and the large-team
+# GPU, run the CUDA tests, benchmarks/train.py on CUDA (env steps/s) and the large-team
 # simulator benchmark (agent-steps/s at M = 10 to 10,000).
 #
 #   tools/gpu_check.sh              # run it (needs the project installed with a CUDA torch)
@@ -64,7 +64,7 @@ run nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheade
 run env TAICHI_SWARM_TEST_ARCH=cuda "$python" -m pytest -q -p no:cacheprovider -o addopts= tests/test_taichi_swarm/test_cuda.py
 for m in $agents; do
     # shellcheck disable=SC2086  # precisions is a list
-    run "$python" -m swarm_cli bench train --device cuda --arch cuda --presets gpu --threads 1 --agents "$m" \
+    run "$python" benchmarks/train.py --device cuda --arch cuda --presets gpu --threads 1 --agents "$m" \
         --updates "$updates" --num-envs "$num_envs" --no-compile --precisions $precisions
 done
 # large teams on CUDA: simulator cost per agent-step at M = 10 / 100 / 1000 (10,000 agents per
@@ -72,7 +72,7 @@ done
 # "wide" rows, CUDA's default), and one environment of M = 10,000 (docs/SWARM.md). Not the
 # exact assignment: one GPU thread solving a team's M x M problem took 5.5 s a step at M = 1000
 # on an H200
-run "$python" tools/bench_swarm.py --arch cuda --seconds 1 --skip-dense-large --layouts dense "lists K=16 free" \
+run "$python" benchmarks/swarm.py --arch cuda --seconds 1 --skip-dense-large --layouts dense "lists K=16 free" \
     "lists K=16 free wide" "lists KL=16 free" "lists KL=16 free wide"
 if [ "$train_seconds" -gt 0 ]; then
     # SIGINT at the limit: the trainer saves its checkpoint and exits 130 (not a failure

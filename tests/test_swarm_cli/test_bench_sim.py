@@ -1,4 +1,5 @@
-"""`swarm bench sim` in a tiny configuration, and the NumPy baseline equal to the Taichi step."""
+"""The benchmarks (benchmarks/, run from the checkout): the simulator's in a tiny configuration,
+the NumPy baseline equal to the Taichi step, their options refused in one line, the GPU scripts."""
 
 import json
 import os
@@ -7,9 +8,8 @@ import numpy as np
 import pytest
 
 import taichi_swarm
-from swarm_cli import bench as bench_cli
-from swarm_cli import bench_sim
-from taichi_swarm import numpy_step
+from benchmarks import numpy_step
+from benchmarks import sim as bench_sim
 
 MEASURED = ("taichi", "taichi-np", "numpy", "numpy-phys")
 
@@ -80,16 +80,40 @@ def test_ratio_to_vmas_is_paired_round_by_round():
     assert checks["taichi >= 10x vmas"]["detail"].startswith("10.00x")
 
 
-def test_cli_runs_and_rejects_bad_arguments(capsys):
-    assert bench_cli.main(["sim", "--batch-sizes", "4", "--agents", "2", "--steps", "2", "--no-vmas"]) == 0
-    assert "taichi" in capsys.readouterr().out
-    for bad in (["sim", "--batch-sizes", "0"], ["sim", "--agents", "x"], ["sim", "--seconds", "-1"]):
-        assert bench_cli.main(bad) == 2
-    assert bench_cli.main(["nope"]) == 2
-    from swarm_cli.main import dispatch  # the lazy import shared by `swarm` and `swarm bench`
+def bench(module, argv: list[str]) -> int:
+    """A benchmark's main(argv): its exit status, a refused option's SystemExit(2) included."""
+    try:
+        return module.main(argv)
+    except SystemExit as exc:
+        return exc.code
 
-    assert dispatch("swarm bench", {"train": ("trainer.no_such_bench_module:main", "")}, ["train"]) == 2
-    assert "cannot import trainer.no_such_bench_module" in capsys.readouterr().err
+
+def test_cli_runs_and_rejects_bad_arguments(capsys):
+    from benchmarks import deploy, train
+
+    assert bench_sim.main(["--batch-sizes", "4", "--agents", "2", "--steps", "2", "--no-vmas"]) == 0
+    assert "taichi" in capsys.readouterr().out
+    refusals = [
+        (bench_sim, ["--batch-sizes", "0"], "--batch-sizes must be >= 1"),
+        (bench_sim, ["--agents", "x"], "--agents"),
+        (bench_sim, ["--seconds", "-1"], "--seconds must be a positive finite number"),
+        (bench_sim, ["--batch-sizes"], "needs at least one value"),  # not "every size"
+        (train, ["--threads"], "needs at least one value"),
+        (train, ["--minibatches", "0"], "--minibatches must be >= 1"),
+        (train, ["--device", "foo"], "device must be cpu, cuda or auto"),  # a ValueError of the benchmark
+        (deploy, ["--repeats", "0"], "--repeats must be >= 1"),
+        (deploy, ["--checkpoint", "no/such.pt"], "does not exist"),
+    ]
+    for option in ("--agents", "--updates", "--threads", "--num-envs"):  # nan, inf, negative never run
+        refusals += [(train, ["--presets", "paper", option, v], option) for v in ("nan", "-inf", "-1", "0", "abc")]
+    for module, argv, says in refusals:
+        assert bench(module, argv) == 2, argv
+        err = capsys.readouterr().err
+        assert says in " ".join(err.split()) and "error" in err and "Traceback" not in err, (argv, err)
+    from swarm_cli.main import dispatch  # the lazy import of `swarm`'s subcommands
+
+    assert dispatch("swarm", {"x": ("trainer.no_such_module:main", "")}, ["x"]) == 2
+    assert "cannot import trainer.no_such_module" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("M", [1, 3, 10])
@@ -143,21 +167,18 @@ def test_gpu_check_script_arguments():
     assert r.returncode == 0, r.stderr
     lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
     assert any("tests/test_taichi_swarm/test_cuda.py" in x for x in lines)
-    bench = [x for x in lines if "bench train" in x]
+    bench = [x for x in lines if "benchmarks/train.py" in x]
     assert len(bench) == 2 and "--agents 3" in bench[0] and "--agents 5" in bench[1] and "--device cuda" in bench[0]
     assert not any("swarm_cli train" in x for x in lines)  # no training unless asked
-    assert any("tools/bench_swarm.py --arch cuda" in x for x in lines)  # large teams on CUDA
-    # the layouts it names are bench_swarm's (the dry run drops their quotes: read the script)
-    import importlib.util
+    assert any("benchmarks/swarm.py --arch cuda" in x for x in lines)  # large teams on CUDA
+    # the layouts it names are benchmarks/swarm.py's (the dry run drops their quotes: read the script)
     import shlex
 
+    from benchmarks import swarm as bench_swarm
+
     text = open(script).read().replace("\\\n", " ")
-    call = next(x for x in text.splitlines() if "tools/bench_swarm.py --arch cuda" in x)
+    call = next(x for x in text.splitlines() if "benchmarks/swarm.py --arch cuda" in x)
     layouts = shlex.split(call.split("--layouts", 1)[1])
-    path = os.path.join(os.path.dirname(script), "bench_swarm.py")
-    spec = importlib.util.spec_from_file_location("bench_swarm", path)
-    bench_swarm = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench_swarm)
     names = [name for name, _ in bench_swarm.LAYOUTS]
     assert "lists KL=16 free wide" in layouts and set(layouts) <= set(names), layouts
     r = subprocess.run(
@@ -167,7 +188,7 @@ def test_gpu_check_script_arguments():
     )
     assert r.returncode == 0, r.stderr
     lines = [x for x in r.stdout.splitlines() if x.startswith("+ ")]
-    bench = [x for x in lines if "bench train" in x]
+    bench = [x for x in lines if "benchmarks/train.py" in x]
     assert len(bench) == 2 and all("--precisions bf16" in x for x in bench)
     assert any(x.startswith("+ timeout --preserve-status -k 60 -s INT 60 python3 -m swarm_cli train") for x in lines)
     bad_args = (["--agents", "0"], ["--bogus"], ["--updates", "x"], ["--precisions", "fp16"], ["--precisions", " "])
@@ -178,7 +199,7 @@ def test_gpu_check_script_arguments():
 
 def test_bench_train_measures_a_preset_with_overrides():
     """One timed update on the CPU with --num-envs and --minibatches overriding the preset."""
-    from swarm_cli.bench_train import measure
+    from benchmarks.train import measure
 
     row = measure("fast", "coverage", 3, 1, 1, num_envs=8, compile=False, minibatches=2)
     assert row["minibatches"] == 2 and row["agent_samples_per_update"] == 8 * 32 * 3

@@ -39,12 +39,12 @@ def _blocks(text: str) -> list[str]:
 
 def command_lines(prefix: str) -> list[tuple[str, list[str]]]:
     """(doc, argv) of every line starting with ``prefix`` in a bash block of a doc, and of every
-    inline `swarm ...` / `python tools/...` span (commands chained with && are split)."""
+    inline `swarm ...` / `python tools/...` / `python benchmarks/...` span (commands chained with && are split)."""
     lines = []
     for doc in DOCS:
         text = open(os.path.join(ROOT, doc)).read()
         candidates = [line for block in _blocks(text) for line in block.splitlines()]
-        candidates += re.findall(r"`((?:swarm|python tools/)[^`]*)`", text)
+        candidates += re.findall(r"`((?:swarm|python tools/|python benchmarks/)[^`]*)`", text)
         for line in candidates:
             for part in line.split("&&"):
                 part = part.split("  #")[0].strip()
@@ -119,11 +119,10 @@ def test_doc_swarm_command(item):
             assert os.path.exists(os.path.join(ROOT, token)) or "--gif" in argv or "--out" in argv, token
         if re.fullmatch(r"(coverage|formation|line)-(uc|rc)-m\d+(-\w+)?", token):
             assert token in names, f"{doc}: {token} is not a zoo entry"
-    sub = argv[1:3] if argv[1] == "bench" and len(argv) > 2 else argv[1:2]
     options = {t.split("=")[0] for t in argv[2:] if t.startswith("--")}
     if options:
-        unknown = sorted(options - swarm_options(tuple(sub)))
-        assert not unknown, f"{doc}: swarm {' '.join(sub)} --help does not list {', '.join(unknown)}"
+        unknown = sorted(options - swarm_options((argv[1],)))
+        assert not unknown, f"{doc}: swarm {argv[1]} --help does not list {', '.join(unknown)}"
 
 
 # the repository's own top-level packages (a folder of the root with Python files; trainer/ is a
@@ -137,12 +136,12 @@ PROJECT_PACKAGES = frozenset(
 
 @functools.cache
 def tool_help(script: str) -> subprocess.CompletedProcess:
-    """``python tools/X.py --help``, run once per tool (its own process: a tool may import
-    what the suite's process should not)."""
+    """``python tools/X.py --help`` (or benchmarks/X.py), run once per script (its own process: a
+    script may import what the suite's process should not)."""
     return subprocess.run([sys.executable, script, "--help"], capture_output=True, text=True, cwd=ROOT)
 
 
-@pytest.mark.parametrize("item", command_lines("python tools/"), ids=_id)
+@pytest.mark.parametrize("item", command_lines("python tools/") + command_lines("python benchmarks/"), ids=_id)
 def test_doc_tool_command(item):
     doc, argv = item
     script = os.path.join(ROOT, argv[1])

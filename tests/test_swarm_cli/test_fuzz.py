@@ -124,10 +124,6 @@ def test_cli_fuzz(tiny_policy):
         ),
         "import": ([path, "--out", str(d / "x.pt")], ["--comm-radius", "--task", "--comm"]),
         "replay": ([path, "--stats"], ["--port"]),
-        "bench": (
-            ["train", "--updates", "1", "--presets", "paper"],
-            ["--agents", "--updates", "--threads", "--task", "--num-envs"],
-        ),
     }
     # options whose value must be a finite number in a range: nan/inf/negative must never run
     numeric = {
@@ -154,8 +150,6 @@ def test_cli_fuzz(tiny_policy):
         option = rng.choice(options)
         value = rng.choice([str(x) for x in BAD_NUMBERS] + BAD_TEXT)
         argv = [command, *base, option, value]
-        if command == "bench" and value not in ("nan", "inf", "-inf", "-1", "0", "", "abc", "3;rm", "\x00"):
-            continue  # a valid bench would run a real benchmark ("None" is valid: an optional option left unset)
         out, err = io.StringIO(), io.StringIO()
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:

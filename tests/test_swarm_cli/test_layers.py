@@ -28,7 +28,7 @@ def imported_packages(path: str) -> set[str]:
             names |= {a.name.split(".")[0] for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             names.add(node.module.split(".")[0])
-    return names & set(PACKAGES)
+    return names & {*PACKAGES, "benchmarks"}  # (benchmarks/ is not installed: no package may import it)
 
 
 def modules():
@@ -80,12 +80,10 @@ def test_every_command_option_has_help(monkeypatch):
         return action
 
     monkeypatch.setattr(argparse.ArgumentParser, "add_argument", recording)
-    for name, (target, _) in COMMANDS.items():
+    for target, _ in COMMANDS.values():
         module, func = target.split(":")
-        argvs = [["sim", "--help"], ["train", "--help"], ["deploy", "--help"]] if name == "bench" else [["--help"]]
-        for argv in argvs:
-            try:
-                getattr(importlib.import_module(module), func)(argv)
-            except SystemExit:
-                pass
+        try:
+            getattr(importlib.import_module(module), func)(["--help"])
+        except SystemExit:
+            pass
     assert not missing, missing

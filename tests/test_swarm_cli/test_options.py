@@ -14,8 +14,6 @@ from swarm_cli.main import main as swarm
         ["reproduce", "--cells"],  # an empty selection must not mean "every cell"
         ["reproduce", "--tables"],
         ["execute", "somewhere", "--drop"],
-        ["bench", "train", "--threads"],
-        ["bench", "sim", "--batch-sizes"],
         ["zero-shot", "x.pt", "--sizes"],
     ],
 )
@@ -30,7 +28,6 @@ def test_a_list_option_without_values_is_refused(argv, capsys):
         (["eval", "x.pt", "--episodes", "0"], "--episodes must be >= 1"),
         (["eval", "x.pt", "--record-envs", "0"], "--record-envs must be >= 1"),
         (["execute", "d", "--threads", "0"], "--threads must be >= 1"),
-        (["bench", "train", "--minibatches", "0"], "--minibatches must be >= 1"),
         (["eval", "x.pt", "--comm-radius", "-1"], "--comm-radius must be >= 0"),
         (["eval", "x.pt", "--comm", "xx"], "--comm"),
         (["replay", "f.rrd", "--port", "70000"], "--port must be in 1..65535"),

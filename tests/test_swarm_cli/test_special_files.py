@@ -38,11 +38,12 @@ def no_hang(seconds: int = 120):
         signal.signal(signal.SIGALRM, previous)
 
 
-def refused(argv: list[str], *words: str) -> str:
-    """``swarm argv`` exits 2 with one error line holding ``words``; no traceback."""
+def refused(argv: list[str], *words: str, command=swarm) -> str:
+    """``command argv`` (``swarm``, or a benchmark's main) exits 2 with one error line holding
+    ``words``; no traceback."""
     out, err = io.StringIO(), io.StringIO()
     with no_hang(), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        code = swarm(argv)
+        code = command(argv)
     lines = [line for line in err.getvalue().splitlines() if line.strip() and not line.startswith("[Taichi]")]
     assert code == 2, f"{argv} exited {code}: {err.getvalue()[-600:]}"
     assert len(lines) == 1 and "error:" in lines[0], f"{argv}: {lines}"
@@ -133,11 +134,14 @@ def test_fifo_empty_and_dirless_outputs_are_refused_and_left_alone(policy, expor
         (["execute", exported, "--episodes", "1", "--record", ""], "--record"),
         (["plot", str(run), "--out", pipe], "--out"),
         (["plot", "--zero-shot", str(zero_shot), "--out", pipe], "--out"),
-        (["bench", "sim", "--quick", "--json", pipe], "--json"),
-        (["bench", "sim", "--quick", "--json", ""], "--json"),
     ):
         refused(argv, option)
         assert is_fifo(pipe), argv
+    from benchmarks.sim import main as bench_sim
+
+    for out in (pipe, ""):
+        refused(["--quick", "--json", out], "--json", command=bench_sim)
+        assert is_fifo(pipe)
     assert sorted(os.listdir(tmp_path)) == ["out", "run", "zs.json"]
     assert os.listdir(run) == ["metrics.jsonl"]
 

@@ -1,6 +1,6 @@
-"""The coverage step in plain NumPy, batched over environments: the baseline of ``swarm bench sim``.
+"""The coverage step in plain NumPy, batched over environments: the baseline of ``benchmarks/sim.py``.
 
-The same step as the fused Taichi kernel (kernels.py; docs/PAPER.md
+The same step as the fused Taichi kernel (taichi_swarm/kernels.py; docs/PAPER.md
 sections 1-3) for the coverage task, written as whole-batch array expressions:
 action forces, MPE contact forces, semi-implicit Euler, the communication graph,
 the observations, the team reward from an exact optimal assignment, success,
@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .physics import CONTACT_FORCE, CONTACT_MARGIN, DAMPING, DT, MASS, SENSITIVITY
-from .tasks import TASK_SPECS
+from taichi_swarm.physics import CONTACT_FORCE, CONTACT_MARGIN, DAMPING, DT, MASS, SENSITIVITY
+from taichi_swarm.tasks import TASK_SPECS
 
 # Unit direction of each discrete action (0 no-op, 1 -x, 2 +x, 3 -y, 4 +y): [5, 2]
 ACTION_DIRS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], dtype=np.float32)

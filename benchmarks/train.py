@@ -1,4 +1,6 @@
-"""``swarm bench train``: env steps/s of the whole PPO cycle and where the time goes.
+"""Training throughput: env steps/s of the whole PPO cycle and where the time goes.
+
+    python benchmarks/train.py [options]      # --help: the options
 
 Runs a few updates of each preset side by side (same task, team size and
 machine, one process) and prints env steps/s, the share of wall time spent in
@@ -12,13 +14,56 @@ import contextlib
 import io
 import os
 import shutil
+import sys
 import tempfile
+from dataclasses import dataclass
+from typing import Annotated, Literal
 
-from swarm_cli.options import BenchTrainOptions, fail, parse
+# run from the checkout: its root ahead of benchmarks/ (whose deploy.py would hide the deploy package)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")  # as `swarm` does: the output is the benchmark's
+
+from swarm_cli.options import Arch, Default, at_least, fail, parse
 from trainer.config import PRESETS, TrainConfig
 from trainer.train import train
 
 CPU_MAX_ENVS = 256  # presets with more environments are for a GPU
+PROG = "benchmarks/train.py"
+
+
+@dataclass(kw_only=True)
+class BenchTrainOptions:
+    """env steps/s of the whole PPO cycle and where the time goes, for each preset and
+    thread count side by side in one process."""
+
+    task: str = "coverage"
+    """task of the timed updates"""
+    agents: int = 3
+    """team size M"""
+    updates: int = 3
+    """timed updates per row (after one warm-up)"""
+    presets: Annotated[tuple[str, ...] | None, Default("every preset of trainer.config.PRESETS")] = None
+    """PPO presets, one row each"""
+    threads: tuple[int, ...] = (1, 2)
+    """torch threads of the update, one row each"""
+    device: str = "cpu"
+    """where the network runs: cpu | cuda | auto"""
+    arch: Arch = "cpu"
+    """where the simulator runs"""
+    num_envs: int | None = None
+    """override the preset's environments per rollout"""
+    minibatches: int | None = None
+    """override the preset's minibatches per epoch"""
+    compile: bool = True
+    """torch.compile the update (--no-compile: eager)"""
+    precisions: tuple[Literal["fp32", "bf16"], ...] = ("fp32",)
+    """arithmetic of the update, one row each (bf16: autocast, TrainConfig.precision)"""
+
+    def __post_init__(self):
+        for name in ("agents", "updates", "num_envs", "minibatches"):
+            at_least(getattr(self, name), 1, name.replace("_", "-"))
+        for t in self.threads:
+            at_least(t, 1, "threads")
 
 
 def default_presets(device: str) -> tuple[str, ...]:
@@ -140,10 +185,13 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse(BenchTrainOptions, argv, "swarm bench train", description=__doc__)
+    args = parse(BenchTrainOptions, sys.argv[1:] if argv is None else argv, PROG, description=__doc__)
     from trainer.train import resolve_device
 
-    device = resolve_device(args.device)
+    try:
+        device = resolve_device(args.device)
+    except ValueError as exc:
+        return fail(PROG, exc)
     presets = args.presets or default_presets(device)
     skipped = [p for p in PRESETS if p not in presets and not args.presets]
     import taichi_swarm
@@ -154,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.task not in taichi_swarm.TASKS:
         problems.append(f"--task must be one of {taichi_swarm.TASKS}, got {args.task!r}")
     if problems:
-        return fail("swarm bench train", "; ".join(problems))
+        return fail(PROG, "; ".join(problems))
     if skipped:
         print(f"(not run on {device}: --presets {' '.join(skipped)}, the GPU presets; name them to run them)")
     combos = [(p, t, x) for p in presets for t in args.threads for x in args.precisions]
@@ -170,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
             )  # fmt: skip
         except KeyboardInterrupt:
-            print("swarm bench train: stopped (nothing to resume: a benchmark starts afresh)")
+            print(f"{PROG}: stopped (nothing to resume: a benchmark starts afresh)")
             raise
     if device.startswith("cuda"):  # one GPU peak; torch's CPU threads do not change it
         gpu_peak = sgemm_peak(1, 4096, device=device)
@@ -197,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(
         "agent-samples/s: agent samples through forward+backward in the update; GFLOP/s: the GEMM and "
-        "attention FLOPs of the fused network (swarm_cli.bench_train.forward_flops, backward = 2x forward) per "
+        "attention FLOPs of the fused network (benchmarks/train.py: forward_flops, backward = 2x forward) per "
         "second of update; " + peak_text
     )
     base = {p: rows[[r["preset"] for r in rows].index(p)] for p in presets}  # fewest threads, first precision
@@ -209,3 +257,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{r['env_steps_per_s'] / b['env_steps_per_s']:.2f}x env steps/s"
             )
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -10,13 +10,13 @@ Prints ns per agent-step, the ratio to M = 10 of the same layout, and the first 
 reset + one step: compiling, unless cached; ``--cold`` compiles into a fresh cache directory);
 ``--policy NAME`` also the policy's forward per agent at each size.
 
-    python tools/bench_swarm.py            # about 2-5 minutes on 2 CPU cores
-    python tools/bench_swarm.py --cold --seconds 1
-    python tools/bench_swarm.py --arch cuda       # the GPU (torch tensors on the device)
-    python tools/bench_swarm.py --layouts "lists K=16" "lists K=16 free" "lists KL=16 free"
-    python tools/bench_swarm.py --layouts "lists KL=16 free" --skip-10k --vmas 10 100   # pip install vmas
-    python tools/bench_swarm.py --arch cuda --layouts "lists KL=16 free" "lists KL=16 free wide"
-    python tools/bench_swarm.py --layouts "radio lists R=8" --policy coverage-rc-m100-radio   # the radio's cost
+    python benchmarks/swarm.py            # about 2-5 minutes on 2 CPU cores
+    python benchmarks/swarm.py --cold --seconds 1
+    python benchmarks/swarm.py --arch cuda       # the GPU (torch tensors on the device)
+    python benchmarks/swarm.py --layouts "lists K=16" "lists K=16 free" "lists KL=16 free"
+    python benchmarks/swarm.py --layouts "lists KL=16 free" --skip-10k --vmas 10 100   # pip install vmas
+    python benchmarks/swarm.py --arch cuda --layouts "lists KL=16 free" "lists KL=16 free wide"
+    python benchmarks/swarm.py --layouts "radio lists R=8" --policy coverage-rc-m100-radio   # the radio's cost
 
 A layout ending in "wide" steps every agent in parallel (``agent_parallel=True``, the default
 on CUDA); the others pin one thread per environment, so a pair of them is an A/B in one run
@@ -27,8 +27,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
+
+# run from the checkout: its root ahead of benchmarks/ (whose deploy.py would hide the deploy package)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np
 

@@ -1,7 +1,7 @@
 """Paired A/B timing of two versions of the trainer: PPO updates timed in alternation.
 
     git worktree add /tmp/old <commit>          # the version to compare against
-    python tools/bench_train_ab.py /tmp/old . --cells paper:3 paper:10 fast:3 fast:10
+    python benchmarks/train_ab.py /tmp/old . --cells paper:3 paper:10 fast:3 fast:10
 
 Each directory must hold the ``trainer`` and ``taichi_swarm`` packages. One worker
 process per version imports its own tree and runs ``train`` with a callback that

@@ -1,5 +1,7 @@
-"""``swarm bench deploy``: per-agent decision latency, onnxruntime vs torch eager; and the
+"""Deployment latency: per-agent decision latency, onnxruntime vs torch eager; and the
 executor's shared sessions vs one set of sessions per agent.
+
+    python benchmarks/deploy.py [options]     # --help: the options
 
 One agent's decision at batch 1: encode (own state, L landmark offsets) + K
 communication rounds over n messages heard (its own included) + heads, i.e.
@@ -22,12 +24,44 @@ import platform
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
+from typing import Annotated
+
+# run from the checkout: its root ahead of benchmarks/ (whose deploy.py would hide the deploy package)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")  # as `swarm` does: the output is the benchmark's
 
 import numpy as np
 
-from swarm_cli.options import BenchDeployOptions, fail, parse
+from swarm_cli.options import Default, at_least, fail, parse
 
 TARGET_MS = 0.3
+PROG = "benchmarks/deploy.py"
+
+
+@dataclass(kw_only=True)
+class BenchDeployOptions:
+    """Per-agent decision latency (onnxruntime against torch eager) and the executor's shared
+    sessions against per-agent sessions."""
+
+    checkpoint: Annotated[str | None, Default("a random-init policy")] = None
+    """a checkpoint to time"""
+    agents: int = 5
+    """team size M: the agent hears M - 1 others"""
+    landmarks: Annotated[int | None, Default("M, as in coverage")] = None
+    """L"""
+    repeats: int = 3000
+    """timed agent-steps per backend"""
+    envs: int = 20
+    """teams B of the executor comparison (B x M agents)"""
+    steps: int = 20
+    """timed executor decision steps per variant"""
+    json: str | None = None
+    """also write the result to this JSON file"""
+
+    def __post_init__(self):
+        for name in ("agents", "landmarks", "repeats", "envs", "steps"):
+            at_least(getattr(self, name), 1, name)
 
 
 def _interleaved_median_ms(fns, repeats: int, warmup: int, block: int = 100) -> list[float]:
@@ -257,11 +291,10 @@ def _format_executor(e: dict) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``swarm bench deploy``; returns 0 (the verdicts are printed, not the exit code); a
-    refused option raises SystemExit(2)."""
-    args = parse(BenchDeployOptions, argv, "swarm bench deploy")
+    """Returns 0 (the verdicts are printed, not the exit code); a refused option raises SystemExit(2)."""
+    args = parse(BenchDeployOptions, sys.argv[1:] if argv is None else argv, PROG)
     if args.checkpoint is not None and not os.path.exists(args.checkpoint):
-        return fail("swarm bench deploy", f"checkpoint {args.checkpoint} does not exist")
+        return fail(PROG, f"checkpoint {args.checkpoint} does not exist")
     from trainer.checkpoint import CheckpointError
 
     try:
@@ -274,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
             envs=args.envs, steps=args.steps,
         )  # fmt: skip
     except (CheckpointError, ValueError) as exc:
-        return fail("swarm bench deploy", exc)
+        return fail(PROG, exc)
     print(format_result(result))
     if args.json:
         from taichi_swarm.files import atomic_write_json

@@ -1,11 +1,13 @@
-"""``swarm bench sim``: simulator throughput, every implementation side by side in one process.
+"""Simulator throughput, every implementation side by side in one process.
+
+    python benchmarks/sim.py [options]        # --help: the options
 
 Implementations (coverage / simple_spread, random discrete actions pre-generated):
   taichi      taichi_swarm full step, array="torch", torch int64 actions
   taichi-np   the same env with array="numpy" and numpy actions
   vmas        VMAS ``simple_spread`` (its own 9 discrete actions per agent; no
               episode end, so never resets), a list of per-agent action tensors
-  numpy       numpy_step.NumpyCoverage, the full step including the exact assignment
+  numpy       benchmarks/numpy_step.py's NumpyCoverage, the full step including the exact assignment
               (scipy, a Python loop over the B environments)
   numpy-phys  the same without the assignment (physics, graph, observations, resets)
 Each cell: every implementation is built and warmed up (Taichi compiles its kernels on
@@ -26,8 +28,15 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+
+# run from the checkout: its root ahead of benchmarks/ (whose deploy.py would hide the deploy package)
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")  # as `swarm` does: the output is the benchmark's
 
 import numpy as np
+
+from swarm_cli.options import Comm, at_least, fail, parse, positive
 
 IMPLS = ("taichi", "taichi-np", "vmas", "numpy", "numpy-phys")
 ACTION_SETS = 8  # distinct pre-generated action batches, cycled
@@ -38,8 +47,48 @@ COMM_RADIUS = 1.0
 # Targets: at B >= TARGET_BIG_B taichi >= 10x VMAS and >= 5 M agent-steps/s; at B = 32 <= 0.3 ms/step.
 TARGET_BIG_B, TARGET_VS_VMAS, TARGET_RATE = 1024, 10.0, 5e6
 TARGET_SMALL_B, TARGET_SMALL_MS = 32, 0.3
+QUICK_SECONDS = 0.25
+PROG = "benchmarks/sim.py"
 
 Step = Callable[[int], object]  # step(k): one step of the whole batch with action set k
+
+
+@dataclass(kw_only=True)
+class BenchSimOptions:
+    """Agent-steps/s of the taichi_swarm coverage step vs VMAS simple_spread vs plain NumPy,
+    measured side by side in one process; prints a table and the target checks."""
+
+    batch_sizes: tuple[int, ...] = (32, 1024, 8192)
+    """numbers of environments"""
+    agents: tuple[int, ...] = (3, 10)
+    """team sizes"""
+    vmas: bool = True
+    """time VMAS too (--no-vmas: leave it out, shown as skipped)"""
+    numpy: bool = True
+    """time the NumPy baselines too (--no-numpy: leave them out, shown as skipped)"""
+    torch_threads: int = 1
+    """torch.set_num_threads during the run (1: see docs/BENCHMARKS.md)"""
+    comm: Comm = "rc"
+    """communication graph of taichi and numpy: rc = from distances every step, uc = all"""
+    seconds: float = 1.5
+    """timed seconds per cell"""
+    steps: int | None = None
+    """a fixed number of timed steps per cell instead (in 5 chunks)"""
+    quick: bool = False
+    """0.25 s per cell instead of --seconds"""
+    json: str | None = None
+    """also write the rows and checks to this JSON file"""
+    serial_sweep: bool = False
+    """instead: time the Taichi step with a serial vs parallel env loop over small B"""
+
+    def __post_init__(self):
+        for b in self.batch_sizes:
+            at_least(b, 1, "batch-sizes")
+        for m in self.agents:
+            at_least(m, 1, "agents")
+        at_least(self.torch_threads, 1, "torch-threads")
+        positive(self.seconds, "seconds")
+        at_least(self.steps, 1, "steps")
 
 
 class Skip(Exception):
@@ -85,7 +134,7 @@ def _vmas(B: int, M: int) -> Step:
 
 
 def _numpy(B: int, M: int, comm: str, assign: bool) -> Step:
-    from taichi_swarm.numpy_step import NumpyCoverage
+    from benchmarks.numpy_step import NumpyCoverage
 
     env = NumpyCoverage(B, M, comm_radius=COMM_RADIUS if comm == "rc" else None, assign=assign, seed=0)
     rng = np.random.default_rng(0)
@@ -471,3 +520,35 @@ def serial_sweep(
             )
             out.append({"B": B, "M": M, "serial_ms": ms[False], "parallel_ms": ms[True], "env_parallel": picked})
     return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse, run, print; returns the exit status (a refused option raises SystemExit(2))."""
+    args = parse(BenchSimOptions, sys.argv[1:] if argv is None else argv, PROG)
+    if args.json is not None:  # ('' too: refused, not skipped)
+        from taichi_swarm.files import ensure_writable
+
+        try:
+            ensure_writable(args.json, "--json")  # before the benchmark, not after it
+        except ValueError as exc:
+            return fail(PROG, exc)
+    seconds = QUICK_SECONDS if args.quick else args.seconds
+    if args.serial_sweep:
+        serial_sweep(tuple(args.agents), seconds=seconds, comm=args.comm)
+        return 0
+    run(
+        batch_sizes=tuple(args.batch_sizes),
+        team_sizes=tuple(args.agents),
+        steps=args.steps,
+        seconds=seconds,
+        include_vmas=args.vmas,
+        include_numpy=args.numpy,
+        out_json=args.json,
+        torch_threads=args.torch_threads,
+        comm=args.comm,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
