@@ -42,8 +42,9 @@ from dataclasses import dataclass, field
 from baselines.config import SETTING as BASELINE_SETTING
 from baselines.config import BaselineConfig, parse_overrides
 from baselines.config import nest as nest_baseline
-from taichi_swarm import COMMS, TASK_SPECS, TASKS
+from taichi_swarm import TASK_SPECS
 from taichi_swarm.files import InputFileError, read_input_text
+from taichi_swarm.sim import Sim
 from trainer.config import PRESETS, RETIRED, SIM_FIELDS, STAGE_SET, CurriculumConfig, TrainConfig, nest_sim, to_dict
 
 if sys.version_info >= (3, 11):
@@ -204,10 +205,7 @@ class ZeroShot(_Evaluated):
 
     def __post_init__(self):
         super().__post_init__()
-        if self.task not in TASKS:
-            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
-        if self.comm not in COMMS:
-            raise ValueError(f"comm must be one of {COMMS}, got {self.comm!r}")
+        Sim(self.task, _min_agents(self.task), self.comm, self.comm_radius)  # the setting, by the Sim's own checks
         _check_sizes("sizes", self.sizes, self.task)
         if not self.source:
             raise ValueError("a zero-shot cell needs source (the id of the cell whose policy it evaluates)")

@@ -185,6 +185,11 @@ def test_selection_pulls_in_the_source_of_a_zero_shot_row():
         (lambda t: t.replace('preset = "fast"', 'preset = "papr"'), "preset must be one of"),
         (lambda t: t.replace("epochs = 1 }", "epochs = 1, epocs = 2 }"), r"ppo has unknown options \['epocs'\]"),
         (lambda t: t.replace('source = "train-cov"', 'source = "train-cov"\ncomm = "rc"'), "differ from its source"),
+        # a zero-shot row's setting, by the Sim's own checks
+        (
+            lambda t: t.replace('source = "train-cov"', 'source = "train-cov"\ncomm_radius = -1.0'),
+            "comm_radius must be >= 0",
+        ),
         (lambda t: t.replace('kind = "train"', 'kind = "baseline"\nalgorithm = "mappo"'), "needs frames"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = [0, 1]"), "small non-zero team-size"),
         (lambda t: t.replace("agents = 2", "agents = 2\ntransfer_offsets = 1"), "transfer_offsets must be a list"),
